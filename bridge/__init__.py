@@ -1,0 +1,3 @@
+"""bridge: the asyncio process (wiring, safety supervision, MCAP logging, resume, CLI)."""
+
+__all__: list[str] = []

@@ -1,0 +1,279 @@
+"""Stopping rules for the metabolic estimate of one setting (seed 000 §II.D, Algorithms 1 and 2).
+
+After every measurement i of a setting x_t the optimizer compares the estimate
+``N(μ_xt, σ²_xt)`` with the best setting so far ``N(μ_x*, σ²_x*)``: with ``μ = μ_xt − μ_x*`` and
+``σ² = σ²_xt + σ²_x*`` it stops as soon as ``μ > A_i·σ`` (the setting is confidently worse), or
+after the N-th measurement. :func:`threshold_schedule` computes the schedule A from the
+exploration traces (Algorithm 2); :class:`SigmaScaledRule` applies it (Algorithm 1, lines 13–20);
+:class:`FixedIntervalRule` never stops early (the fixed-interval baseline).
+
+Indices are 0-based: ``A[i]`` belongs to the (i+1)-th measurement, and ``i == N−1`` is the last.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+import operator
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+import numpy.typing as npt
+
+from hilbo_core.errors import ConfigError, MeasurementError
+
+__all__ = [
+    "FixedIntervalRule",
+    "SigmaScaledRule",
+    "StopDecision",
+    "StopReason",
+    "StoppingRule",
+    "threshold_schedule",
+]
+
+
+def _as_index(value: object, name: str) -> int:
+    """An integer (not bool) argument, else ConfigError."""
+    if isinstance(value, bool):
+        raise ConfigError(f"{name}={value!r} must be an integer, not a bool")
+    try:
+        return operator.index(value)  # type: ignore[arg-type]
+    except TypeError as err:
+        raise ConfigError(f"{name}={value!r} must be an integer") from err
+
+
+def _check_traces(name: str, arr: npt.NDArray[np.float64], positive: bool) -> None:
+    """Raise MeasurementError naming the first non-finite (or non-positive) entry of ``arr``."""
+    bad = ~np.isfinite(arr)
+    if positive:
+        bad |= ~(arr > 0.0)
+    if bad.any():
+        r, c = (int(k) for k in np.argwhere(bad)[0])
+        what = "a finite variance > 0" if positive else "finite"
+        raise MeasurementError(f"{name}[{r}, {c}]={float(arr[r, c])!r} must be {what}")
+
+
+def threshold_schedule(
+    M: npt.ArrayLike,  # the seed's name for the matrix of means
+    S: npt.ArrayLike,  # the seed's Σ
+    window: int,
+) -> npt.NDArray[np.float64]:
+    """Threshold schedule A from exploration traces (seed 000 Algorithm 2).
+
+    Each exploration point is treated as if its own final estimate were the best so far:
+    ``X_ij = (M_ij − M_iN) / sqrt(S_ij + S_iN)``, and ``A_i`` is the largest X over all rows and
+    over the columns ``i−W ≤ c ≤ i+W`` (clipped to the array) — the most risk-averse threshold
+    near measurement i. ``A[N−1] ≥ 0`` always, because column N−1 of X is zero.
+
+    Args:
+        M: Shape (n_explore, N): mean of the estimate after each measurement of each
+            exploration point.
+        S: Shape (n_explore, N): the matching variances (> 0).
+        window: W ≥ 0, in measurements (the seed's simulations use 2).
+
+    Returns:
+        A, shape (N,).
+
+    Raises:
+        ConfigError: Bad shapes or window.
+        MeasurementError: A non-finite mean, or a variance that is not finite and positive.
+    """
+    w = _as_index(window, "window")
+    if w < 0:
+        raise ConfigError(f"window={window!r} must be >= 0 measurements")
+    means = np.asarray(M, dtype=float)
+    variances = np.asarray(S, dtype=float)
+    if means.ndim != 2 or means.shape[0] < 1 or means.shape[1] < 1:
+        raise ConfigError(f"M must have shape (n_explore >= 1, N >= 1), got {means.shape}")
+    if variances.shape != means.shape:
+        raise ConfigError(f"S must have the shape of M {means.shape}, got {variances.shape}")
+    _check_traces("M", means, positive=False)
+    _check_traces("S", variances, positive=True)
+
+    # Algorithm 2, lines 4–10: standardised distance of every trace point from its final value.
+    x = (means - means[:, -1:]) / np.sqrt(variances + variances[:, -1:])
+    # Lines 11–13: max over rows, then a sliding max over columns i−W..i+W. A window wider than
+    # N−1 already covers every column, so clip it (keeps the padding small for any W).
+    col_max = x.max(axis=0)
+    n = col_max.shape[0]
+    w = min(w, n - 1)
+    padded = np.pad(col_max, w, mode="constant", constant_values=-np.inf)
+    return np.lib.stride_tricks.sliding_window_view(padded, 2 * w + 1).max(axis=1)
+
+
+class StopReason(enum.Enum):
+    """Why a rule decided as it did after a measurement."""
+
+    CONTINUE = "continue"
+    THRESHOLD = "threshold"
+    MAX_MEASUREMENTS = "max_measurements"
+
+
+@dataclass(frozen=True)
+class StopDecision:
+    """A stopping rule's decision after one measurement.
+
+    Attributes:
+        stop: True to stop measuring this setting now.
+        reason: CONTINUE, THRESHOLD (confidently worse than the best) or MAX_MEASUREMENTS.
+        index: 0-based measurement index i within the evaluation.
+        z: μ/σ, the standardised difference from the best setting (positive = worse).
+        threshold: A_i used at this index, or None for a rule without thresholds.
+    """
+
+    stop: bool
+    reason: StopReason
+    index: int
+    z: float
+    threshold: float | None
+
+
+@runtime_checkable
+class StoppingRule(Protocol):
+    """A rule deciding after every measurement whether to stop evaluating a setting."""
+
+    @property
+    def n_max(self) -> int:
+        """N, the maximum number of measurements per setting."""
+        ...
+
+    def decide(
+        self, i: int, mean: float, var: float, best_mean: float, best_var: float
+    ) -> StopDecision:
+        """Decision after measurement ``i`` (0-based) given the current and best estimates."""
+        ...
+
+
+def _difference(
+    i: int, n_max: int, mean: float, var: float, best_mean: float, best_var: float
+) -> tuple[int, float, float]:
+    """Validate a decide() call; return (i, μ, σ) of the difference to the best (§II.D)."""
+    idx = _as_index(i, "i")
+    if not 0 <= idx < n_max:
+        raise ConfigError(f"measurement index i={i!r} must be in [0, {n_max - 1}]")
+    values = {"mean": mean, "var": var, "best_mean": best_mean, "best_var": best_var}
+    for name, value in values.items():
+        v = float(value)
+        if not math.isfinite(v):
+            raise MeasurementError(f"{name}={value!r} must be finite")
+        if name.endswith("var") and v < 0.0:
+            raise MeasurementError(f"{name}={value!r} must be a variance >= 0")
+    sigma_sq = float(var) + float(best_var)
+    if sigma_sq <= 0.0:
+        raise MeasurementError(
+            f"var={var!r} + best_var={best_var!r} must be > 0 for a σ-scaled comparison"
+        )
+    return idx, float(mean) - float(best_mean), math.sqrt(sigma_sq)
+
+
+class SigmaScaledRule:
+    """σ-scaled offset rule with a threshold schedule (seed 000 §II.D, Algorithm 1 l. 13–20).
+
+    After measurement i, with ``μ = mean − best_mean`` and ``σ² = var + best_var``, stop with
+    THRESHOLD if ``μ > A[i]·σ``; at the last index ``i == N−1`` the evaluation is complete and the
+    reason is MAX_MEASUREMENTS (so a stop counts as *early* exactly when its reason is THRESHOLD).
+
+    Args:
+        thresholds: A, shape (N,), N ≥ 1, finite (e.g. from :func:`threshold_schedule`).
+
+    Raises:
+        ConfigError: Wrong shape, empty, or non-finite thresholds.
+    """
+
+    def __init__(self, thresholds: npt.ArrayLike) -> None:
+        a = np.array(thresholds, dtype=float)  # a private copy the caller cannot mutate
+        if a.ndim != 1 or a.shape[0] < 1:
+            raise ConfigError(f"thresholds must have shape (N >= 1,), got {a.shape}")
+        if not np.isfinite(a).all():
+            k = int(np.flatnonzero(~np.isfinite(a))[0])
+            raise ConfigError(f"thresholds[{k}]={a[k]!r} must be finite")
+        a.flags.writeable = False
+        self._thresholds = a
+
+    @classmethod
+    def constant(cls, k: float, n_max: int) -> SigmaScaledRule:
+        """The σ-scaled offset with a single K for every measurement (seed 000 §II.D).
+
+        Args:
+            k: The offset K in units of σ (finite).
+            n_max: N ≥ 1.
+        """
+        n = _as_index(n_max, "n_max")
+        if n < 1:
+            raise ConfigError(f"n_max={n_max!r} must be >= 1")
+        if not math.isfinite(float(k)):
+            raise ConfigError(f"k={k!r} must be finite")
+        return cls(np.full(n, float(k)))
+
+    @property
+    def n_max(self) -> int:
+        """N, the length of the threshold schedule."""
+        return int(self._thresholds.shape[0])
+
+    @property
+    def thresholds(self) -> npt.NDArray[np.float64]:
+        """The schedule A, shape (N,) (read-only)."""
+        return self._thresholds
+
+    def decide(
+        self, i: int, mean: float, var: float, best_mean: float, best_var: float
+    ) -> StopDecision:
+        """Decide after measurement ``i`` (0-based).
+
+        Args:
+            i: Measurement index within the evaluation, 0 ≤ i < N.
+            mean: Current estimate's mean.
+            var: Current estimate's variance (≥ 0).
+            best_mean: Mean of the best setting so far.
+            best_var: Its variance (≥ 0); ``var + best_var`` must be > 0.
+
+        Raises:
+            ConfigError: ``i`` out of range or not an integer.
+            MeasurementError: Non-finite input or a negative/zero total variance.
+        """
+        idx, mu, sigma = _difference(i, self.n_max, mean, var, best_mean, best_var)
+        a_i = float(self._thresholds[idx])
+        z = mu / sigma
+        if idx == self.n_max - 1:
+            return StopDecision(True, StopReason.MAX_MEASUREMENTS, idx, z, a_i)
+        # Compare μ > A_i·σ as the seed writes it (not z > A_i) so boundary cases are exact.
+        if mu > a_i * sigma:
+            return StopDecision(True, StopReason.THRESHOLD, idx, z, a_i)
+        return StopDecision(False, StopReason.CONTINUE, idx, z, a_i)
+
+
+class FixedIntervalRule:
+    """Never stops early: MAX_MEASUREMENTS after measurement ``n_max − 1`` (the baseline).
+
+    Args:
+        n_max: N ≥ 1 measurements per setting.
+
+    Raises:
+        ConfigError: ``n_max`` is not an integer ≥ 1.
+    """
+
+    def __init__(self, n_max: int) -> None:
+        n = _as_index(n_max, "n_max")
+        if n < 1:
+            raise ConfigError(f"n_max={n_max!r} must be >= 1")
+        self._n_max = n
+
+    @property
+    def n_max(self) -> int:
+        """N, the number of measurements per setting."""
+        return self._n_max
+
+    def decide(
+        self, i: int, mean: float, var: float, best_mean: float, best_var: float
+    ) -> StopDecision:
+        """Decide after measurement ``i``; z is reported for logging, threshold is None.
+
+        Raises:
+            ConfigError: ``i`` out of range or not an integer.
+            MeasurementError: Non-finite input or a negative/zero total variance.
+        """
+        idx, mu, sigma = _difference(i, self._n_max, mean, var, best_mean, best_var)
+        if idx == self._n_max - 1:
+            return StopDecision(True, StopReason.MAX_MEASUREMENTS, idx, mu / sigma, None)
+        return StopDecision(False, StopReason.CONTINUE, idx, mu / sigma, None)
