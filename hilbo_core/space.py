@@ -380,7 +380,10 @@ class ParameterSpace:
         """
         if n < 1:
             raise ConfigError(f"number of points must be >= 1, got {n}")
-        sobol = qmc.Sobol(self.dim, scramble=True, seed=rng)
+        # An integer drawn from rng, not rng itself: scipy spawns from a Generator's SeedSequence,
+        # which its saved ``bit_generator.state`` does not capture, so a resumed optimizer
+        # would draw different candidates.
+        sobol = qmc.Sobol(self.dim, scramble=True, seed=int(rng.integers(2**63)))
         A_u, b_u = self.unit_constraints()
         out: list[np.ndarray] = []
         have = 0

@@ -1,0 +1,115 @@
+"""The ``hilbo`` command line."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+__all__ = ["main"]
+
+
+def _speed(text: str) -> float | None:
+    if text == "max":
+        return None
+    try:
+        value = float(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(f"speed must be 'max' or a positive number, got {text!r}") from err
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"speed must be 'max' or a positive number, got {text!r}")
+    return value
+
+
+def write_json_atomic(path: Path, data: Any) -> None:
+    """Write JSON so a reader never sees half a file (write to a temporary, then rename)."""
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2, sort_keys=False) + "\n")
+    os.replace(tmp, path)
+
+
+def _cmd_sim(args: argparse.Namespace) -> int:
+    from rich.console import Console
+
+    from bridge.insim import SimConfig, SimEvaluation, run_insim
+    from hilbo_core import HILOptimizer
+
+    console = Console(stderr=True)
+    cfg = SimConfig(minutes=args.minutes, seed=args.seed, speed=args.speed, preset=args.preset,
+                    stopping=args.stopping)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+
+    def progress(rec: SimEvaluation, opt: HILOptimizer) -> None:
+        e = rec.evaluation
+        mark = "stopped early" if e.stopped_early else e.reason
+        console.print(
+            f"[{rec.t_end / 60:5.1f} min] eval {e.index + 1:3d} {e.phase:12s} "
+            f"{e.mean:7.1f} ± {e.var ** 0.5:5.1f} W  {e.breaths:2d} breaths  {mark}"
+        )
+
+    console.print(f"hilbo sim: {cfg.minutes:g}-minute {cfg.preset} session, seed {cfg.seed}, "
+                  f"speed {'max' if cfg.speed is None else cfg.speed}")
+    summary = run_insim(cfg, on_evaluation=progress)
+    path = out / "summary.json"
+    write_json_atomic(path, summary)
+    console.print(
+        f"done: {summary['n_evaluations']} evaluations ({summary['n_early_stops']} early stops) "
+        f"in {summary['wall_time_s']:.1f} s wall; best {summary['best_mean']:.1f} W estimated, "
+        f"{summary['true_cost_of_best']:.1f} W true vs optimum {summary['true_optimum']['cost_w']:.1f} W "
+        f"(regret {summary['regret_w']:.1f} W)"
+    )
+    print(path)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of every subcommand."""
+    parser = argparse.ArgumentParser(
+        prog="hilbo",
+        description="Human-in-the-loop Bayesian optimisation of soft-exosuit assistance.",
+    )
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    sim = sub.add_parser("sim", help="run a whole session against a simulated wearer",
+                         description="Run a whole HIL session against a simulated wearer and "
+                                     "write DIR/summary.json.")
+    sim.add_argument("--minutes", type=float, default=60.0, help="session length in minutes (default 60)")
+    sim.add_argument("--speed", type=_speed, default=None,
+                     help="'max' (default) or a real-time factor such as 1 or 10")
+    sim.add_argument("--seed", type=int, default=1, help="subject and optimizer seed (default 1)")
+    sim.add_argument("--out", default="runs/sim", help="output directory (default runs/sim)")
+    sim.add_argument("--preset", default="hip_6d", choices=["hip_6d", "hip_ankle_4d"],
+                     help="parameter space (default hip_6d)")
+    sim.add_argument("--stopping", default="adaptive", choices=["adaptive", "fixed"],
+                     help="stopping rule in the optimisation phase (default adaptive)")
+    sim.set_defaults(func=_cmd_sim)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``hilbo`` console script."""
+    from hilbo_core.errors import HilboError
+
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING - 10 * min(args.verbose, 2),
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        return int(args.func(args))
+    except HilboError as err:
+        print(f"hilbo {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"hilbo {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,59 @@
+"""Why a line or a breath was rejected: the keys of every reject counter of the cart drivers."""
+
+from __future__ import annotations
+
+from enum import StrEnum
+
+__all__ = ["RejectReason"]
+
+
+class RejectReason(StrEnum):
+    """Short machine-readable reasons; the value is the string used in counters and logs.
+
+    Being a :class:`~enum.StrEnum`, a member compares and hashes equal to its value, so
+    ``counters["bad_checksum"]`` and ``counters[RejectReason.BAD_CHECKSUM]`` are the same entry.
+    """
+
+    # Framing (transports): the byte stream could not be cut into a whole line.
+    TOO_LONG = "too_long"
+    """A line exceeded the configured maximum length (its bytes are discarded)."""
+    TRUNCATED = "truncated"
+    """A line ended early: no checksum, or a partial line cut off by a dropped connection."""
+    OVERFLOW = "overflow"
+    """A datagram was dropped because the reader fell too far behind."""
+
+    # Decoding (parsers): the line is whole but not a well-formed record.
+    GARBAGE = "garbage"
+    """Not a record at all: not text, not an ``$HBR`` sentence, control characters."""
+    BAD_CHECKSUM = "bad_checksum"
+    """The checksum field is not 4 hex digits or does not match the line."""
+    FIELD_COUNT = "field_count"
+    """The line has the wrong number of fields (or a CSV row is too short)."""
+    BAD_SEQ = "bad_seq"
+    """The sequence number is not an unsigned 32-bit decimal integer."""
+    BAD_NUMBER = "bad_number"
+    """A numeric field is not a decimal number."""
+    BAD_TIME = "bad_time"
+    """A clock-format time field (``hh:mm:ss``, ``mm:ss``) does not parse."""
+    MISSING_FIELD = "missing_field"
+    """A required field (time, VO2, VCO2) is empty."""
+
+    # Validation (BreathValidator): a well-formed record that cannot be a real breath.
+    NON_FINITE = "non_finite"
+    """A value is NaN or infinite."""
+    NEGATIVE_TIME = "negative_time"
+    """The breath time is below zero."""
+    OUT_OF_ORDER = "out_of_order"
+    """The breath time is earlier than the last accepted breath."""
+    DUPLICATE = "duplicate"
+    """Same sequence number or same breath time as a recently accepted breath."""
+    VO2_RANGE = "vo2_range"
+    """VO2 is outside the physiological limits."""
+    VCO2_RANGE = "vco2_range"
+    """VCO2 is outside the physiological limits."""
+    RER_RANGE = "rer_range"
+    """The reported RER, or VCO2/VO2, is outside the physiological limits."""
+    VE_RANGE = "ve_range"
+    """Minute ventilation is outside the physiological limits."""
+    HR_RANGE = "hr_range"
+    """Heart rate is outside the physiological limits."""

@@ -1,0 +1,204 @@
+"""Validated breaths from a cart: transport + parser + validator, and the cart's config.
+
+::
+
+    config = CartConfig.from_dict(toml["cart"])
+    async with BreathStream.from_config(config) as stream:
+        async for breath in stream:          # BreathRecord, valid and in time order
+            ...
+    stream.counters                          # rejects by reason (framing, decoding, validation)
+
+The stream never raises for bad data. It raises :class:`~drivers.errors.TransportError` when the
+link is gone for good (after the backoff's ``max_attempts``) and
+:class:`~drivers.errors.DriverConfigError` when a CSV header does not match the mapping; it ends
+(``StopAsyncIteration``) when a replayed file is exhausted.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from enum import StrEnum
+from types import TracebackType
+from typing import Any, Self
+
+from drivers.cart._options import check_keys, check_mapping, enum_value
+from drivers.cart.csvmap import CsvBreathParser, CsvMapping
+from drivers.cart.line import HbrLineParser
+from drivers.cart.pipeline import BreathParser, process_line
+from drivers.cart.registry import make_transport, transport_options_from_dict, transport_spec
+from drivers.cart.transport import CartTransport, TransportHooks
+from drivers.cart.validate import BreathValidator, PhysioLimits
+from drivers.errors import DriverConfigError
+from hilbo_core.types import BreathRecord
+
+__all__ = ["BreathStream", "CartConfig", "CartFormat"]
+
+
+class CartFormat(StrEnum):
+    """Wire format of the cart's lines."""
+
+    HILBO_LINE = "hilbo-line"
+    """Our line format with sequence number and CRC-16 (``drivers/cart/FORMAT.md``)."""
+    CSV = "csv"
+    """A vendor's CSV, read through a :class:`~drivers.cart.csvmap.CsvMapping`."""
+
+
+_CONFIG_KEYS = ("transport", "options", "format", "csv", "limits")
+
+
+@dataclass(frozen=True, slots=True)
+class CartConfig:
+    """The ``[cart]`` table of the session config.
+
+    TOML shape::
+
+        [cart]
+        transport = "tcp"              # "serial" | "tcp" | "udp" | "replay"
+        format = "hilbo-line"          # or "csv" (then [cart.csv] is required)
+        [cart.options]                 # the transport's options
+        host = "192.168.10.20"
+        port = 5000
+        [cart.options.backoff]         # optional: reconnection policy
+        max_s = 5.0
+        [cart.limits]                  # optional: physiological limits, [low, high]
+        hr_bpm = [30, 220]
+
+    Attributes:
+        transport: Registered transport name.
+        options: That transport's options dataclass (e.g. :class:`TcpOptions`).
+        format: Line format (:class:`CartFormat`).
+        csv: The column mapping; required for ``format = "csv"``, refused otherwise.
+        limits: Physiological limits for the validator.
+    """
+
+    transport: str
+    options: Any
+    format: CartFormat = CartFormat.HILBO_LINE
+    csv: CsvMapping | None = None
+    limits: PhysioLimits = field(default_factory=PhysioLimits)
+
+    def __post_init__(self) -> None:
+        spec = transport_spec(self.transport)
+        if not isinstance(self.options, spec.options_type):
+            raise DriverConfigError(
+                f"options = {self.options!r}: transport {self.transport!r} expects "
+                f"{spec.options_type.__name__}"
+            )
+        fmt = enum_value(self.format, CartFormat, "format")
+        object.__setattr__(self, "format", fmt)
+        if fmt is CartFormat.CSV and self.csv is None:
+            raise DriverConfigError("format = 'csv' needs a [cart.csv] column mapping")
+        if fmt is not CartFormat.CSV and self.csv is not None:
+            raise DriverConfigError(
+                f"csv mapping given but format = {fmt.value!r}; set format = 'csv' or remove it"
+            )
+        if not isinstance(self.limits, PhysioLimits):
+            raise DriverConfigError(f"limits = {self.limits!r}: expected PhysioLimits")
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any], where: str = "cart") -> CartConfig:
+        """Build from the ``[cart]`` config table.
+
+        Raises:
+            DriverConfigError: An unknown key, a missing ``transport``, or a bad value; the
+                message names the full key (``cart.options.port``), the value and what is
+                allowed.
+        """
+        data = check_mapping(data, where)
+        check_keys(data, _CONFIG_KEYS, where)
+        if "transport" not in data:
+            raise DriverConfigError(f"{where}: missing required key 'transport'")
+        name = transport_spec(data["transport"], f"{where}.transport").name
+        options = transport_options_from_dict(name, data.get("options", {}), f"{where}.options")
+        fmt = enum_value(data.get("format", CartFormat.HILBO_LINE), CartFormat, f"{where}.format")
+        csv = CsvMapping.from_dict(data["csv"], f"{where}.csv") if "csv" in data else None
+        limits = (
+            PhysioLimits.from_dict(data["limits"], f"{where}.limits") if "limits" in data else PhysioLimits()
+        )
+        try:
+            return cls(transport=name, options=options, format=fmt, csv=csv, limits=limits)
+        except DriverConfigError as err:
+            raise DriverConfigError(f"{where}.{err}") from err
+
+    def make_parser(self) -> BreathParser:
+        """A fresh parser for this format (CSV parsers are stateful: one per stream)."""
+        if self.format is CartFormat.CSV and self.csv is not None:
+            return CsvBreathParser(self.csv)
+        return HbrLineParser()
+
+
+class BreathStream:
+    """Async iterator of valid :class:`BreathRecord` from a transport, counting every reject.
+
+    Attributes:
+        transport: Where the lines come from.
+        parser: How lines become records.
+        validator: What is rejected, and the counts.
+    """
+
+    def __init__(
+        self,
+        transport: CartTransport,
+        parser: BreathParser,
+        validator: BreathValidator | None = None,
+    ) -> None:
+        self.transport = transport
+        self.parser = parser
+        self.validator = validator if validator is not None else BreathValidator()
+
+    @classmethod
+    def from_config(cls, config: CartConfig, hooks: TransportHooks | None = None) -> BreathStream:
+        """Build transport, parser and validator from a :class:`CartConfig`.
+
+        Args:
+            config: The cart config.
+            hooks: Injectable sleep/clock for backoff and replay pacing (tests, simulation).
+        """
+        return cls(
+            make_transport(config.transport, config.options, hooks),
+            config.make_parser(),
+            BreathValidator(config.limits),
+        )
+
+    @property
+    def counters(self) -> Counter[str]:
+        """Rejects by reason, framing (transport) and decoding/validation together; a copy."""
+        merged: Counter[str] = Counter(self.validator.counters)
+        merged.update(self.transport.counters)
+        return merged
+
+    @property
+    def accepted(self) -> int:
+        """Breaths delivered so far."""
+        return self.validator.accepted
+
+    @property
+    def reconnects(self) -> int:
+        """Times the transport reopened its link after a drop."""
+        return self.transport.reconnects
+
+    async def __aenter__(self) -> Self:
+        await self.transport.open()
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.transport.close()
+
+    def __aiter__(self) -> Self:
+        return self
+
+    async def __anext__(self) -> BreathRecord:
+        """The next valid breath (paced by the transport when it replays a file)."""
+        async for line in self.transport:
+            record = process_line(line, self.parser, self.validator)
+            if record is not None:
+                await self.transport.pace(record.t_s)
+                return record
+        raise StopAsyncIteration

@@ -1,0 +1,644 @@
+"""HILOptimizer: Algorithm 1 of seed 000 as an ask/tell state machine driven one breath at a time.
+
+Phases (seed 000 §II.A, Algorithm 1):
+
+1. **Exploration** — ``n_explore`` space-filling points, each measured for the full
+   ``max_breaths`` (N) breaths; their estimate traces (M, Σ) are kept.
+2. **Thresholds** — Algorithm 2 turns the traces into the threshold vector A (window W).
+3. **Optimisation** — until the budget is spent: fit the GP to every evaluation's (μ, σ²), take
+   x_t = argmax EI, then after every breath compare the running estimate with the incumbent x*
+   and stop early when μ − μ* > A_i·σ (the σ-scaled offset rule, §II.D), or at N breaths.
+
+The GP is told each evaluation's estimator mean *and* variance: an early-stopped estimate is
+noisier, and the model must know (shared/DESIGN.md).
+
+Budget: like Algorithm 1's counter t, the budget counts only the optimisation phase (the
+exploration bout is a separate walking bout). It may be given in breaths, in seconds of breath
+time, or both; it is checked after every breath, and an evaluation still running when the budget
+runs out is closed with the estimate it has (reason ``"budget"``), so a session never overruns
+the time a participant has.
+
+Determinism: every random choice (design, GP restarts, candidate sets) comes from one
+``np.random.default_rng(seed)``, so the same seed and the same breaths give the same proposals.
+``to_json``/``from_json`` round-trip the whole state, the generator's included.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import asdict, dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from hilbo_core.acquisition import maximize_ei
+from hilbo_core.errors import ConfigError, MeasurementError, OptimizerStateError
+from hilbo_core.gp import GaussianProcess, GPHyperparameters, KernelKind
+from hilbo_core.metabolic import Estimator, MetabolicUKF
+from hilbo_core.space import ParameterSpace
+from hilbo_core.stopping import (
+    FixedIntervalRule,
+    SigmaScaledRule,
+    StopDecision,
+    StoppingRule,
+    threshold_schedule,
+)
+
+__all__ = [
+    "BreathStep",
+    "Evaluation",
+    "HILOptimizer",
+    "OptimizerConfig",
+    "Phase",
+    "PriorObservation",
+    "StoppingKind",
+]
+
+_STATE_VERSION = 1
+_MAX_WATTS = 5000.0
+
+
+class Phase(enum.Enum):
+    """Where Algorithm 1 is."""
+
+    EXPLORATION = "exploration"
+    OPTIMIZATION = "optimization"
+    DONE = "done"
+
+
+class StoppingKind(enum.Enum):
+    """Which rule ends an evaluation in the optimisation phase."""
+
+    ADAPTIVE = "adaptive"  # Algorithm 2 thresholds + σ-scaled offset rule (seed 000 §II.D)
+    FIXED = "fixed"  # always N breaths (fixed-interval BO, the seed's baseline)
+
+
+@dataclass(frozen=True)
+class OptimizerConfig:
+    """Everything that defines an optimizer run besides the space.
+
+    Attributes:
+        n_explore: Exploration points E (>= 1).
+        max_breaths: Maximum measurements per evaluation N (>= 2).
+        window: Algorithm 2's window W (>= 0).
+        budget_s: Optimisation-phase budget in seconds of breath time, or None.
+        budget_breaths: Optimisation-phase budget in breaths, or None.
+        stopping: ``"adaptive"`` or ``"fixed"``.
+        seed: Seed of the run's random generator.
+        xi: EI's ξ (seed 000 §II.B sign convention).
+        kernel: ``"matern52"`` or ``"se"``.
+        n_candidates: Feasible Sobol candidates per EI maximisation.
+        n_local: Candidates refined locally per EI maximisation.
+    """
+
+    n_explore: int = 6
+    max_breaths: int = 45
+    window: int = 2
+    budget_s: float | None = None
+    budget_breaths: int | None = None
+    stopping: StoppingKind = StoppingKind.ADAPTIVE
+    seed: int = 0
+    xi: float = 0.0
+    kernel: KernelKind = KernelKind.MATERN52
+    n_candidates: int = 1024
+    n_local: int = 3
+
+    def __post_init__(self) -> None:
+        try:
+            object.__setattr__(self, "stopping", StoppingKind(self.stopping))
+        except ValueError as err:
+            raise ConfigError(
+                f"stopping={self.stopping!r}; expected one of {[k.value for k in StoppingKind]}"
+            ) from err
+        try:
+            object.__setattr__(self, "kernel", KernelKind(self.kernel))
+        except ValueError as err:
+            raise ConfigError(
+                f"kernel={self.kernel!r}; expected one of {[k.value for k in KernelKind]}"
+            ) from err
+        _int_at_least("n_explore", self.n_explore, 1)
+        _int_at_least("max_breaths", self.max_breaths, 2)
+        _int_at_least("window", self.window, 0)
+        _int_at_least("seed", self.seed, 0)
+        _int_at_least("n_candidates", self.n_candidates, 16)
+        _int_at_least("n_local", self.n_local, 0)
+        if self.budget_s is not None and not (math.isfinite(self.budget_s) and self.budget_s > 0):
+            raise ConfigError(f"budget_s={self.budget_s!r}; expected a positive number of seconds or None")
+        if self.budget_breaths is not None:
+            _int_at_least("budget_breaths", self.budget_breaths, 1)
+        if not math.isfinite(self.xi):
+            raise ConfigError(f"xi={self.xi!r}; expected a finite number")
+
+    def to_json(self) -> dict[str, Any]:
+        """JSON-able form."""
+        d = asdict(self)
+        d["stopping"] = self.stopping.value
+        d["kernel"] = self.kernel.value
+        return d
+
+    @classmethod
+    def from_json(cls, data: Mapping[str, Any]) -> OptimizerConfig:
+        """Inverse of :meth:`to_json`; unknown keys are an error."""
+        allowed = set(cls.__dataclass_fields__)
+        unknown = sorted(set(data) - allowed)
+        if unknown:
+            raise ConfigError(f"unknown optimizer option(s) {unknown}; allowed: {sorted(allowed)}")
+        return cls(**data)
+
+
+def _int_at_least(name: str, value: object, low: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < low:
+        raise ConfigError(f"{name}={value!r}; expected an integer >= {low}")
+
+
+@dataclass(frozen=True)
+class PriorObservation:
+    """A cheap observation that enters the GP with its own (inflated) noise (seed 003 §3.3).
+
+    Attributes:
+        params: The point, ``{name: value}``.
+        mean: Observed cost (W).
+        var: Its noise variance (W²) — make it large for cheap sources.
+        source: Where it came from (for the log).
+    """
+
+    params: Mapping[str, float]
+    mean: float
+    var: float
+    source: str = "prior"
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """One completed evaluation of a setting.
+
+    Attributes:
+        index: 0-based evaluation number.
+        params: The setting, derived parameters included.
+        mean: Estimator mean of the steady-state cost at the end (W).
+        var: Its variance (W²).
+        breaths: Breaths measured.
+        duration_s: Breath time from the setting's start to its last breath (s).
+        phase: ``"exploration"`` or ``"optimization"``.
+        stopped_early: True when the σ-scaled rule stopped it before N breaths.
+        reason: ``"threshold"``, ``"max_measurements"``, ``"budget"`` or ``"told"``.
+    """
+
+    index: int
+    params: dict[str, float]
+    mean: float
+    var: float
+    breaths: int
+    duration_s: float
+    phase: str
+    stopped_early: bool
+    reason: str
+
+    def to_json(self) -> dict[str, Any]:
+        """JSON-able form."""
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class BreathStep:
+    """What one breath did.
+
+    Attributes:
+        stop: The current evaluation ended with this breath; the next ``ask()`` moves on.
+        mean: Estimator mean of the current setting's steady-state cost (W).
+        var: Its variance (W²).
+        index: 0-based breath index within the evaluation.
+        phase: Phase the breath belonged to.
+        decision: The stopping rule's decision (None while exploring).
+        evaluation: The completed evaluation when ``stop`` is True.
+    """
+
+    stop: bool
+    mean: float
+    var: float
+    index: int
+    phase: Phase
+    decision: StopDecision | None = None
+    evaluation: Evaluation | None = None
+
+
+@dataclass
+class _Current:
+    params: dict[str, float]
+    x: np.ndarray
+    phase: Phase
+    breaths: list[tuple[float, float]] = field(default_factory=list)
+    means: list[float] = field(default_factory=list)
+    vars: list[float] = field(default_factory=list)
+
+
+class HILOptimizer:
+    """Human-in-the-loop Bayesian optimisation with the estimator stopping process.
+
+    Args:
+        space: The feasible parameter space.
+        n_explore, max_breaths, window, budget_s, budget_breaths, stopping, seed, xi, kernel,
+            n_candidates, n_local: See :class:`OptimizerConfig`.
+        config: A whole :class:`OptimizerConfig` instead of the keywords.
+        estimator_factory: Returns a fresh estimator per evaluation (default: the UKF of seed
+            000 §II.C). Benchmarks pass the Gaussian-product model of §III.2.
+        prior_observations: Fast-prior observations (seed 003 §3.3) added to the GP.
+
+    Example:
+        >>> opt = HILOptimizer(presets.hip_6d(), n_explore=6, max_breaths=45, budget_s=2400)
+        >>> params = opt.ask()
+        >>> step = opt.observe_breath(t=3.1, watts=412.0)
+    """
+
+    def __init__(
+        self,
+        space: ParameterSpace,
+        *,
+        config: OptimizerConfig | None = None,
+        estimator_factory: Callable[[], Estimator] | None = None,
+        prior_observations: Sequence[PriorObservation] = (),
+        **options: Any,
+    ) -> None:
+        if config is not None and options:
+            raise ConfigError(f"pass either config= or keyword options, not both (got {sorted(options)})")
+        if config is None:
+            try:
+                config = OptimizerConfig(**options)
+            except TypeError as err:
+                raise ConfigError(
+                    f"unknown optimizer option in {sorted(options)}; allowed: "
+                    f"{sorted(OptimizerConfig.__dataclass_fields__)}"
+                ) from err
+        self.space = space
+        self.config = config
+        self._estimator_factory = estimator_factory or MetabolicUKF
+        self._priors: list[PriorObservation] = []
+        for p in prior_observations:
+            self.add_prior(p)
+        self._rng = np.random.default_rng(config.seed)
+        self._design = space.design(config.n_explore, self._rng)
+        self._evaluations: list[Evaluation] = []
+        self._traces_m: list[list[float]] = []
+        self._traces_s: list[list[float]] = []
+        self._thresholds: np.ndarray | None = None
+        self._current: _Current | None = None
+        self._estimator: Estimator | None = None
+        self._hyp: GPHyperparameters | None = None
+        self._incumbent: tuple[dict[str, float], float, float] | None = None
+        self._opt_breaths = 0
+        self._opt_seconds = 0.0
+
+    # ------------------------------------------------------------------ read-only views
+    @property
+    def phase(self) -> Phase:
+        """Current phase of Algorithm 1."""
+        if len(self._evaluations) < self.config.n_explore:
+            return Phase.EXPLORATION
+        if self._budget_spent():
+            return Phase.DONE
+        return Phase.OPTIMIZATION
+
+    @property
+    def done(self) -> bool:
+        """The optimisation budget is spent."""
+        return self.phase is Phase.DONE
+
+    @property
+    def evaluations(self) -> tuple[Evaluation, ...]:
+        """Completed evaluations, in order."""
+        return tuple(self._evaluations)
+
+    @property
+    def thresholds(self) -> np.ndarray | None:
+        """Algorithm 2's threshold vector A (N,), once exploration is complete."""
+        return None if self._thresholds is None else self._thresholds.copy()
+
+    @property
+    def exploration_traces(self) -> tuple[np.ndarray, np.ndarray]:
+        """The (M, Σ) matrices of exploration (completed rows only)."""
+        n = self.config.max_breaths
+        return (np.array(self._traces_m, dtype=float).reshape(-1, n),
+                np.array(self._traces_s, dtype=float).reshape(-1, n))
+
+    @property
+    def current_params(self) -> dict[str, float] | None:
+        """The setting being measured, or None between evaluations."""
+        return None if self._current is None else dict(self._current.params)
+
+    @property
+    def incumbent(self) -> tuple[dict[str, float], float, float] | None:
+        """The stopping rule's x* with its (μ*, σ*²), during the optimisation phase."""
+        return self._incumbent
+
+    @property
+    def budget_used(self) -> dict[str, float]:
+        """Optimisation-phase breaths and seconds used so far (current evaluation included)."""
+        return {"breaths": self._opt_breaths, "seconds": self._opt_seconds}
+
+    def best(self) -> tuple[dict[str, float], float, float]:
+        """The recommended setting and its estimated cost ``(params, mean_w, var_w2)``.
+
+        The GP's estimated minimum among the evaluated points (seed 000 §III.2: "x_t be the GP's
+        estimated minimum point"), reported with that evaluation's own estimate. Before any GP
+        can be fitted, the lowest estimated mean.
+        """
+        if not self._evaluations:
+            raise OptimizerStateError("no evaluation has completed yet; nothing to recommend")
+        if len(self._evaluations) + len(self._priors) < 2:
+            ev = min(self._evaluations, key=lambda e: e.mean)
+            return dict(ev.params), ev.mean, ev.var
+        # A private generator and no stored hyperparameters: asking for the recommendation
+        # (e.g. for a status display) must not change the proposals that follow.
+        gp = self._fit_gp(np.random.default_rng([self.config.seed, len(self._evaluations)]), store=False)
+        return self._gp_best(gp)
+
+    # ------------------------------------------------------------------ ask / observe / tell
+    def ask(self) -> dict[str, float]:
+        """The setting to measure now (the same one until its evaluation stops).
+
+        Returns:
+            ``{name: value}`` including derived parameters; always feasible.
+
+        Raises:
+            OptimizerStateError: The budget is spent.
+        """
+        if self._current is not None:
+            return dict(self._current.params)
+        phase = self.phase
+        if phase is Phase.DONE:
+            raise OptimizerStateError(
+                f"the optimisation budget is spent ({self._opt_breaths} breaths, "
+                f"{self._opt_seconds:.0f} s); nothing more to ask"
+            )
+        if phase is Phase.EXPLORATION:
+            x = self._design[len(self._evaluations)]
+        else:
+            x = self._propose()
+        x = self.space.check(x)
+        self._current = _Current(params=self.space.to_dict(x), x=x, phase=phase)
+        self._estimator = self._estimator_factory()
+        return dict(self._current.params)
+
+    def observe_breath(self, t: float, watts: float) -> BreathStep:
+        """Feed one breath of the current setting.
+
+        Args:
+            t: Seconds since the current setting began (strictly increasing within a setting).
+            watts: Metabolic power of this breath in W (e.g. :func:`brockway_watts`).
+
+        Returns:
+            The step: running estimate and whether the evaluation stopped.
+
+        Raises:
+            OptimizerStateError: No setting is being measured (call ``ask()`` first).
+            MeasurementError: Bad t or watts; the optimizer's state is unchanged.
+        """
+        watts = float(watts)
+        if not math.isfinite(watts) or not 0 < watts <= _MAX_WATTS:
+            raise MeasurementError(f"watts={watts!r}; expected a finite power in (0, {_MAX_WATTS:g}] W")
+        return self.observe(t, watts)
+
+    def observe(self, t: float, value: float) -> BreathStep:
+        """Feed one measurement of any objective (benchmarks); no physiological range check.
+
+        Same as :meth:`observe_breath` except that ``value`` only has to be finite, so test
+        functions with negative values (Hartmann-6) can be optimised.
+        """
+        cur = self._current
+        if cur is None or self._estimator is None:
+            raise OptimizerStateError("observe_breath() before ask(): no setting is being measured")
+        t = float(t)
+        watts = float(value)
+        if not math.isfinite(t) or t < 0:
+            raise MeasurementError(
+                f"breath time t={t!r}; expected a finite time >= 0 s since the setting began"
+            )
+        if cur.breaths and t <= cur.breaths[-1][0]:
+            raise MeasurementError(
+                f"breath time t={t!r} s does not increase (previous breath at {cur.breaths[-1][0]!r} s)"
+            )
+        if not math.isfinite(watts):
+            raise MeasurementError(f"value={watts!r}; expected a finite measurement")
+        mean, var = self._estimator.update(t, watts)
+        prev_t = cur.breaths[-1][0] if cur.breaths else 0.0
+        cur.breaths.append((t, watts))
+        cur.means.append(float(mean))
+        cur.vars.append(float(var))
+        i = len(cur.breaths) - 1
+        if cur.phase is Phase.EXPLORATION:
+            stop = i == self.config.max_breaths - 1
+            return self._step(stop, "max_measurements", None)
+        self._opt_breaths += 1
+        self._opt_seconds += t - prev_t
+        decision = self._rule().decide(i, float(mean), float(var), *self._incumbent_stats())
+        if decision.stop:
+            reason = "threshold" if decision.index < self.config.max_breaths - 1 else "max_measurements"
+            return self._step(True, reason, decision)
+        if self._budget_spent():
+            return self._step(True, "budget", decision)
+        return self._step(False, "", decision)
+
+    def tell(self, params: Mapping[str, float], mean: float, var: float, *,
+             breaths: int = 0, duration_s: float = 0.0) -> Evaluation:
+        """Add a completed evaluation measured outside the breath loop.
+
+        Only allowed between evaluations. Counts as an optimisation-phase observation for the
+        GP; it does not consume budget.
+        """
+        if self._current is not None:
+            raise OptimizerStateError("tell() while a setting is being measured; finish it first")
+        x = self.space.check(params)
+        _check_mean_var(mean, var, "tell")
+        ev = Evaluation(len(self._evaluations), self.space.to_dict(x), float(mean), float(var),
+                        int(breaths), float(duration_s), Phase.OPTIMIZATION.value, False, "told")
+        self._evaluations.append(ev)
+        return ev
+
+    def add_prior(self, prior: PriorObservation) -> None:
+        """Add a fast-prior observation (seed 003 §3.3); validated against the space."""
+        try:
+            self.space.check(prior.params)
+        except ValueError as err:
+            raise ConfigError(f"prior observation {dict(prior.params)} from {prior.source!r}: {err}") from err
+        _check_mean_var(prior.mean, prior.var, f"prior observation from {prior.source!r}")
+        self._priors.append(prior)
+
+    def set_budget(self, *, budget_s: float | None, budget_breaths: int | None) -> None:
+        """Change the optimisation budget (e.g. once the exploration bout's length is known, or
+        when the participant needs to stop sooner). Validated like the constructor's."""
+        self.config = replace(self.config, budget_s=budget_s, budget_breaths=budget_breaths)
+
+    def cancel_current(self) -> dict[str, float] | None:
+        """Abandon the setting being measured (e.g. the device refused it); returns it.
+
+        Its breaths are discarded and count against no budget; the next ``ask()`` proposes
+        afresh (exploration points are asked again).
+        """
+        cur = self._current
+        if cur is None:
+            return None
+        if cur.phase is Phase.OPTIMIZATION:
+            self._opt_breaths -= len(cur.breaths)
+            self._opt_seconds -= cur.breaths[-1][0] if cur.breaths else 0.0
+        self._current = None
+        self._estimator = None
+        return dict(cur.params)
+
+    # ------------------------------------------------------------------ internals
+    def _step(self, stop: bool, reason: str, decision: StopDecision | None) -> BreathStep:
+        cur = self._current
+        if cur is None:
+            raise OptimizerStateError("internal: no current evaluation to step")
+        mean, var = cur.means[-1], cur.vars[-1]
+        i = len(cur.breaths) - 1
+        if not stop:
+            return BreathStep(False, mean, var, i, cur.phase, decision)
+        ev = Evaluation(
+            index=len(self._evaluations), params=dict(cur.params), mean=mean, var=var,
+            breaths=len(cur.breaths), duration_s=cur.breaths[-1][0], phase=cur.phase.value,
+            stopped_early=reason == "threshold", reason=reason,
+        )
+        self._evaluations.append(ev)
+        if cur.phase is Phase.EXPLORATION:
+            self._traces_m.append(list(cur.means))
+            self._traces_s.append(list(cur.vars))
+            if len(self._traces_m) == self.config.n_explore:
+                M, S = self.exploration_traces
+                self._thresholds = threshold_schedule(M, S, self.config.window)
+        self._current = None
+        self._estimator = None
+        return BreathStep(True, mean, var, i, cur.phase, decision, ev)
+
+    def _rule(self) -> StoppingRule:
+        if self.config.stopping is StoppingKind.FIXED or self._thresholds is None:
+            return FixedIntervalRule(self.config.max_breaths)
+        return SigmaScaledRule(self._thresholds)
+
+    def _incumbent_stats(self) -> tuple[float, float]:
+        if self._incumbent is None:
+            ev = min(self._evaluations, key=lambda e: e.mean)
+            return ev.mean, ev.var
+        return self._incumbent[1], self._incumbent[2]
+
+    def _budget_spent(self) -> bool:
+        c = self.config
+        return (c.budget_breaths is not None and self._opt_breaths >= c.budget_breaths) or (
+            c.budget_s is not None and self._opt_seconds >= c.budget_s
+        )
+
+    def _training_set(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        xs = [self.space.from_dict(e.params) for e in self._evaluations]
+        xs += [self.space.from_dict(p.params) for p in self._priors]
+        y = [e.mean for e in self._evaluations] + [p.mean for p in self._priors]
+        v = [e.var for e in self._evaluations] + [p.var for p in self._priors]
+        return self.space.to_unit(np.array(xs)), np.array(y), np.array(v)
+
+    def _fit_gp(self, rng: np.random.Generator, *, store: bool) -> GaussianProcess:
+        U, y, v = self._training_set()
+        gp = GaussianProcess(self.config.kernel)
+        gp.fit(U, y, v, rng=rng, init=self._hyp)
+        if store:
+            self._hyp = gp.hyperparameters  # warm start of the next fit
+        return gp
+
+    def _gp_best(self, gp: GaussianProcess) -> tuple[dict[str, float], float, float]:
+        U = self.space.to_unit(np.array([self.space.from_dict(e.params) for e in self._evaluations]))
+        post_mean, _ = gp.predict(U)
+        ev = self._evaluations[int(np.argmin(post_mean))]
+        return dict(ev.params), ev.mean, ev.var
+
+    def _propose(self) -> np.ndarray:
+        gp = self._fit_gp(self._rng, store=True)
+        # x* for the stopping rule: the GP's best evaluated setting with its own estimate
+        # (seed 000 §II.D: "the best parameter setting found thus far as defined by the GP").
+        self._incumbent = self._gp_best(gp)
+        best_observed = min(e.mean for e in self._evaluations)  # min(S), seed 000 §II.B
+        A_u, b_u = self.space.unit_constraints()
+        cand = self.space.sample_unit(self.config.n_candidates, self._rng)
+        u, _ = maximize_ei(gp.predict, best_observed, candidates=cand, A_ub=A_u, b_ub=b_u,
+                           rng=self._rng, xi=self.config.xi, n_local=self.config.n_local,
+                           predict_grad=gp.predict_with_grad)
+        x = self.space.from_unit(np.clip(u, 0.0, 1.0))
+        if not self.space.is_feasible(x):
+            # Local refinement should never leave the set; if round-off does, the best
+            # candidate is feasible by construction.
+            x = self.space.from_unit(cand[0])
+        return x
+
+    # ------------------------------------------------------------------ serialisation
+    def to_json(self) -> dict[str, Any]:
+        """The whole state as a JSON-able dict (round-trips with :meth:`from_json`)."""
+        cur = self._current
+        return {
+            "version": _STATE_VERSION,
+            "space": self.space.to_json(),
+            "config": self.config.to_json(),
+            "rng": self._rng.bit_generator.state,
+            "design": self._design.tolist(),
+            "evaluations": [e.to_json() for e in self._evaluations],
+            "priors": [{"params": dict(p.params), "mean": p.mean, "var": p.var, "source": p.source}
+                       for p in self._priors],
+            "traces_m": self._traces_m,
+            "traces_s": self._traces_s,
+            "thresholds": None if self._thresholds is None else self._thresholds.tolist(),
+            "current": None if cur is None else {
+                "params": cur.params, "x": cur.x.tolist(), "phase": cur.phase.value,
+                "breaths": cur.breaths,
+            },
+            "hyp": None if self._hyp is None else self._hyp.to_dict(),
+            "incumbent": None if self._incumbent is None else list(self._incumbent),
+            "opt_breaths": self._opt_breaths,
+            "opt_seconds": self._opt_seconds,
+        }
+
+    @classmethod
+    def from_json(cls, data: Mapping[str, Any], *,
+                  estimator_factory: Callable[[], Estimator] | None = None) -> HILOptimizer:
+        """Rebuild an optimizer from :meth:`to_json` output.
+
+        The current evaluation's estimator is rebuilt by replaying its breaths, so the next
+        breath and the next proposal are exactly those the original would have produced.
+        """
+        if data.get("version") != _STATE_VERSION:
+            raise ConfigError(f"optimizer state version {data.get('version')!r}; expected {_STATE_VERSION}")
+        try:
+            space = ParameterSpace.from_json(data["space"])
+            opt = cls(space, config=OptimizerConfig.from_json(data["config"]),
+                      estimator_factory=estimator_factory,
+                      prior_observations=[PriorObservation(**p) for p in data["priors"]])
+            opt._rng.bit_generator.state = data["rng"]
+            opt._design = np.array(data["design"], dtype=float).reshape(-1, space.dim)
+            opt._evaluations = [Evaluation(**e) for e in data["evaluations"]]
+            opt._traces_m = [list(map(float, r)) for r in data["traces_m"]]
+            opt._traces_s = [list(map(float, r)) for r in data["traces_s"]]
+            if data["thresholds"] is not None:
+                opt._thresholds = np.array(data["thresholds"], dtype=float)
+            if data["hyp"] is not None:
+                opt._hyp = GPHyperparameters.from_dict(data["hyp"])
+            if data["incumbent"] is not None:
+                p, m, v = data["incumbent"]
+                opt._incumbent = (dict(p), float(m), float(v))
+            opt._opt_breaths = int(data["opt_breaths"])
+            opt._opt_seconds = float(data["opt_seconds"])
+            cur = data["current"]
+        except (KeyError, TypeError, ValueError) as err:
+            raise ConfigError(f"invalid optimizer state: {err!r}") from err
+        if cur is not None:
+            opt._current = _Current(params=dict(cur["params"]), x=np.array(cur["x"], dtype=float),
+                                    phase=Phase(cur["phase"]))
+            opt._estimator = opt._estimator_factory()
+            for t, w in cur["breaths"]:
+                mean, var = opt._estimator.update(float(t), float(w))
+                opt._current.breaths.append((float(t), float(w)))
+                opt._current.means.append(float(mean))
+                opt._current.vars.append(float(var))
+        return opt
+
+
+def _check_mean_var(mean: float, var: float, what: str) -> None:
+    if not math.isfinite(mean):
+        raise MeasurementError(f"{what}: mean={mean!r}; expected a finite cost")
+    if not (math.isfinite(var) and var > 0):
+        raise MeasurementError(f"{what}: var={var!r}; expected a finite variance > 0")
