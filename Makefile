@@ -6,6 +6,9 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 OUT ?= runs/sim
 PYTEST_ARGS ?=
+# Small GP matrices: threaded BLAS only adds contention (see bridge/cli.py).
+export OPENBLAS_NUM_THREADS ?= 1
+export OMP_NUM_THREADS ?= 1
 
 .PHONY: sim test lint clean
 

@@ -16,11 +16,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from virtual_hw.wearer import SimulatedWearer
-
 from hilbo_core import HILOptimizer, brockway_watts, presets
 from hilbo_core.errors import ConfigError
 from hilbo_core.optimizer import Evaluation
+from virtual_hw.wearer import SimulatedWearer
 
 __all__ = ["SimConfig", "SimEvaluation", "run_insim"]
 
