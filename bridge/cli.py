@@ -74,6 +74,18 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_vcan_setup(args: argparse.Namespace) -> int:
+    from drivers.exosuit.vcan_setup import persistent_vcan_files, setup_script
+
+    if args.persistent:
+        for name, text in persistent_vcan_files(args.iface).items():
+            print(f"# ---- {name}")
+            print(text)
+    else:
+        print(setup_script(args.iface, bitrate=args.bitrate))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of every subcommand."""
     parser = argparse.ArgumentParser(
@@ -96,6 +108,18 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--stopping", default="adaptive", choices=["adaptive", "fixed"],
                      help="stopping rule in the optimisation phase (default adaptive)")
     sim.set_defaults(func=_cmd_sim)
+
+    vcan = sub.add_parser(
+        "vcan-setup", help="print the shell commands that bring up a (v)can interface",
+        description="Print a shell script that creates and brings up a virtual CAN interface (vcanN) "
+                    "or configures a real one (canN) with a bitrate. Run it as root: "
+                    "hilbo vcan-setup | sudo sh")
+    vcan.add_argument("iface", nargs="?", default="vcan0", help="interface name (default vcan0)")
+    vcan.add_argument("--bitrate", type=int, default=1_000_000,
+                      help="bitrate for a real canN interface (default 1000000)")
+    vcan.add_argument("--persistent", action="store_true",
+                      help="print systemd-networkd files that create it at every boot instead")
+    vcan.set_defaults(func=_cmd_vcan_setup)
     return parser
 
 

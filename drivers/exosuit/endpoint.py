@@ -1,0 +1,782 @@
+"""Async CAN endpoint of the exosuit protocol on python-can.
+
+One :class:`CanEndpoint` owns one python-can bus, built from a frozen :class:`CanBusConfig`
+(``socketcan``, ``pcan``, ``kvaser``, ``slcan``, ``virtual``, ``remote``... all through
+``can.Bus``). Received frames arrive through python-can's asyncio machinery — a ``can.Notifier``
+bound to the running loop feeding a ``can.AsyncBufferedReader`` — and one receive task decodes
+them (:func:`~drivers.exosuit.codec.decode_frame`) and hands the messages to subscriptions
+(bounded queues, oldest dropped and counted when a consumer falls behind, so the 2 kHz feedback
+can never block the endpoint). Frames that do not decode are counted by reason in
+:attr:`CanEndpoint.counters` and never stop it.
+
+Bridge-side helpers: :meth:`CanEndpoint.push_profile` (segments, paced; commit; ack with a
+timeout; bounded retries), a heartbeat task (:meth:`CanEndpoint.start_heartbeat`) and
+:meth:`CanEndpoint.send_assistance_off`. A bus failure (receive or transmit) is recorded once in
+:attr:`CanEndpoint.error`, wakes :meth:`CanEndpoint.wait_failed` and makes every subscription and
+pending push raise :class:`~drivers.errors.TransportError`: the bridge's supervisor reacts with
+assistance-off and a pause. The protocol itself is in ``drivers/PROTOCOL.md``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import contextlib
+import logging
+import types
+from collections.abc import AsyncIterator, Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple
+
+import can
+import numpy as np
+
+from drivers.errors import (
+    DecodeError,
+    DriverConfigError,
+    DriverError,
+    ProfilePushError,
+    TransportError,
+)
+from drivers.exosuit.codec import (
+    AssistanceOff,
+    AssistanceOffReason,
+    BridgeHeartbeat,
+    BridgeState,
+    ExosuitMessage,
+    NackReason,
+    ProfileAck,
+    decode_frame,
+)
+from drivers.exosuit.profile import ProfileTransfer
+
+__all__ = [
+    "DEFAULT_ACK_TIMEOUT_S",
+    "DEFAULT_PACE_S",
+    "DEFAULT_RETRIES",
+    "HEARTBEAT_PERIOD_S",
+    "INTERFACE_OPTIONS",
+    "RETRYABLE_NACKS",
+    "CanBusConfig",
+    "CanEndpoint",
+    "ProfileNackError",
+    "PushResult",
+    "Stamped",
+    "Subscription",
+]
+
+log = logging.getLogger(__name__)
+
+#: Bridge heartbeat period (the device's watchdog is 5 periods, 100 ms).
+HEARTBEAT_PERIOD_S = 0.020
+#: Gap between profile segments: one 135-bit frame per 2 ms is 6.75 % of a 1 Mbit/s bus
+#: (PROTOCOL.md, "Bus budget").
+DEFAULT_PACE_S = 0.002
+#: How long to wait for the ack after the commit (the device answers within 10 ms).
+DEFAULT_ACK_TIMEOUT_S = 0.25
+#: Transfer attempts after the first one.
+DEFAULT_RETRIES = 3
+#: Nack reasons worth re-sending the same table for; the others would be refused again.
+RETRYABLE_NACKS = frozenset({NackReason.BAD_CRC, NackReason.MISSING_SEGMENT, NackReason.BUSY})
+
+#: Interface options (``can.Bus`` keyword arguments besides interface/channel/bitrate) accepted
+#: per interface, from the python-can 4.6 and python-can-remote signatures. Interfaces not listed
+#: here are passed through unchecked.
+INTERFACE_OPTIONS: Mapping[str, frozenset[str]] = types.MappingProxyType({
+    "socketcan": frozenset({
+        "receive_own_messages", "local_loopback", "fd", "can_filters", "ignore_rx_error_frames",
+    }),
+    "virtual": frozenset({
+        "receive_own_messages", "rx_queue_size", "preserve_timestamps", "protocol",
+        "can_filters",
+    }),
+    "slcan": frozenset({
+        "tty_baudrate", "sleep_after_open", "rtscts", "listen_only", "timeout", "timing",
+        "can_filters",
+    }),
+    "pcan": frozenset({
+        "device_id", "state", "timing", "receive_own_messages", "fd", "auto_reset", "f_clock",
+        "f_clock_mhz", "nom_brp", "nom_tseg1", "nom_tseg2", "nom_sjw", "data_brp",
+        "data_tseg1", "data_tseg2", "data_sjw", "can_filters",
+    }),
+    "kvaser": frozenset({
+        "accept_virtual", "tseg1", "tseg2", "sjw", "no_samp", "driver_mode", "single_handle",
+        "receive_own_messages", "fd", "fd_non_iso", "exclusive", "override_exclusive",
+        "data_bitrate", "no_init_access", "timing", "can_filters",
+    }),
+    "remote": frozenset({"can_filters", "receive_own_messages", "ssl_context"}),
+})
+
+# Interfaces whose bitrate is set outside python-can (``ip link ... bitrate``, the server) or is
+# meaningless; the configured bitrate is then not passed to ``can.Bus``.
+_NO_BITRATE = frozenset({"socketcan", "virtual"})
+
+
+@dataclass(frozen=True)
+class CanBusConfig:
+    """Which CAN bus to open.
+
+    Attributes:
+        interface: python-can interface name (``socketcan``, ``pcan``, ``kvaser``, ``slcan``,
+            ``virtual``, ``remote``, ...).
+        channel: interface channel (``can0``/``vcan0``, ``PCAN_USBBUS1``, ``0``, ``/dev/ttyACM0``,
+            a virtual channel name, ``ws://host:54701/``).
+        bitrate: nominal bitrate in bit/s (not passed for socketcan, whose bitrate is set with
+            ``ip link``, nor for virtual).
+        options: further ``can.Bus`` keyword arguments; for the interfaces in
+            :data:`INTERFACE_OPTIONS` only the keys listed there.
+
+    Raises:
+        DriverConfigError: unknown interface, empty channel, bad bitrate or unknown option.
+    """
+
+    interface: str
+    channel: str | int
+    bitrate: int | None = 1_000_000
+    options: Mapping[str, Any] = field(default_factory=dict)
+
+    _KEYS = ("interface", "channel", "bitrate", "options")
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.interface, str) or self.interface not in can.VALID_INTERFACES:
+            raise DriverConfigError(
+                f"can.interface = {self.interface!r}; expected one of "
+                f"{', '.join(sorted(can.VALID_INTERFACES))}"
+            )
+        if isinstance(self.channel, bool) or not isinstance(self.channel, (str, int)) or (
+            isinstance(self.channel, str) and not self.channel
+        ):
+            raise DriverConfigError(
+                f"can.channel = {self.channel!r}; expected a non-empty string or an integer"
+            )
+        if self.bitrate is not None and (
+            isinstance(self.bitrate, bool) or not isinstance(self.bitrate, int)
+            or not 10_000 <= self.bitrate <= 8_000_000
+        ):
+            raise DriverConfigError(
+                f"can.bitrate = {self.bitrate!r}; expected an integer 10000..8000000 bit/s or None"
+            )
+        allowed = INTERFACE_OPTIONS.get(self.interface)
+        unknown = sorted(set(self.options) - allowed) if allowed is not None else []
+        if unknown:
+            raise DriverConfigError(
+                f"can option(s) {', '.join(unknown)} not known for interface "
+                f"{self.interface!r}; expected some of {', '.join(sorted(allowed or ()))}"
+            )
+        object.__setattr__(self, "options", types.MappingProxyType(dict(self.options)))
+
+    @classmethod
+    def from_mapping(cls, mapping: Mapping[str, Any]) -> CanBusConfig:
+        """Build from a config table, e.g. TOML ``[can]``.
+
+        ``interface`` and ``channel`` are required, ``bitrate`` optional; every other key is an
+        interface option (``fd = true``, ``tty_baudrate = 115200``...), or goes in ``options``.
+
+        Raises:
+            DriverConfigError: a required key is missing or a key is unknown.
+        """
+        missing = [k for k in ("interface", "channel") if k not in mapping]
+        if missing:
+            raise DriverConfigError(f"can: missing key(s) {', '.join(missing)}")
+        nested = mapping.get("options", {})
+        if not isinstance(nested, Mapping):
+            raise DriverConfigError(f"can.options must be a table, got {nested!r}")
+        options = {k: v for k, v in mapping.items() if k not in cls._KEYS}
+        options.update(nested)
+        return cls(
+            interface=mapping["interface"],
+            channel=mapping["channel"],
+            bitrate=mapping.get("bitrate", 1_000_000),
+            options=options,
+        )
+
+    def bus_kwargs(self) -> dict[str, Any]:
+        """Keyword arguments for ``can.Bus``."""
+        kwargs: dict[str, Any] = {"interface": self.interface, "channel": self.channel}
+        if self.bitrate is not None and self.interface not in _NO_BITRATE:
+            kwargs["bitrate"] = self.bitrate
+        kwargs.update(self.options)
+        return kwargs
+
+
+@dataclass(frozen=True)
+class PushResult:
+    """Outcome of an acknowledged profile push.
+
+    Attributes:
+        version: the profile version acked.
+        n_points: points in the table.
+        crc32: CRC-32 of the table as sent.
+        attempts: transfers sent (1 = first try).
+        elapsed_s: loop time from the first segment to the ack.
+        nacks: reasons of the nacks received before the ack.
+        timeouts: attempts that got no matching ack in time.
+    """
+
+    version: int
+    n_points: int
+    crc32: int
+    attempts: int
+    elapsed_s: float
+    nacks: tuple[NackReason, ...] = ()
+    timeouts: int = 0
+
+
+class ProfileNackError(ProfilePushError):
+    """The device refused a profile (after the retries, or at once for a non-retryable reason).
+
+    Attributes:
+        version: the profile version.
+        reason: the last nack reason.
+        detail: the nack's detail field.
+        attempts: transfers sent.
+    """
+
+    def __init__(self, version: int, reason: NackReason, detail: int, attempts: int) -> None:
+        self.version = version
+        self.reason = reason
+        self.detail = detail
+        self.attempts = attempts
+        super().__init__(
+            f"profile version {version} refused by the device: {reason.name.lower()} "
+            f"(detail {detail}) after {attempts} attempt(s)"
+        )
+
+
+class Stamped(NamedTuple):
+    """A received message with the frame's receive timestamp (seconds, the bus's clock)."""
+
+    t_s: float
+    message: ExosuitMessage
+
+
+_FAILED = object()  # queued into subscriptions when the bus fails
+
+
+class Subscription:
+    """A bounded queue of decoded messages of chosen kinds.
+
+    Iterate with ``async for``, or ``await sub.get()``. When the queue is full the oldest item is
+    dropped (counted as ``subscriber_overflow`` in the endpoint's counters). Use as a context
+    manager, or call :meth:`close`, to stop receiving.
+    """
+
+    def __init__(
+        self,
+        endpoint: CanEndpoint,
+        kinds: tuple[type, ...],
+        maxsize: int,
+        timestamps: bool,
+    ) -> None:
+        self._endpoint = endpoint
+        self.kinds = kinds
+        self.timestamps = timestamps
+        self._queue: asyncio.Queue[Any] = asyncio.Queue(maxsize=maxsize)
+
+    def accepts(self, message: ExosuitMessage) -> bool:
+        """Whether ``message`` is of one of the subscribed kinds (all when none given)."""
+        return not self.kinds or isinstance(message, self.kinds)
+
+    def _put(self, item: Any) -> bool:
+        dropped = False
+        if self._queue.full():
+            self._queue.get_nowait()
+            dropped = True
+        self._queue.put_nowait(item)
+        return dropped
+
+    async def get(self) -> Any:
+        """The next message (a :class:`Stamped` when subscribed with ``timestamps=True``).
+
+        Raises:
+            TransportError: the bus failed.
+        """
+        item = await self._queue.get()
+        if item is _FAILED:
+            self._queue.put_nowait(_FAILED)  # keep failing for later calls too
+            raise TransportError(f"CAN bus failed: {self._endpoint.error}")
+        return item
+
+    def get_nowait(self) -> Any:
+        """The next message if one is queued (raises asyncio.QueueEmpty otherwise)."""
+        item = self._queue.get_nowait()
+        if item is _FAILED:
+            self._queue.put_nowait(_FAILED)
+            raise TransportError(f"CAN bus failed: {self._endpoint.error}")
+        return item
+
+    def qsize(self) -> int:
+        """Number of queued items."""
+        return self._queue.qsize()
+
+    def close(self) -> None:
+        """Stop receiving (idempotent)."""
+        self._endpoint._unsubscribe(self)
+
+    def __enter__(self) -> Subscription:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __aiter__(self) -> AsyncIterator[Any]:
+        return self
+
+    async def __anext__(self) -> Any:
+        return await self.get()
+
+
+class _ErrorListener(can.Listener):
+    """Receives python-can's reader errors (from the Notifier, in the loop thread)."""
+
+    def __init__(self, on_error: Callable[[Exception], None]) -> None:
+        self._on_error_cb = on_error
+
+    def on_message_received(self, msg: can.Message) -> None:
+        """Messages go to the AsyncBufferedReader; nothing to do here."""
+
+    def on_error(self, exc: Exception) -> None:
+        """Forward the reader's exception to the endpoint."""
+        self._on_error_cb(exc)
+
+
+class _LoopNotifier(can.Notifier):
+    """A Notifier whose file-descriptor reader reports a failing ``recv`` to the listeners.
+
+    python-can's loop-bound reader (``loop.add_reader`` on ``bus.fileno()``) lets an exception
+    from ``bus.recv`` escape into the event loop's exception handler, where it is only logged and
+    repeats on every readiness event. Here it goes to ``Listener.on_error`` like the threaded
+    reader's errors, and the fd is no longer watched.
+    """
+
+    def _on_message_available(self, bus: can.BusABC) -> None:
+        try:
+            super()._on_message_available(bus)
+        except Exception as err:  # forwarded to on_error, not swallowed
+            self.exception = err
+            if self._loop is not None:
+                # Best effort: stop watching the fd. The error itself goes on to on_error below.
+                with contextlib.suppress(ValueError, OSError, can.CanError):
+                    self._loop.remove_reader(bus.fileno())
+            self._on_error(err)
+
+
+class CanEndpoint:
+    """Async endpoint of the exosuit protocol on one python-can bus.
+
+    Use ``async with CanEndpoint(config) as ep:``. Inside: :meth:`subscribe` to decoded
+    messages, :meth:`send`, :meth:`push_profile`, :meth:`start_heartbeat`,
+    :meth:`send_assistance_off`. The endpoint is not thread-safe: use it from one event loop.
+
+    Args:
+        config: which bus to open.
+        bus_factory: builds the bus from ``config.bus_kwargs()`` (default ``can.Bus``).
+        send_timeout_s: how long :meth:`send` keeps retrying a full transmit queue.
+        notifier_timeout_s: receive-thread poll period for buses without a file descriptor
+            (also the bound on how long :meth:`close` waits for that thread).
+    """
+
+    def __init__(
+        self,
+        config: CanBusConfig,
+        *,
+        bus_factory: Callable[..., can.BusABC] = can.Bus,
+        send_timeout_s: float = 0.05,
+        notifier_timeout_s: float = 0.05,
+    ) -> None:
+        if not isinstance(config, CanBusConfig):
+            raise DriverConfigError(f"config must be a CanBusConfig, got {type(config).__name__}")
+        self.config = config
+        self._bus_factory = bus_factory
+        self._send_timeout_s = float(send_timeout_s)
+        self._notifier_timeout_s = float(notifier_timeout_s)
+        self._bus: can.BusABC | None = None
+        self._notifier: can.Notifier | None = None
+        self._reader: can.AsyncBufferedReader | None = None
+        self._rx_task: asyncio.Task[None] | None = None
+        self._hb_task: asyncio.Task[None] | None = None
+        self._hb_counter = 0
+        self._subs: list[Subscription] = []
+        self._counters: collections.Counter[str] = collections.Counter()
+        self._received: collections.Counter[str] = collections.Counter()
+        self._error: BaseException | None = None
+        self._failed: asyncio.Event | None = None
+        self._push_lock: asyncio.Lock | None = None
+        #: State announced in the bridge heartbeat; the device assists only while RUNNING.
+        self.bridge_state = BridgeState.IDLE
+
+    # --- lifecycle --------------------------------------------------------------------------
+
+    async def __aenter__(self) -> CanEndpoint:
+        await self.open()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    @property
+    def is_open(self) -> bool:
+        """Whether the bus is open."""
+        return self._bus is not None
+
+    async def open(self) -> None:
+        """Open the bus and start receiving.
+
+        Raises:
+            DriverConfigError: python-can rejects the interface or its options.
+            TransportError: the bus could not be opened.
+        """
+        if self._bus is not None:
+            raise DriverError("endpoint is already open")
+        loop = asyncio.get_running_loop()
+        kwargs = self.config.bus_kwargs()
+        try:
+            # Opening may block (an slcan adapter sleeps after opening its port).
+            bus = await asyncio.to_thread(self._bus_factory, **kwargs)
+        except can.CanInterfaceNotImplementedError as err:
+            raise DriverConfigError(
+                f"CAN interface {self.config.interface!r} is not usable here: {err}"
+            ) from err
+        except (can.CanError, OSError, ValueError, TypeError, ImportError) as err:
+            raise TransportError(
+                f"cannot open CAN bus {self.config.interface}:{self.config.channel}: {err}"
+            ) from err
+        self._error = None
+        self._failed = asyncio.Event()
+        self._push_lock = asyncio.Lock()
+        self._reader = can.AsyncBufferedReader()
+        try:
+            self._notifier = _LoopNotifier(
+                bus,
+                [self._reader, _ErrorListener(self._on_bus_error)],
+                timeout=self._notifier_timeout_s,
+                loop=loop,
+            )
+        except (ValueError, can.CanError, OSError) as err:  # e.g. bus already has a Notifier
+            bus.shutdown()
+            raise TransportError(f"cannot receive from CAN bus {self.config.channel}: {err}") from err
+        self._bus = bus
+        self._rx_task = loop.create_task(self._receive_loop(), name="can-endpoint-rx")
+        self._rx_task.add_done_callback(self._on_task_done)
+        log.info("CAN endpoint open on %s:%s", self.config.interface, self.config.channel)
+
+    async def close(self) -> None:
+        """Stop the heartbeat and the receiver, and shut the bus down (idempotent)."""
+        await self.stop_heartbeat()
+        if self._rx_task is not None:
+            self._rx_task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._rx_task
+            self._rx_task = None
+        if self._notifier is not None:
+            self._notifier.stop(timeout=self._notifier_timeout_s + 1.0)
+            self._notifier = None
+        if self._bus is not None:
+            bus, self._bus = self._bus, None
+            try:
+                bus.shutdown()
+            except (can.CanError, OSError) as err:
+                log.warning("CAN bus shutdown failed: %s", err)
+
+    # --- receive ----------------------------------------------------------------------------
+
+    @property
+    def counters(self) -> Mapping[str, int]:
+        """Frames that did not decode, by reason (``unknown_id``, ``bad_length``, ``bad_value``,
+        ``extended_id``, ``remote_frame``, ``error_frame``, ``fd_frame``), plus
+        ``subscriber_overflow``, ``stale_ack``, ``send_retry`` and ``heartbeat_overrun``."""
+        return types.MappingProxyType(self._counters)
+
+    @property
+    def received(self) -> Mapping[str, int]:
+        """Decoded frames, by message class name."""
+        return types.MappingProxyType(self._received)
+
+    @property
+    def error(self) -> BaseException | None:
+        """The bus failure, once one happened."""
+        return self._error
+
+    async def wait_failed(self) -> BaseException:
+        """Wait until the bus fails; returns the error (for the bridge's supervisor)."""
+        if self._failed is None:
+            raise DriverError("endpoint is not open")
+        await self._failed.wait()
+        if self._error is None:
+            raise DriverError("endpoint failure flagged without an error")
+        return self._error
+
+    def subscribe(
+        self, *kinds: type, maxsize: int = 1024, timestamps: bool = False
+    ) -> Subscription:
+        """Receive decoded messages of the given classes (all messages if none given).
+
+        Args:
+            kinds: message classes, e.g. ``ProfileAck, DeviceStatus``.
+            maxsize: queue bound; the oldest item is dropped when it is full.
+            timestamps: deliver :class:`Stamped` (t_s, message) instead of bare messages.
+        """
+        if maxsize < 1:
+            raise DriverConfigError(f"subscription maxsize must be >= 1, got {maxsize}")
+        sub = Subscription(self, tuple(kinds), maxsize, timestamps)
+        if self._error is not None:
+            sub._put(_FAILED)
+        self._subs.append(sub)
+        return sub
+
+    def _unsubscribe(self, sub: Subscription) -> None:
+        with contextlib.suppress(ValueError):
+            self._subs.remove(sub)
+
+    async def _receive_loop(self) -> None:
+        reader = self._reader
+        if reader is None:
+            raise DriverError("receive loop started without a reader")
+        while True:
+            frame = await reader.get_message()
+            self._dispatch(frame)
+
+    def _dispatch(self, frame: can.Message) -> None:
+        try:
+            message = decode_frame(frame)
+        except DecodeError as err:
+            self._counters[err.reason] += 1
+            log.debug("undecodable frame counted as %s: %s", err.reason, err)
+            return
+        self._received[type(message).__name__] += 1
+        stamped: Stamped | None = None
+        for sub in self._subs:
+            if sub.accepts(message):
+                if sub.timestamps:
+                    stamped = stamped or Stamped(float(frame.timestamp), message)
+                    item: Any = stamped
+                else:
+                    item = message
+                if sub._put(item):
+                    self._counters["subscriber_overflow"] += 1
+
+    def _on_bus_error(self, exc: BaseException) -> None:
+        if self._error is not None:
+            return
+        log.error("CAN bus failed: %s", exc)
+        self._error = exc
+        if self._failed is not None:
+            self._failed.set()
+        for sub in self._subs:
+            sub._put(_FAILED)
+
+    def _on_task_done(self, task: asyncio.Task[None]) -> None:
+        if task.cancelled():
+            return
+        exc = task.exception()
+        if exc is not None:
+            self._on_bus_error(exc)
+
+    # --- transmit ---------------------------------------------------------------------------
+
+    def _check_usable(self) -> can.BusABC:
+        if self._bus is None:
+            raise DriverError("endpoint is not open")
+        if self._error is not None:
+            raise TransportError(f"CAN bus failed: {self._error}")
+        return self._bus
+
+    def send_nowait(self, message: ExosuitMessage | can.Message) -> None:
+        """Transmit one message now (one attempt).
+
+        Raises:
+            EncodeError: the message does not encode.
+            TransportError: the bus refused the frame or has failed.
+        """
+        bus = self._check_usable()
+        frame = message if isinstance(message, can.Message) else message.to_frame()
+        try:
+            bus.send(frame, timeout=0)
+        except can.CanError as err:
+            raise TransportError(f"CAN send of 0x{frame.arbitration_id:03X} failed: {err}") from err
+
+    async def send(self, message: ExosuitMessage | can.Message) -> None:
+        """Transmit one message, retrying a full transmit queue for up to ``send_timeout_s``.
+
+        Raises:
+            EncodeError: the message does not encode.
+            TransportError: still refused at the deadline, or the bus has failed.
+        """
+        bus = self._check_usable()
+        frame = message if isinstance(message, can.Message) else message.to_frame()
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + self._send_timeout_s
+        while True:
+            try:
+                bus.send(frame, timeout=0)
+                return
+            except can.CanOperationError as err:
+                # Typically ENOBUFS / "Transmit buffer full": the adapter queue is busy.
+                if loop.time() >= deadline:
+                    raise TransportError(
+                        f"CAN send of 0x{frame.arbitration_id:03X} failed for "
+                        f"{self._send_timeout_s} s: {err}"
+                    ) from err
+                self._counters["send_retry"] += 1
+                await asyncio.sleep(0.001)
+            except can.CanError as err:
+                raise TransportError(
+                    f"CAN send of 0x{frame.arbitration_id:03X} failed: {err}"
+                ) from err
+
+    async def send_assistance_off(self, reason: AssistanceOffReason) -> None:
+        """Command the safe state at once and announce PAUSED in the heartbeat (if RUNNING).
+
+        The heartbeat's state keeps the device off afterwards, so a lost AssistanceOff frame is
+        corrected within one heartbeat period.
+        """
+        if self.bridge_state == BridgeState.RUNNING:
+            self.bridge_state = BridgeState.PAUSED
+        await self.send(AssistanceOff(AssistanceOffReason(reason)))
+
+    # --- heartbeat --------------------------------------------------------------------------
+
+    def start_heartbeat(self, period_s: float = HEARTBEAT_PERIOD_S) -> asyncio.Task[None]:
+        """Start (or return the running) heartbeat task.
+
+        The heartbeat is sent by this loop task, not by a kernel or adapter periodic job
+        (python-can ``send_periodic`` on socketcan uses the kernel BCM, which keeps sending
+        while the bridge is hung): each frame carries a counter the loop advances, so the
+        device's watchdog sees a hung bridge. A send failure ends the task and marks the
+        endpoint failed (:meth:`wait_failed`).
+        """
+        if not period_s > 0:
+            raise DriverConfigError(f"heartbeat period_s must be > 0, got {period_s}")
+        self._check_usable()
+        if self._hb_task is not None and not self._hb_task.done():
+            return self._hb_task
+        task = asyncio.get_running_loop().create_task(
+            self._heartbeat_loop(period_s), name="can-endpoint-heartbeat"
+        )
+        task.add_done_callback(self._on_task_done)
+        self._hb_task = task
+        return task
+
+    async def stop_heartbeat(self) -> None:
+        """Stop the heartbeat task (idempotent)."""
+        task, self._hb_task = self._hb_task, None
+        if task is not None and not task.done():
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+
+    async def _heartbeat_loop(self, period_s: float) -> None:
+        loop = asyncio.get_running_loop()
+        next_t = loop.time()
+        while True:
+            await self.send(BridgeHeartbeat(self._hb_counter, self.bridge_state))
+            self._hb_counter = (self._hb_counter + 1) % 256
+            next_t += period_s
+            delay = next_t - loop.time()
+            if delay < 0:  # the loop was blocked for more than a period: resynchronise
+                self._counters["heartbeat_overrun"] += 1
+                next_t, delay = loop.time(), 0.0
+            await asyncio.sleep(delay)
+
+    # --- profile push -----------------------------------------------------------------------
+
+    async def push_profile(
+        self,
+        forces_n: Sequence[float] | np.ndarray,
+        version: int,
+        *,
+        timeout_s: float = DEFAULT_ACK_TIMEOUT_S,
+        retries: int = DEFAULT_RETRIES,
+        pace_s: float = DEFAULT_PACE_S,
+    ) -> PushResult:
+        """Send a force-profile table, commit it and wait for the device's ack.
+
+        Each attempt sends every segment (``pace_s`` apart), then the commit, then waits up to
+        ``timeout_s`` for a ProfileAck of this version. A timeout or a retryable nack
+        (:data:`RETRYABLE_NACKS`; after BUSY the endpoint first waits ``timeout_s``) starts the
+        next attempt, up to ``retries`` more; other nacks fail at once. Pushes are serialised.
+
+        Args:
+            forces_n: the table, shape (n,), 2 ≤ n ≤ 768, newtons over 0..100 % gait cycle.
+            version: profile version 1..255.
+            timeout_s: ack timeout per attempt (s).
+            retries: attempts after the first.
+            pace_s: gap between segments (s); 0 sends them back to back.
+
+        Returns:
+            A :class:`PushResult`.
+
+        Raises:
+            EncodeError: the table or version cannot be encoded (nothing is sent).
+            ProfileNackError: nacked with a non-retryable reason, or the last attempt nacked.
+            ProfilePushError: no ack after all attempts.
+            TransportError: the bus failed.
+        """
+        if not timeout_s > 0 or not pace_s >= 0 or not (isinstance(retries, int) and retries >= 0):
+            raise DriverConfigError(
+                f"push_profile: expected timeout_s > 0, pace_s >= 0, integer retries >= 0; got "
+                f"timeout_s={timeout_s}, pace_s={pace_s}, retries={retries}"
+            )
+        transfer = ProfileTransfer.from_forces(forces_n, version)
+        segments = [s.to_frame() for s in transfer.segments()]
+        commit = transfer.commit().to_frame()
+        self._check_usable()
+        if self._push_lock is None:
+            raise DriverError("endpoint is not open")
+        loop = asyncio.get_running_loop()
+        async with self._push_lock:
+            t0 = loop.time()
+            nacks: list[NackReason] = []
+            timeouts = 0
+            last: ProfileAck | None = None
+            with self.subscribe(ProfileAck) as acks:
+                for attempt in range(1, retries + 2):
+                    for k, frame in enumerate(segments):
+                        if k and pace_s > 0:
+                            await asyncio.sleep(pace_s)
+                        await self.send(frame)
+                    if pace_s > 0:
+                        await asyncio.sleep(pace_s)
+                    await self.send(commit)
+                    ack = await self._await_ack(acks, version, loop.time() + timeout_s)
+                    if ack is None:
+                        timeouts += 1
+                        log.warning("profile v%d: no ack within %.3f s (attempt %d)",
+                                    version, timeout_s, attempt)
+                        continue
+                    if ack.accepted:
+                        return PushResult(
+                            version=version, n_points=transfer.n_points, crc32=transfer.crc32,
+                            attempts=attempt, elapsed_s=loop.time() - t0, nacks=tuple(nacks),
+                            timeouts=timeouts,
+                        )
+                    last = ack
+                    nacks.append(ack.reason)
+                    log.warning("profile v%d nacked: %s (detail %d, attempt %d)",
+                                version, ack.reason.name, ack.detail, attempt)
+                    if ack.reason not in RETRYABLE_NACKS:
+                        raise ProfileNackError(version, ack.reason, ack.detail, attempt)
+                    if ack.reason == NackReason.BUSY:
+                        await asyncio.sleep(timeout_s)
+            if last is not None:
+                raise ProfileNackError(version, last.reason, last.detail, retries + 1)
+            raise ProfilePushError(
+                f"profile version {version}: no ack after {retries + 1} attempt(s) of "
+                f"{timeout_s} s each"
+            )
+
+    async def _await_ack(
+        self, acks: Subscription, version: int, deadline: float
+    ) -> ProfileAck | None:
+        loop = asyncio.get_running_loop()
+        while True:
+            remaining = deadline - loop.time()
+            if remaining <= 0:
+                return None
+            try:
+                ack = await asyncio.wait_for(acks.get(), remaining)
+            except TimeoutError:
+                return None
+            if ack.version == version:
+                return ack
+            self._counters["stale_ack"] += 1

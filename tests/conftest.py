@@ -1,0 +1,270 @@
+"""Shared test machinery: tests marked ``vcan`` run over SocketCAN ``vcan0`` wherever possible.
+
+* Natively, when this kernel has SocketCAN and a ``vcan0`` interface that a raw CAN socket can
+  bind (a lab Linux PC after ``scripts/vcan-setup.sh``; inside user-mode Linux).
+* Otherwise inside user-mode Linux (Debian's ``user-mode-linux``; ``scripts/ensure-uml.sh``
+  installs it): after collection the ``vcan`` items are replaced by proxies; the first proxy that
+  runs boots UML once (``scripts/uml_run.py``), which runs *all* selected ``vcan`` tests in one
+  inner pytest with ``vcan0`` up and writes one JSON line per test phase to a host file; each
+  proxy then reports its own test's outcome (with the inner failure text and captured output).
+  ``HILBO_IN_UML=1`` is set inside the guest, so the inner run never boots UML again.
+* Skipped with the reason when neither is possible.
+
+Knobs (environment): ``HILBO_UML_TIMEOUT_S`` (whole boot, default 240 s), ``HILBO_UML_MEM``
+(default 1G), ``HILBO_UML_KEEP=1`` (keep the work directory with the console log).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import pytest
+
+IN_UML = os.environ.get("HILBO_IN_UML") == "1"
+VCAN_CHANNEL = "vcan0"
+_REPORT_ENV = "HILBO_UML_REPORT"
+_ROOT = Path(__file__).resolve().parents[1]
+
+
+def native_vcan_problem(channel: str = VCAN_CHANNEL) -> str | None:
+    """Why SocketCAN ``channel`` is not usable natively, or None when it is."""
+    if not hasattr(socket, "AF_CAN"):
+        return "this Python has no AF_CAN"
+    try:
+        sock = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
+    except OSError as err:
+        return f"the kernel has no SocketCAN ({err.strerror})"
+    with sock:
+        try:
+            sock.bind((channel,))
+        except OSError as err:
+            return f"no {channel} interface ({err.strerror}); see scripts/vcan-setup.sh"
+    return None
+
+
+def _uml_module() -> ModuleType:
+    path = _ROOT / "scripts" / "uml_run.py"
+    spec = importlib.util.spec_from_file_location("hilbo_uml_run", path)
+    if spec is None or spec.loader is None:
+        raise ImportError(f"cannot load {path}")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def uml_problem() -> str | None:
+    """Why user-mode Linux cannot run the vcan tests here, or None when it can."""
+    if IN_UML:
+        return "already inside user-mode Linux"
+    found = _uml_module().find_uml()
+    if found is None:
+        return "linux.uml not installed (scripts/ensure-uml.sh installs it as root)"
+    return found[1] or None
+
+
+# --- inside the guest: one JSON line per test phase --------------------------------------------
+
+
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    """Inside UML, append each phase's outcome to the host-visible report file."""
+    path = os.environ.get(_REPORT_ENV)
+    if not (IN_UML and path):
+        return
+    if report.skipped and isinstance(report.longrepr, tuple):
+        text = str(report.longrepr[2])
+    else:
+        text = "" if report.longrepr is None else str(report.longrepr)
+    record = {
+        "nodeid": report.nodeid,
+        "when": report.when,
+        "outcome": report.outcome,
+        "longrepr": text,
+        "wasxfail": getattr(report, "wasxfail", None),
+        "sections": [[title, body] for title, body in report.sections],
+        "duration": report.duration,
+    }
+    with open(path, "a", encoding="utf-8") as fh:
+        fh.write(json.dumps(record) + "\n")
+
+
+# --- on the host: proxies for the vcan tests -----------------------------------------------------
+
+
+class UmlTestFailure(Exception):
+    """The test failed inside user-mode Linux; the message is the inner report."""
+
+
+@dataclass
+class _Outcome:
+    outcome: str = "passed"  # passed | failed | skipped | xfailed | xpassed
+    text: str = ""
+    sections: list[tuple[str, str]] = field(default_factory=list)
+
+
+class UmlBatch:
+    """Runs all the selected vcan tests in one UML boot, on first demand."""
+
+    def __init__(self, config: pytest.Config, nodeids: list[str]) -> None:
+        self.config = config
+        self.nodeids = nodeids
+        self._outcomes: dict[str, _Outcome] | None = None
+        self.summary = ""
+        self.failure = ""
+
+    def outcomes(self) -> dict[str, _Outcome]:
+        if self._outcomes is None:
+            self._outcomes = self._run()
+        return self._outcomes
+
+    def _run(self) -> dict[str, _Outcome]:
+        timeout_s = float(os.environ.get("HILBO_UML_TIMEOUT_S", "240"))
+        work = Path(tempfile.mkdtemp(prefix="hilbo-vcan-"))
+        report = work / "report.jsonl"
+        inner = [
+            sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+            "--rootdir", str(self.config.rootpath),
+            "--basetemp", str(work / "basetemp"),
+            "--junitxml", str(work / "junit.xml"),
+            *self.nodeids,
+        ]
+        if self.config.inipath is not None:
+            inner[4:4] = ["-c", str(self.config.inipath)]
+        cmd = [
+            sys.executable, str(_ROOT / "scripts" / "uml_run.py"),
+            "--timeout", str(timeout_s), "--mem", os.environ.get("HILBO_UML_MEM", "1G"),
+            "--env", f"{_REPORT_ENV}={report}",
+            *(["--keep"] if os.environ.get("HILBO_UML_KEEP") == "1" else []),
+            "--", *inner,
+        ]
+        try:
+            proc = subprocess.run(
+                cmd, cwd=self.config.rootpath, capture_output=True, text=True,
+                timeout=timeout_s + 30, check=False,
+            )
+            output, log, status = proc.stdout, proc.stderr, proc.returncode
+        except subprocess.TimeoutExpired as err:
+            output, log, status = str(err.stdout or ""), str(err.stderr or ""), None
+        outcomes = _read_report(report)
+        self.summary = (
+            f"{len(self.nodeids)} vcan test(s) ran inside user-mode Linux "
+            f"(inner pytest status {status}); {log.strip().splitlines()[-1] if log.strip() else ''}"
+        )
+        missing = [n for n in self.nodeids if n not in outcomes]
+        if missing:
+            self.failure = (
+                f"user-mode Linux run ended with status {status} without reporting "
+                f"{len(missing)} test(s).\n--- uml_run log ---\n{log[-6000:]}\n"
+                f"--- inner output ---\n{output[-6000:]}"
+            )
+        if not missing and os.environ.get("HILBO_UML_KEEP") != "1":
+            shutil.rmtree(work, ignore_errors=True)
+        return outcomes
+
+
+def _read_report(path: Path) -> dict[str, _Outcome]:
+    outcomes: dict[str, _Outcome] = {}
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except FileNotFoundError:
+        return outcomes
+    for line in lines:
+        rec: dict[str, Any] = json.loads(line)
+        out = outcomes.setdefault(rec["nodeid"], _Outcome())
+        # each phase's report repeats the sections of the phases before it
+        out.sections.extend((t, b) for t, b in rec["sections"] if (t, b) not in out.sections)
+        if rec["wasxfail"] is not None:
+            out.outcome = "xfailed" if rec["outcome"] == "skipped" else "xpassed"
+            out.text = rec["wasxfail"] or rec["longrepr"]
+        elif rec["outcome"] == "failed":
+            out.outcome = "failed"
+            out.text += f"[{rec['when']}] {rec['longrepr']}\n"
+        elif rec["outcome"] == "skipped" and out.outcome != "failed":
+            out.outcome = "skipped"
+            out.text = rec["longrepr"]
+    return outcomes
+
+
+class UmlProxyItem(pytest.Item):
+    """Stands in on the host for one vcan test that runs inside user-mode Linux."""
+
+    def __init__(self, *, original: pytest.Item, batch: UmlBatch, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        self.original = original
+        self.batch = batch
+        self.own_markers.extend(original.own_markers)
+        self.keywords.update(original.keywords)
+
+    def runtest(self) -> None:
+        outcomes = self.batch.outcomes()
+        result = outcomes.get(self.nodeid)
+        if result is None:
+            raise UmlTestFailure(
+                self.batch.failure or f"{self.nodeid} did not report from user-mode Linux"
+            )
+        if result.sections:
+            self.add_report_section("call", "inside user-mode Linux", "\n".join(
+                f"----- {title} -----\n{body}" for title, body in result.sections
+            ))
+        if result.outcome == "skipped":
+            pytest.skip(f"inside user-mode Linux: {result.text}")
+        if result.outcome == "xfailed":
+            pytest.xfail(f"inside user-mode Linux: {result.text}")
+        if result.outcome == "failed":
+            raise UmlTestFailure(result.text)
+
+    def repr_failure(self, excinfo: pytest.ExceptionInfo[BaseException], style: Any = None) -> Any:
+        if isinstance(excinfo.value, UmlTestFailure):
+            return f"(ran inside user-mode Linux)\n{excinfo.value}"
+        return super().repr_failure(excinfo)
+
+    def reportinfo(self) -> tuple[Any, int | None, str]:
+        path, lineno, name = self.original.reportinfo()
+        return path, lineno, f"{name} [user-mode Linux]"
+
+
+_BATCH_KEY = pytest.StashKey[UmlBatch]()
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_collection_modifyitems(
+    session: pytest.Session, config: pytest.Config, items: list[pytest.Item]
+) -> None:
+    """Route the selected vcan tests: native, one UML batch, or skip with the reason."""
+    vcan = [i for i in items if i.get_closest_marker("vcan") is not None]
+    if not vcan or IN_UML:
+        return  # inside UML they run natively (or fail loudly if vcan0 is broken)
+    native = native_vcan_problem()
+    if native is None:
+        return
+    uml = uml_problem()
+    if uml is not None:
+        skip = pytest.mark.skip(reason=f"vcan: {native}, and {uml}")
+        for item in vcan:
+            item.add_marker(skip)
+        return
+    batch = UmlBatch(config, [i.nodeid for i in vcan])
+    config.stash[_BATCH_KEY] = batch
+    for k, item in enumerate(items):
+        if item.get_closest_marker("vcan") is not None and item.parent is not None:
+            items[k] = UmlProxyItem.from_parent(
+                item.parent, name=item.name, original=item, batch=batch
+            )
+
+
+def pytest_terminal_summary(terminalreporter: Any, exitstatus: int, config: pytest.Config) -> None:
+    """Say that (and how) the vcan tests ran inside user-mode Linux."""
+    batch = config.stash.get(_BATCH_KEY, None)
+    if batch is not None and batch.summary:
+        terminalreporter.write_line(f"vcan: {batch.summary}")
