@@ -109,6 +109,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="stopping rule in the optimisation phase (default adaptive)")
     sim.set_defaults(func=_cmd_sim)
 
+    from bridge.config import add_config_parser
+
+    add_config_parser(sub)
+
     vcan = sub.add_parser(
         "vcan-setup", help="print the shell commands that bring up a (v)can interface",
         description="Print a shell script that creates and brings up a virtual CAN interface (vcanN) "
@@ -125,6 +129,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``hilbo`` console script."""
+    from bridge.errors import BridgeError
+    from drivers.errors import DriverError
     from hilbo_core.errors import HilboError
 
     parser = build_parser()
@@ -133,7 +139,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
         return int(args.func(args))
-    except HilboError as err:
+    except (HilboError, BridgeError, DriverError) as err:
         print(f"hilbo {args.command}: error: {err}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -41,8 +41,9 @@ class ForceProfile:
     force_n: np.ndarray
 
     def __post_init__(self) -> None:
-        g = np.asarray(self.gait_pct, dtype=float)
-        f = np.asarray(self.force_n, dtype=float)
+        # Copies: freezing the table must not freeze the caller's arrays.
+        g = np.array(self.gait_pct, dtype=float)
+        f = np.array(self.force_n, dtype=float)
         if g.shape != f.shape or g.ndim != 1 or len(g) < 2:
             raise ConfigError(f"profile tables must be 1-D of equal length, got {g.shape} and {f.shape}")
         if not (np.all(np.isfinite(f)) and np.all(np.isfinite(g))):

@@ -1,0 +1,950 @@
+"""The session config: one TOML file, validated on load.
+
+``hilbo config example`` prints a complete commented config (``bridge/config_example.toml``);
+``hilbo config check CONFIG.toml`` validates one and prints a summary. In code::
+
+    cfg = load_config("s07.toml")          # or parse_config(text, source="...")
+    cfg.protocol.optimizer_config()        # -> hilbo_core OptimizerConfig
+    cfg.make_gate()                        # -> bridge.safety.SafeProfileGate (the limits layer)
+    cfg.to_json()                          # -> for the log's config channel (raw TOML included)
+
+Tables: ``[session]``, ``[space]``, ``[protocol]``, ``[cart]`` (validated by
+:meth:`drivers.cart.CartConfig.from_dict`, see drivers/cart/FORMAT.md), ``[can]``, ``[limits]``
+(:class:`bridge.safety.ProfileLimits`), ``[watchdog]`` and ``[prior]``. Every table is a frozen
+dataclass. The loader refuses unknown tables and keys (a typo must never fall back silently to a
+default; the error names ``table.key``, suggests the closest allowed key and lists them all),
+checks every type and range, and names the key, the value and what is allowed in every error
+(:class:`~bridge.errors.BridgeConfigError`). A TOML syntax error is reported with its line and
+column. Paths (``session.out_dir``, ``cart.options.path``) are relative to the working directory.
+
+Cross-checks after the tables: the space's force-profile builder must build the centre of the
+space, per-actuator limits must name actuators the builder produces, and the limits must admit
+that centre (a config whose limits refuse the middle of its own space would stall the session);
+``hilbo config check`` also samples the space and reports how much of it the limits refuse.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import difflib
+import enum
+import math
+import re
+import sys
+import tomllib
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any, TextIO
+
+import can
+import numpy as np
+
+from bridge.errors import BridgeConfigError
+from bridge.safety import (
+    ACTUATOR_LIMIT_RANGES,
+    ProfileLimits,
+    SafeProfileGate,
+    make_actuator_limits,
+    preflight,
+)
+from drivers.cart import CartConfig
+from drivers.errors import DriverConfigError
+from drivers.exosuit.endpoint import INTERFACE_OPTIONS, CanBusConfig
+from hilbo_core.errors import ConfigError, InfeasibleError
+from hilbo_core.gp import KernelKind
+from hilbo_core.optimizer import OptimizerConfig, StoppingKind
+from hilbo_core.presets import PRESETS
+from hilbo_core.profiles import PROFILE_BUILDERS, build_profile
+from hilbo_core.space import DerivedParameter, LinearConstraint, Parameter, ParameterSpace
+
+__all__ = [
+    "ALLOWED_KEYS",
+    "TABLES",
+    "BusErrorPolicy",
+    "CanConfig",
+    "HilboConfig",
+    "PriorConfig",
+    "ProtocolConfig",
+    "SessionConfig",
+    "SpaceConfig",
+    "WatchdogConfig",
+    "add_config_parser",
+    "example_config_text",
+    "load_config",
+    "parse_config",
+    "summarize",
+]
+
+#: The tables a config may have, in the order the example shows them.
+TABLES = ("session", "space", "protocol", "cart", "can", "limits", "watchdog", "prior")
+_REQUIRED_TABLES = ("session", "space", "cart", "can")
+
+_MISSING: Any = object()
+_SUBJECT = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+
+
+# --------------------------------------------------------------------------------------------
+# Reading tables: unknown keys, types and ranges, with errors that name table.key
+# --------------------------------------------------------------------------------------------
+
+
+def _unknown_key_message(where: str, key: str, value_text: str, allowed: Iterable[str]) -> str:
+    allowed = sorted(allowed)
+    close = difflib.get_close_matches(key, allowed, n=1, cutoff=0.6)
+    if not where:
+        hint = f" (did you mean [{close[0]}]?)" if close else ""
+        return f"unknown table [{key}]{hint}; allowed tables: {', '.join(allowed)}"
+    hint = f" (did you mean {close[0]!r}?)" if close else ""
+    return (f"unknown key {where}.{key} = {value_text}{hint}; "
+            f"allowed keys in [{where}]: {', '.join(allowed) or '(none)'}")
+
+
+def _reject_unknown(data: Mapping[str, Any], allowed: Iterable[str], where: str) -> None:
+    allowed = tuple(allowed)
+    for key, value in data.items():
+        if key not in allowed:
+            raise BridgeConfigError(_unknown_key_message(where, key, f"{value!r:.60}", allowed))
+
+
+def _range_text(lo: float | None, hi: float | None, lo_open: bool) -> str:
+    lo_s = "-inf" if lo is None else str(lo) if isinstance(lo, int) else f"{lo:g}"
+    hi_s = "inf" if hi is None else str(hi) if isinstance(hi, int) else f"{hi:g}"
+    return f"{'(' if lo_open else '['}{lo_s}, {hi_s}]"
+
+
+class _Table:
+    """One config table: refuses unknown keys at once, then reads typed, range-checked values."""
+
+    def __init__(self, data: object, where: str, allowed: Iterable[str]) -> None:
+        if not isinstance(data, Mapping):
+            raise BridgeConfigError(f"{where} = {data!r:.60}: expected a table ([{where}])")
+        self.where = where
+        self.data: Mapping[str, Any] = data
+        _reject_unknown(data, allowed, where)
+
+    def name(self, key: str) -> str:
+        return f"{self.where}.{key}"
+
+    def has(self, key: str) -> bool:
+        return key in self.data
+
+    def raw(self, key: str, default: Any, expected: str) -> Any:
+        if key in self.data:
+            return self.data[key]
+        if default is _MISSING:
+            raise BridgeConfigError(f"{self.name(key)} is missing: expected {expected}")
+        return default
+
+    def number(self, key: str, default: Any = _MISSING, *, lo: float | None = None,
+               hi: float | None = None, lo_open: bool = False) -> float:
+        expected = f"a finite number in {_range_text(lo, hi, lo_open)}"
+        value = self.raw(key, default, expected)
+        # bool is an int subclass in Python; `true` for a timeout is a mistake, not 1.
+        ok = not isinstance(value, bool) and isinstance(value, int | float)
+        out = float(value) if ok else math.nan
+        if (not ok or not math.isfinite(out) or (lo is not None and (out <= lo if lo_open else out < lo))
+                or (hi is not None and out > hi)):
+            raise BridgeConfigError(f"{self.name(key)} = {value!r}: expected {expected}")
+        return out
+
+    def integer(self, key: str, default: Any = _MISSING, *, lo: int | None = None,
+                hi: int | None = None) -> int:
+        expected = f"an integer in {_range_text(lo, hi, False)}"
+        value = self.raw(key, default, expected)
+        if (isinstance(value, bool) or not isinstance(value, int) or (lo is not None and value < lo)
+                or (hi is not None and value > hi)):
+            raise BridgeConfigError(f"{self.name(key)} = {value!r}: expected {expected}")
+        return value
+
+    def string(self, key: str, default: Any = _MISSING, *, choices: Iterable[str] | None = None,
+               non_empty: bool = True) -> str:
+        options = sorted(choices) if choices is not None else None
+        expected = (f"one of {', '.join(repr(c) for c in options)}" if options is not None
+                    else "a non-empty string" if non_empty else "a string")
+        value = self.raw(key, default, expected)
+        if not isinstance(value, str) or (non_empty and not value):
+            raise BridgeConfigError(f"{self.name(key)} = {value!r}: expected {expected}")
+        if options is not None and value not in options:
+            close = difflib.get_close_matches(value, options, n=1, cutoff=0.6)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            raise BridgeConfigError(f"{self.name(key)} = {value!r}{hint}: expected {expected}")
+        return value
+
+    def boolean(self, key: str, default: Any = _MISSING) -> bool:
+        value = self.raw(key, default, "true or false")
+        if not isinstance(value, bool):
+            raise BridgeConfigError(f"{self.name(key)} = {value!r}: expected true or false")
+        return value
+
+    def choice(self, key: str, enum_cls: type[enum.Enum], default: Any = _MISSING) -> Any:
+        values = [m.value for m in enum_cls]
+        raw = self.string(key, default.value if isinstance(default, enum.Enum) else default,
+                          choices=values)
+        return enum_cls(raw)
+
+    def strings(self, key: str, default: Any = _MISSING) -> tuple[str, ...]:
+        value = self.raw(key, default, "a list of strings")
+        if not isinstance(value, list | tuple) or not all(isinstance(v, str) for v in value):
+            raise BridgeConfigError(f"{self.name(key)} = {value!r:.80}: expected a list of strings")
+        return tuple(value)
+
+    def table(self, key: str, default: Any = _MISSING) -> Mapping[str, Any]:
+        value = self.raw(key, default, "a table")
+        if not isinstance(value, Mapping):
+            raise BridgeConfigError(
+                f"{self.name(key)} = {value!r:.60}: expected a table ([{self.name(key)}])"
+            )
+        return value
+
+
+# --------------------------------------------------------------------------------------------
+# [session]
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SessionConfig:
+    """``[session]``: who walks, and where the session's files go.
+
+    Attributes:
+        subject: Subject id, used in file names: letters, digits, ``_ . -``, at most 64.
+        body_mass_kg: The wearer's mass in kg, 20–250 (``hip_ankle_4d`` scales its forces by it).
+        out_dir: Directory for the session's MCAP log and summary.
+        notes: Free text copied into the log.
+    """
+
+    subject: str
+    body_mass_kg: float
+    out_dir: Path = Path("sessions")
+    notes: str = ""
+
+
+def _parse_session(data: object) -> SessionConfig:
+    t = _Table(data, "session", ALLOWED_KEYS["session"])
+    subject = t.string("subject")
+    if not _SUBJECT.match(subject):
+        raise BridgeConfigError(
+            f"session.subject = {subject!r}: expected 1-64 letters, digits, '_', '.', '-' "
+            "(it is used in file names), starting with a letter or digit"
+        )
+    return SessionConfig(
+        subject=subject,
+        body_mass_kg=t.number("body_mass_kg", lo=20.0, hi=250.0),
+        out_dir=Path(t.string("out_dir", "sessions")),
+        notes=t.string("notes", "", non_empty=False),
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# [space]
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SpaceConfig:
+    """``[space]``: the parameter space, a preset (optionally re-bounded) or defined inline.
+
+    Attributes:
+        space: The space; ``space.name`` is the force-profile builder (``hip_6d``, ``hip_ankle_4d``).
+        preset: The preset it came from, or None for an inline definition.
+    """
+
+    space: ParameterSpace
+    preset: str | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        """JSON-able form."""
+        return {"preset": self.preset, "definition": self.space.to_json()}
+
+
+def _parse_constraints(t: _Table, key: str) -> list[LinearConstraint]:
+    out = []
+    for i, text in enumerate(t.strings(key, [])):
+        try:
+            out.append(LinearConstraint.parse(text))
+        except ConfigError as err:
+            raise BridgeConfigError(f"{t.name(key)}[{i}] = {text!r}: {err}") from err
+    return out
+
+
+def _parse_derived(t: _Table) -> list[DerivedParameter]:
+    out = []
+    for i, text in enumerate(t.strings("derived", [])):
+        try:
+            out.append(DerivedParameter.parse(text))
+        except ConfigError as err:
+            raise BridgeConfigError(f"space.derived[{i}] = {text!r}: {err}") from err
+    return out
+
+
+def _parse_parameter(entry: object, i: int) -> Parameter:
+    where = f"space.parameters[{i}]"
+    p = _Table(entry, where, ("name", "lower", "upper", "unit", "description"))
+    name = p.string("name")
+    lower, upper = p.number("lower"), p.number("upper")
+    try:
+        return Parameter(name, lower, upper, p.string("unit", "", non_empty=False),
+                         p.string("description", "", non_empty=False))
+    except ConfigError as err:
+        raise BridgeConfigError(f"{where}: {err}") from err
+
+
+def _parse_space(data: object) -> SpaceConfig:
+    t = _Table(data, "space", ALLOWED_KEYS["space"])
+    if t.has("preset") == t.has("parameters"):
+        raise BridgeConfigError(
+            "space: give either preset = \"hip_6d\" (or \"hip_ankle_4d\") or an inline definition "
+            "([[space.parameters]] tables with profile = ...), "
+            + ("not both" if t.has("preset") else "found neither")
+        )
+    if t.has("preset"):
+        preset = t.string("preset", choices=PRESETS)
+        for key in ("profile", "derived"):
+            if t.has(key):
+                raise BridgeConfigError(
+                    f"space.{key} = {t.data[key]!r:.60}: only for an inline definition; preset "
+                    f"{preset!r} fixes it (use space.bounds and space.constraints to narrow a preset)"
+                )
+        base = PRESETS[preset]()
+        params = list(base.parameters)
+        bounds = _Table(t.table("bounds", {}), "space.bounds", base.names)
+        for i, par in enumerate(params):
+            if not bounds.has(par.name):
+                continue
+            value = bounds.data[par.name]
+            if (not isinstance(value, list) or len(value) != 2
+                    or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)):
+                raise BridgeConfigError(
+                    f"space.bounds.{par.name} = {value!r}: expected [lower, upper] "
+                    f"in {par.unit or 'its unit'}"
+                )
+            try:
+                params[i] = Parameter(par.name, value[0], value[1], par.unit, par.description)
+            except ConfigError as err:
+                raise BridgeConfigError(f"space.bounds.{par.name} = {value!r}: {err}") from err
+        constraints = [*base.constraints, *_parse_constraints(t, "constraints")]
+        derived = list(base.derived)
+        name: str = preset
+    else:
+        preset = None
+        if t.has("bounds"):
+            raise BridgeConfigError(
+                "space.bounds re-bounds a preset's parameters; in an inline definition give lower "
+                "and upper in each [[space.parameters]] table"
+            )
+        name = t.string("profile", choices=PROFILE_BUILDERS)
+        entries = t.raw("parameters", _MISSING, "a list of [[space.parameters]] tables")
+        if not isinstance(entries, list) or not entries:
+            raise BridgeConfigError(
+                f"space.parameters = {entries!r:.60}: expected one or more [[space.parameters]] tables"
+            )
+        params = [_parse_parameter(e, i) for i, e in enumerate(entries)]
+        constraints = _parse_constraints(t, "constraints")
+        derived = _parse_derived(t)
+    try:
+        space = ParameterSpace(params, constraints, derived, name=name)
+    except (ConfigError, InfeasibleError) as err:
+        raise BridgeConfigError(f"space: {err}") from err
+    return SpaceConfig(space=space, preset=preset)
+
+
+# --------------------------------------------------------------------------------------------
+# [protocol]
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ProtocolConfig:
+    """``[protocol]``: the walking protocol and the optimizer (seed 000 §IV.A.3, Algorithm 1).
+
+    Two bouts: the exploration bout (``n_explore`` settings of ``max_breaths`` breaths each), then
+    the optimisation bout until the budget is spent; each starts with ``warmup_s`` of walking
+    that is not measured. With ``pause_between_bouts`` the session pauses (assistance off) after
+    the exploration bout until the operator resumes.
+
+    Attributes:
+        warmup_s: Walking before the first measured breath of each bout (s), 0–1800.
+        n_explore: Exploration settings E, 1–200.
+        max_breaths: Breaths per evaluation at most (N), 2–1000.
+        window: Algorithm 2's window W in breaths, 0..N−1.
+        budget_min: Optimisation-bout budget in minutes of breath time, or None.
+        budget_breaths: Optimisation-bout budget in breaths, or None (at least one budget is set;
+            with both, the first spent ends the bout).
+        stopping: ``adaptive`` (Algorithm 2 + the σ-scaled rule) or ``fixed`` (always N breaths).
+        seed: The optimizer's random seed (>= 0).
+        xi: Expected Improvement's ξ (seed 000 §II.B sign convention).
+        kernel: ``matern52`` or ``se``.
+        n_candidates: Feasible Sobol candidates per acquisition maximisation.
+        n_local: Candidates refined locally per acquisition maximisation.
+        pause_between_bouts: Pause for the operator between the bouts.
+    """
+
+    warmup_s: float = 180.0
+    n_explore: int = 6
+    max_breaths: int = 45
+    window: int = 2
+    budget_min: float | None = 40.0
+    budget_breaths: int | None = None
+    stopping: StoppingKind = StoppingKind.ADAPTIVE
+    seed: int = 0
+    xi: float = 0.0
+    kernel: KernelKind = KernelKind.MATERN52
+    n_candidates: int = 1024
+    n_local: int = 3
+    pause_between_bouts: bool = True
+
+    @property
+    def budget_s(self) -> float | None:
+        """The time budget in seconds, or None."""
+        return None if self.budget_min is None else 60.0 * self.budget_min
+
+    def optimizer_config(self) -> OptimizerConfig:
+        """The :class:`hilbo_core.optimizer.OptimizerConfig` of this protocol."""
+        return OptimizerConfig(
+            n_explore=self.n_explore, max_breaths=self.max_breaths, window=self.window,
+            budget_s=self.budget_s, budget_breaths=self.budget_breaths, stopping=self.stopping,
+            seed=self.seed, xi=self.xi, kernel=self.kernel, n_candidates=self.n_candidates,
+            n_local=self.n_local,
+        )
+
+    def to_json(self) -> dict[str, Any]:
+        """JSON-able form."""
+        return _jsonable(self)
+
+
+def _parse_protocol(data: object) -> ProtocolConfig:
+    t = _Table(data, "protocol", ALLOWED_KEYS["protocol"])
+    max_breaths = t.integer("max_breaths", 45, lo=2, hi=1000)
+    if not (t.has("budget_min") or t.has("budget_breaths")):
+        budget_min: float | None = 40.0  # seed 000 §IV.A.3: a 40-minute optimisation bout
+        budget_breaths: int | None = None
+    else:
+        budget_min = t.number("budget_min", lo=0.0, hi=1440.0, lo_open=True) if t.has("budget_min") else None
+        budget_breaths = t.integer("budget_breaths", lo=1, hi=100_000) if t.has("budget_breaths") else None
+    cfg = ProtocolConfig(
+        warmup_s=t.number("warmup_s", 180.0, lo=0.0, hi=1800.0),
+        n_explore=t.integer("n_explore", 6, lo=1, hi=200),
+        max_breaths=max_breaths,
+        window=t.integer("window", 2, lo=0, hi=max_breaths - 1),
+        budget_min=budget_min,
+        budget_breaths=budget_breaths,
+        stopping=t.choice("stopping", StoppingKind, StoppingKind.ADAPTIVE),
+        seed=t.integer("seed", 0, lo=0, hi=2**63 - 1),
+        xi=t.number("xi", 0.0, lo=-1e6, hi=1e6),
+        kernel=t.choice("kernel", KernelKind, KernelKind.MATERN52),
+        n_candidates=t.integer("n_candidates", 1024, lo=16, hi=1_000_000),
+        n_local=t.integer("n_local", 3, lo=0, hi=100),
+        pause_between_bouts=t.boolean("pause_between_bouts", True),
+    )
+    try:
+        cfg.optimizer_config()  # the optimizer's own validation is the final word
+    except ConfigError as err:
+        raise BridgeConfigError(f"protocol: {err}") from err
+    return cfg
+
+
+# --------------------------------------------------------------------------------------------
+# [cart]
+# --------------------------------------------------------------------------------------------
+
+# The cart driver's message for an unknown key (drivers/cart/_options.py check_keys).
+_DRIVER_UNKNOWN_KEY = re.compile(
+    r"^(?P<where>[\w.\[\]]+): unknown key '(?P<key>[^']*)' = (?P<value>.*); allowed keys: (?P<allowed>.*)$",
+    re.S,
+)
+
+
+def _parse_cart(data: object) -> CartConfig:
+    if not isinstance(data, Mapping):
+        raise BridgeConfigError(f"cart = {data!r:.60}: expected a table ([cart])")
+    try:
+        return CartConfig.from_dict(data, "cart")
+    except DriverConfigError as err:
+        msg = str(err)
+        m = _DRIVER_UNKNOWN_KEY.match(msg)
+        if m:  # same message in this module's style, with a did-you-mean suggestion
+            msg = _unknown_key_message(m["where"], m["key"], m["value"], m["allowed"].split(", "))
+        raise BridgeConfigError(msg) from err
+
+
+# --------------------------------------------------------------------------------------------
+# [can]
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CanConfig:
+    """``[can]``: the exosuit's CAN bus and the timing of the bridge's side of the protocol.
+
+    Attributes:
+        bus: Interface, channel, bitrate and python-can options (drivers/PROTOCOL.md,
+            "Transports").
+        heartbeat_period_ms: BridgeHeartbeat period, 5–50 ms (the device's watchdog is 100 ms,
+            so at least two heartbeats fit in it).
+        push_timeout_ms: Ack timeout per profile-push attempt, 10–5000 ms.
+        push_retries: Push attempts after the first, 0–10.
+        segment_pace_ms: Gap between profile segments, 0–50 ms (2 ms keeps an AssistanceOff from
+            queueing behind a burst; PROTOCOL.md, "Bus budget").
+    """
+
+    bus: CanBusConfig
+    heartbeat_period_ms: float = 20.0
+    push_timeout_ms: float = 250.0
+    push_retries: int = 3
+    segment_pace_ms: float = 2.0
+
+    @property
+    def heartbeat_period_s(self) -> float:
+        """For :meth:`drivers.exosuit.CanEndpoint.start_heartbeat`."""
+        return self.heartbeat_period_ms / 1000.0
+
+    def push_kwargs(self) -> dict[str, Any]:
+        """Keyword arguments for :meth:`drivers.exosuit.CanEndpoint.push_profile`."""
+        return {"timeout_s": self.push_timeout_ms / 1000.0, "retries": self.push_retries,
+                "pace_s": self.segment_pace_ms / 1000.0}
+
+    def to_json(self) -> dict[str, Any]:
+        """JSON-able form."""
+        return {
+            "interface": self.bus.interface, "channel": self.bus.channel, "bitrate": self.bus.bitrate,
+            "options": _jsonable(self.bus.options), "heartbeat_period_ms": self.heartbeat_period_ms,
+            "push_timeout_ms": self.push_timeout_ms, "push_retries": self.push_retries,
+            "segment_pace_ms": self.segment_pace_ms,
+        }
+
+
+def _parse_can(data: object) -> CanConfig:
+    t = _Table(data, "can", ALLOWED_KEYS["can"])
+    interface = t.string("interface", choices=can.VALID_INTERFACES)
+    channel = t.raw("channel", _MISSING, "a non-empty string or an integer (e.g. 'vcan0', 'PCAN_USBBUS1', 0)")
+    if isinstance(channel, bool) or not isinstance(channel, str | int) or channel == "":
+        raise BridgeConfigError(
+            f"can.channel = {channel!r}: expected a non-empty string or an integer "
+            "(e.g. 'vcan0', 'PCAN_USBBUS1', 0)"
+        )
+    bitrate = t.integer("bitrate", 1_000_000, lo=10_000, hi=8_000_000)
+    options = t.table("options", {})
+    allowed = INTERFACE_OPTIONS.get(interface)
+    if allowed is not None:
+        _reject_unknown(options, allowed, "can.options")
+    try:
+        bus = CanBusConfig(interface=interface, channel=channel, bitrate=bitrate, options=dict(options))
+    except DriverConfigError as err:
+        raise BridgeConfigError(str(err)) from err
+    return CanConfig(
+        bus=bus,
+        heartbeat_period_ms=t.number("heartbeat_period_ms", 20.0, lo=5.0, hi=50.0),
+        push_timeout_ms=t.number("push_timeout_ms", 250.0, lo=10.0, hi=5000.0),
+        push_retries=t.integer("push_retries", 3, lo=0, hi=10),
+        segment_pace_ms=t.number("segment_pace_ms", 2.0, lo=0.0, hi=50.0),
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# [limits]
+# --------------------------------------------------------------------------------------------
+
+_LIMIT_DEFAULTS = ProfileLimits()
+
+
+def _parse_limits(data: object) -> ProfileLimits:
+    t = _Table(data, "limits", ALLOWED_KEYS["limits"])
+    base: dict[str, float] = {}
+    for key, (lo, hi, lo_open) in ACTUATOR_LIMIT_RANGES.items():
+        base[key] = t.number(key, getattr(_LIMIT_DEFAULTS, key), lo=lo, hi=hi, lo_open=lo_open)
+    base_limits = make_actuator_limits("limits", **base)  # checks the window is not empty
+    overrides = {}
+    for name, entry in t.table("actuators", {}).items():
+        where = f"limits.actuators.{name}"
+        o = _Table(entry, where, ACTUATOR_LIMIT_RANGES)
+        values = dict(base_limits.to_json())
+        for key, (lo, hi, lo_open) in ACTUATOR_LIMIT_RANGES.items():
+            if o.has(key):
+                values[key] = o.number(key, lo=lo, hi=hi, lo_open=lo_open)
+        overrides[name] = make_actuator_limits(where, **values)
+    return ProfileLimits(
+        **base,
+        n_points=t.integer("n_points", _LIMIT_DEFAULTS.n_points, lo=2, hi=768),
+        max_consecutive_rejections=t.integer(
+            "max_consecutive_rejections", _LIMIT_DEFAULTS.max_consecutive_rejections, lo=1, hi=100),
+        actuators=overrides,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# [watchdog]
+# --------------------------------------------------------------------------------------------
+
+
+class BusErrorPolicy(enum.Enum):
+    """What the bridge does after a CAN bus error (assistance-off is commanded in every case)."""
+
+    PAUSE = "pause"  # assistance-off, pause; the operator resumes once the bus is back
+    STOP = "stop"  # assistance-off, end the session (continue later with --resume)
+
+
+@dataclass(frozen=True)
+class WatchdogConfig:
+    """``[watchdog]``: when the bridge gives up on a device and commands assistance-off.
+
+    Attributes:
+        device_heartbeat_timeout_ms: No DeviceStatus for this long → assistance-off and pause,
+            40–1000 ms (the device sends one every 20 ms; PROTOCOL.md uses 100 ms).
+        cart_data_timeout_s: No valid breath for this long (wall clock) → assistance-off and pause;
+            shorter gaps only pause estimation. 2–300 s (breaths come every 2–6 s).
+        bus_error: :class:`BusErrorPolicy`.
+    """
+
+    device_heartbeat_timeout_ms: float = 100.0
+    cart_data_timeout_s: float = 15.0
+    bus_error: BusErrorPolicy = BusErrorPolicy.PAUSE
+
+    def to_json(self) -> dict[str, Any]:
+        """JSON-able form."""
+        return _jsonable(self)
+
+
+def _parse_watchdog(data: object) -> WatchdogConfig:
+    t = _Table(data, "watchdog", ALLOWED_KEYS["watchdog"])
+    return WatchdogConfig(
+        device_heartbeat_timeout_ms=t.number("device_heartbeat_timeout_ms", 100.0, lo=40.0, hi=1000.0),
+        cart_data_timeout_s=t.number("cart_data_timeout_s", 15.0, lo=2.0, hi=300.0),
+        bus_error=t.choice("bus_error", BusErrorPolicy, BusErrorPolicy.PAUSE),
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# [prior]
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class PriorConfig:
+    """``[prior]``: fast-prior observations (seed 003 §3.3) — a placeholder.
+
+    Reserved for the fast-prior issue (issue 8): ``observations`` (inline points with their
+    value and inflated noise variance) and ``logs`` (previous sessions' MCAP logs of the same
+    wearer). Until that lands both must be empty lists; anything else is refused rather than
+    silently ignored.
+    """
+
+    observations: tuple[Any, ...] = ()
+    logs: tuple[str, ...] = ()
+
+
+def _parse_prior(data: object) -> PriorConfig:
+    t = _Table(data, "prior", ALLOWED_KEYS["prior"])
+    for key in ("observations", "logs"):
+        value = t.raw(key, [], "an empty list")
+        if not isinstance(value, list) or value:
+            raise BridgeConfigError(
+                f"prior.{key} = {value!r:.60}: fast-prior observations are not supported yet "
+                "(issue 8); expected an empty list []"
+            )
+    return PriorConfig()
+
+
+# --------------------------------------------------------------------------------------------
+# The whole config
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class HilboConfig:
+    """A validated session config (see the module docstring for the tables).
+
+    Attributes:
+        session, space, protocol, cart, can, limits, watchdog, prior: The tables.
+        source: Where it was read from (a path, ``<stdin>``, ``<string>``).
+        text: The TOML text it was parsed from (logged, so a session can be resumed with it).
+    """
+
+    session: SessionConfig
+    space: SpaceConfig
+    protocol: ProtocolConfig
+    cart: CartConfig
+    can: CanConfig
+    limits: ProfileLimits
+    watchdog: WatchdogConfig
+    prior: PriorConfig = field(default_factory=PriorConfig)
+    source: str = field(default="<string>", compare=False)
+    text: str = field(default="", compare=False, repr=False)
+
+    def make_gate(self) -> SafeProfileGate:
+        """The limits layer for this session's space, limits and wearer."""
+        return SafeProfileGate(self.space.space, self.limits, body_mass_kg=self.session.body_mass_kg)
+
+    def to_json(self) -> dict[str, Any]:
+        """JSON-able form for the log's config channel (validated values and the raw TOML)."""
+        return {
+            "source": self.source,
+            "session": _jsonable(self.session),
+            "space": self.space.to_json(),
+            "protocol": self.protocol.to_json(),
+            "cart": _jsonable(self.cart),
+            "can": self.can.to_json(),
+            "limits": self.limits.to_json(),
+            "watchdog": self.watchdog.to_json(),
+            "prior": _jsonable(self.prior),
+            "toml": self.text,
+        }
+
+
+def _jsonable(obj: Any) -> Any:
+    """Dataclasses, enums, paths and mappings as plain JSON values (non-finite floats as text)."""
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {f.name: _jsonable(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, enum.Enum):
+        return obj.value
+    if isinstance(obj, Path):
+        return str(obj)
+    if isinstance(obj, Mapping):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, float | np.floating):
+        return float(obj) if math.isfinite(obj) else str(float(obj))
+    if isinstance(obj, str | int | bool | None):
+        return obj
+    return str(obj)  # TOML dates and times
+
+
+_TOML_POSITION = re.compile(r"\(at line (\d+), column (\d+)\)")
+
+
+def _syntax_error(err: tomllib.TOMLDecodeError, text: str, source: str) -> BridgeConfigError:
+    msg = str(err)
+    m = _TOML_POSITION.search(msg)
+    if not m:
+        return BridgeConfigError(f"{source}: TOML syntax error: {msg}")
+    line, col = int(m[1]), int(m[2])
+    lines = text.splitlines()
+    excerpt = lines[line - 1] if 0 < line <= len(lines) else ""
+    return BridgeConfigError(
+        f"{source}:{line}:{col}: TOML syntax error: {msg}\n    {excerpt}\n    {' ' * (col - 1)}^"
+    )
+
+
+def _space_centre(space: ParameterSpace) -> dict[str, float]:
+    # The mean of feasible points of a convex polytope is feasible: a deterministic interior point.
+    try:
+        u = space.sample_unit(64, np.random.default_rng(0)).mean(axis=0)
+    except InfeasibleError as err:
+        raise BridgeConfigError(f"space: {err}; widen the bounds or relax the constraints") from err
+    return space.to_dict(space.from_unit(u))
+
+
+def _cross_check(cfg: HilboConfig) -> None:
+    space = cfg.space.space
+    centre = _space_centre(space)
+    try:
+        probe = build_profile(space.name, centre, body_mass_kg=cfg.session.body_mass_kg)
+    except (ConfigError, InfeasibleError) as err:
+        raise BridgeConfigError(
+            f"space: the {space.name!r} force-profile builder cannot build the centre of the space "
+            f"{centre}: {err}"
+        ) from err
+    actuators = sorted(p.actuator for p in probe)
+    for name in cfg.limits.actuators:
+        if name not in actuators:
+            close = difflib.get_close_matches(name, actuators, n=1, cutoff=0.6)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            raise BridgeConfigError(
+                f"limits.actuators.{name}: the {space.name!r} profile has no actuator {name!r}{hint}; "
+                f"its actuators: {', '.join(actuators)}"
+            )
+    verdict = cfg.make_gate().verdict(centre)
+    if not verdict.ok:
+        raise BridgeConfigError(
+            f"limits: even the centre of the space ({', '.join(f'{k}={v:.4g}' for k, v in centre.items())}) "
+            f"is refused: {verdict.describe()}. Widen [limits] or narrow [space]"
+        )
+
+
+def parse_config(text: str, source: str = "<string>") -> HilboConfig:
+    """Parse and validate a config from TOML text.
+
+    Args:
+        text: The TOML document.
+        source: Its name in error messages (a path, ``<stdin>``).
+
+    Raises:
+        BridgeConfigError: A syntax error (with line and column), a missing or unknown table or
+            key, a bad type or value (naming ``table.key``, the value and what is allowed), or a
+            cross-check that fails.
+    """
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise _syntax_error(err, text, source) from err
+    for key, value in data.items():
+        if key not in TABLES and not isinstance(value, dict):
+            raise BridgeConfigError(
+                f"{source}: top-level key {key} = {value!r:.60} outside any table; a config has only "
+                f"the tables {', '.join(f'[{t}]' for t in TABLES)} (did you put it above its table header?)"
+            )
+    _reject_unknown(data, TABLES, "")
+    missing = [t for t in _REQUIRED_TABLES if t not in data]
+    if missing:
+        raise BridgeConfigError(
+            f"{source}: missing table(s) {', '.join(f'[{t}]' for t in missing)}; "
+            "`hilbo config example` prints a complete config"
+        )
+    cfg = HilboConfig(
+        session=_parse_session(data["session"]),
+        space=_parse_space(data["space"]),
+        protocol=_parse_protocol(data.get("protocol", {})),
+        cart=_parse_cart(data["cart"]),
+        can=_parse_can(data["can"]),
+        limits=_parse_limits(data.get("limits", {})),
+        watchdog=_parse_watchdog(data.get("watchdog", {})),
+        prior=_parse_prior(data.get("prior", {})),
+        source=source,
+        text=text,
+    )
+    _cross_check(cfg)
+    return cfg
+
+
+def load_config(path: str | Path) -> HilboConfig:
+    """Read and validate a config file (UTF-8 TOML).
+
+    Raises:
+        BridgeConfigError: The file cannot be read, or see :func:`parse_config`.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as err:
+        raise BridgeConfigError(f"{path}: not UTF-8 text (TOML files are UTF-8): {err}") from err
+    except OSError as err:
+        raise BridgeConfigError(f"cannot read config {path}: {err.strerror or err}") from err
+    return parse_config(text, source=str(path))
+
+
+def example_config_text() -> str:
+    """The complete commented example config (``bridge/config_example.toml``)."""
+    return resources.files("bridge").joinpath("config_example.toml").read_text(encoding="utf-8")
+
+
+# --------------------------------------------------------------------------------------------
+# Summary and the `hilbo config` commands
+# --------------------------------------------------------------------------------------------
+
+
+def summarize(cfg: HilboConfig) -> str:
+    """A few lines saying what the config will do."""
+    s, sp, pr, c, lim, wd = cfg.session, cfg.space.space, cfg.protocol, cfg.can, cfg.limits, cfg.watchdog
+    params = ", ".join(f"{p.name} [{p.lower:g}, {p.upper:g}]{' ' + p.unit if p.unit else ''}"
+                       for p in sp.parameters)
+    origin = f"preset {cfg.space.preset}" if cfg.space.preset else f"inline, profile {sp.name}"
+    budget = " and ".join(
+        b for b in (f"{pr.budget_min:g} min" if pr.budget_min is not None else "",
+                    f"{pr.budget_breaths} breaths" if pr.budget_breaths is not None else "") if b
+    )
+    lines = [
+        f"session   subject {s.subject}, {s.body_mass_kg:g} kg, output in {s.out_dir}",
+        f"space     {origin}: {params}",
+        f"          constraints: {'; '.join(k.describe() for k in sp.constraints) or 'none'}"
+        + (f"; derived: {'; '.join(d.text or d.name for d in sp.derived)}" if sp.derived else ""),
+        f"protocol  warm-up {pr.warmup_s:g} s per bout; exploration {pr.n_explore} settings x "
+        f"{pr.max_breaths} breaths; optimisation budget {budget}; {pr.stopping.value} stopping "
+        f"(W = {pr.window}); {pr.kernel.value} kernel, xi = {pr.xi:g}, seed {pr.seed}; "
+        f"{'pause' if pr.pause_between_bouts else 'no pause'} between bouts",
+        f"cart      {cfg.cart.transport}, {cfg.cart.format.value}",
+        f"can       {c.bus.interface}:{c.bus.channel}, bitrate {c.bus.bitrate}, heartbeat "
+        f"{c.heartbeat_period_ms:g} ms, push timeout {c.push_timeout_ms:g} ms x "
+        f"{c.push_retries + 1} attempts, segments every {c.segment_pace_ms:g} ms",
+    ]
+    for name, a in [("(all)", lim.default), *lim.actuators.items()]:
+        lines.append(
+            f"limits    {name}: force <= {a.max_force_n:g} N within [{a.min_onset_pct:g}, "
+            f"{a.max_offset_pct:g}] %GC, slope <= {a.max_slope_n_per_pct:g} N/%GC, peak step <= "
+            f"{a.max_peak_change_n:g} N"
+        )
+    lines.append(f"          {lim.n_points}-point tables; pause after {lim.max_consecutive_rejections} "
+                 "rejected proposals in a row")
+    lines.append(f"watchdog  device heartbeat {wd.device_heartbeat_timeout_ms:g} ms, cart data "
+                 f"{wd.cart_data_timeout_s:g} s, bus error -> assistance-off and {wd.bus_error.value}")
+    return "\n".join(lines)
+
+
+def _cmd_example(args: argparse.Namespace, out: TextIO | None = None) -> int:
+    (out or sys.stdout).write(example_config_text())
+    return 0
+
+
+def _cmd_check(args: argparse.Namespace, out: TextIO | None = None, err: TextIO | None = None) -> int:
+    out = out or sys.stdout
+    err = err or sys.stderr
+    try:
+        if args.config == "-":
+            cfg = parse_config(sys.stdin.read(), source="<stdin>")
+        else:
+            cfg = load_config(args.config)
+    except BridgeConfigError as exc:
+        err.write(f"hilbo config check: invalid config: {exc}\n")
+        return 2
+    out.write(f"config OK: {cfg.source}\n{summarize(cfg)}\n")
+    if args.samples > 0:
+        report = preflight(cfg.space.space, cfg.limits, body_mass_kg=cfg.session.body_mass_kg,
+                           n=args.samples)
+        kinds = ", ".join(f"{k} {n}" for k, n in sorted(report.by_kind.items()))
+        out.write(f"pre-flight {report.n_checked} sampled settings: {report.n_rejected} refused by the "
+                  f"limits{f' ({kinds})' if kinds else ''}\n")
+        if report.n_rejected == report.n_checked:
+            err.write(f"hilbo config check: the limits refuse every sampled setting, e.g. "
+                      f"{report.example}\n")
+            return 2
+        if report.n_rejected:
+            err.write(f"hilbo config check: warning: {report.n_rejected} of {report.n_checked} "
+                      f"settings would be refused (each refusal cancels the setting), e.g. "
+                      f"{report.example}\n")
+    return 0
+
+
+def add_config_parser(subparsers: Any) -> argparse.ArgumentParser:
+    """Register ``hilbo config example`` and ``hilbo config check CONFIG.toml``.
+
+    Args:
+        subparsers: The ``add_subparsers()`` object of the ``hilbo`` parser.
+
+    Returns:
+        The ``config`` parser. Each action sets ``func(args) -> exit code`` (0 ok, 2 invalid).
+    """
+    parser = subparsers.add_parser(
+        "config", help="print an example session config, or check one",
+        description="Session configs are TOML files; `example` prints a complete commented one, "
+                    "`check` validates one and prints what it will do.",
+    )
+    actions = parser.add_subparsers(dest="config_action", required=True, metavar="ACTION")
+    example = actions.add_parser("example", help="print a complete commented config",
+                                 description="Print a complete commented config to standard output.")
+    example.set_defaults(func=_cmd_example)
+    check = actions.add_parser(
+        "check", help="validate a config and print a summary (exit 0 ok, 2 invalid)",
+        description="Validate a config, print a summary, and check how many sampled settings of "
+                    "the space the limits refuse. Exit status 0 if valid, 2 if not.",
+    )
+    check.add_argument("config", help="CONFIG.toml, or - to read standard input")
+    check.add_argument("--samples", type=int, default=256,
+                       help="settings to sample for the limits pre-flight (default 256; 0 skips it)")
+    check.set_defaults(func=_cmd_check)
+    return parser
+
+
+#: The keys each table allows (``[cart]``'s are the cart driver's: drivers/cart/FORMAT.md).
+ALLOWED_KEYS: Mapping[str, tuple[str, ...]] = MappingProxyType({
+    "session": ("subject", "body_mass_kg", "out_dir", "notes"),
+    "space": ("preset", "bounds", "constraints", "profile", "parameters", "derived"),
+    "protocol": tuple(f.name for f in dataclasses.fields(ProtocolConfig)),
+    "can": ("interface", "channel", "bitrate", "options", "heartbeat_period_ms", "push_timeout_ms",
+            "push_retries", "segment_pace_ms"),
+    "limits": (*ACTUATOR_LIMIT_RANGES, "n_points", "max_consecutive_rejections", "actuators"),
+    "watchdog": tuple(f.name for f in dataclasses.fields(WatchdogConfig)),
+    "prior": ("observations", "logs"),
+})

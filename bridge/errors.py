@@ -1,0 +1,31 @@
+"""Exception hierarchy of the bridge.
+
+Every error the bridge raises on purpose derives from :class:`BridgeError`, and also from the
+matching built-in, so callers that catch ``ValueError`` keep working.
+"""
+
+from __future__ import annotations
+
+__all__ = ["BridgeConfigError", "BridgeError", "UnsafeProfileError"]
+
+
+class BridgeError(Exception):
+    """Root of every error the bridge raises on purpose."""
+
+
+class BridgeConfigError(BridgeError, ValueError):
+    """The session config is invalid: the message names the key, the value and what is allowed."""
+
+
+class UnsafeProfileError(BridgeError, ValueError):
+    """A proposed setting or force profile violates the hardware limits; nothing was sent.
+
+    Attributes:
+        verdict: The :class:`bridge.safety.LimitVerdict` listing every violation.
+        params: The proposed setting as given (may contain NaN).
+    """
+
+    def __init__(self, message: str, verdict: object, params: object = None) -> None:
+        super().__init__(message)
+        self.verdict = verdict
+        self.params = params
