@@ -113,6 +113,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_config_parser(sub)
 
+    from virtual_hw.cli_cart import add_virtual_cart_parser
+
+    add_virtual_cart_parser(sub)
+
     vcan = sub.add_parser(
         "vcan-setup", help="print the shell commands that bring up a (v)can interface",
         description="Print a shell script that creates and brings up a virtual CAN interface (vcanN) "
