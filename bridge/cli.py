@@ -113,6 +113,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_config_parser(sub)
 
+    from bridge.cli_log import add_log_parser
+
+    add_log_parser(sub)
+
     from virtual_hw.cli_cart import add_virtual_cart_parser
 
     add_virtual_cart_parser(sub)

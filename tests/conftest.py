@@ -16,9 +16,14 @@ Knobs (environment): ``HILBO_UML_TIMEOUT_S`` (whole boot, default 240 s), ``HILB
 
 from __future__ import annotations
 
+import os
+
+# Small GP matrices: threaded BLAS only adds contention (see bridge/cli.py); before numpy loads.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
 import importlib.util
 import json
-import os
 import shutil
 import socket
 import subprocess

@@ -1,0 +1,1022 @@
+"""The session's MCAP log: one file per session, one JSON-schema channel per kind of record.
+
+Layout (shared/DESIGN.md "MCAP log"; issue 6 item 4):
+
+* Every channel has message encoding ``json`` and a draft-07 JSON schema (schema encoding
+  ``jsonschema``), so Foxglove can open the file and plot any numeric field. The schemas keep to
+  what Foxglove's JSON-schema parser accepts: every property has one ``type`` (no
+  ``["number", "null"]`` unions: an unknown value is *omitted*, not written as ``null``), every
+  object lists ``properties``, arrays hold one item type. ``/events`` uses Foxglove's
+  ``foxglove.Log`` schema (plus our fields) so the Log panel shows them.
+* Timestamps are integer nanoseconds. ``log_time`` is the writer's clock when the message is
+  written (wall clock by default; a simulation may pass its own ``clock_ns``).
+  ``publish_time`` is the *breath-time base* (the cart's breath clock, ``t_s`` × 1e9) for
+  messages tied to a breath (``/breaths``, ``/estimator``, ``/stopping``, and whatever the caller
+  stamps with ``t_s``/``publish_time_ns``); for the others it equals ``log_time``. ``sequence`` is
+  one counter over the whole file, so the write order survives readers that sort by time.
+* ``/config`` (first message) and an MCAP metadata record ``hilbo.session`` carry the session id
+  and the path of the previous log when this session resumes a crashed one.
+
+Crash safety. mcap's ``Writer`` keeps a chunk in memory until it reaches ``chunk_size`` (1 MiB
+by default) and writes through a buffered file, so a process killed before then leaves nothing
+(issue 6 measured a 0-byte file after 3 s). ``Writer.flush()`` (mcap >= 1.6) closes the open
+chunk, writes it with its message indexes and flushes the file object. :class:`SessionLog` calls
+it right after every message (``flush_immediately``) except on the high-rate ``/force_feedback``
+and ``/device_status`` channels, and from a background thread every ``flush_interval_s`` (0.1 s)
+when something is pending. So ``kill -9`` never loses a breath, estimate, decision or event whose
+``log_*`` call returned (at most the one being written), and at most the last 100 ms of force
+feedback and device status. ``flush()`` hands the bytes to the OS page cache, which outlives the
+process; ``os.fsync`` (only needed against power loss or a kernel crash) runs every
+``fsync_interval_s`` in the background thread and on close, never per message.
+
+Measured here (a writer logging a breath every 2 ms, SIGKILL after 3 s, 6 runs each, read back
+with :func:`bridge.logread.read_log`; machine under load):
+
+* mcap defaults (1 MiB chunks, no flush): 0 % kept (0-byte files).
+* 4 KiB chunks, no flush: 83 % kept; up to 98 messages lost per kill, some 0-byte files.
+* chunks + 100 ms flush timer only: 94 % kept; up to 37 messages (≤ 100 ms) lost.
+* unchunked + 100 ms file flush: 96 % kept; up to 26 messages lost.
+* chunks + flush after every message (the default): 100 % kept; nothing lost.
+
+File size for 5 000 breaths and 20 000 force-feedback batches: 0.67 MB with the timer only,
+2.0 MB with the default, 18.3 MB unchunked (no compression).
+
+The default costs ~60 µs per flushed message (vs ~40 µs) and a chunk per message on the
+breath-rate channels (a few per breath), which is why the kilohertz channels stay on the timer.
+Unchunked files have no chunk index and no compression; both kinds are read by the mcap package
+and by :mod:`bridge.logread` (a cut-off file only by a front-to-back reader: mcap's seeking
+reader needs the footer, which :func:`bridge.logread.recover` writes).
+
+A file cut off by a crash is read by :mod:`bridge.logread` (``read_log``, ``recover``).
+"""
+
+from __future__ import annotations
+
+import enum
+import json
+import logging
+import math
+import os
+import threading
+import time
+import uuid
+from collections import Counter
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from mcap.well_known import MessageEncoding, SchemaEncoding
+from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
+
+from bridge.errors import BridgeError
+from hilbo_core.optimizer import BreathStep, Evaluation, HILOptimizer
+from hilbo_core.profiles import ForceProfile
+from hilbo_core.stopping import StopDecision
+from hilbo_core.types import BreathRecord
+
+__all__ = [
+    "CHANNELS",
+    "FORMAT_VERSION",
+    "METADATA_NAME",
+    "ChannelSpec",
+    "EventLevel",
+    "LogError",
+    "LogFormatError",
+    "LogStateError",
+    "LogStats",
+    "LogValueError",
+    "LogWriteError",
+    "SessionLog",
+    "Topic",
+    "check_message",
+    "hilbo_version",
+    "new_session_id",
+]
+
+logger = logging.getLogger(__name__)
+
+FORMAT_VERSION = 1
+"""Version of the channel layout; stored in ``/config`` and the ``hilbo.session`` metadata."""
+
+METADATA_NAME = "hilbo.session"
+"""Name of the MCAP metadata record that marks a hilbo session log."""
+
+_PROFILE = "hilbo"
+_DEFAULT_CHUNK_SIZE = 256 * 1024
+
+
+# ---------------------------------------------------------------------------------- errors
+class LogError(BridgeError):
+    """Root of every error the session log (writing, reading, recovering, resuming) raises."""
+
+
+class LogFormatError(LogError, ValueError):
+    """A file is not a readable hilbo session log (not MCAP, empty, or another program's MCAP)."""
+
+
+class LogValueError(LogError, ValueError):
+    """A value given to the log is invalid (a negative time, an unknown channel option...)."""
+
+
+class LogStateError(LogError, RuntimeError):
+    """The log cannot do this now (written to after close)."""
+
+
+class LogWriteError(LogError, OSError):
+    """Writing or flushing the file failed (disk full, file removed...)."""
+
+
+# ---------------------------------------------------------------------------------- topics
+class Topic(enum.StrEnum):
+    """The channels of a session log."""
+
+    CONFIG = "/config"
+    BREATHS = "/breaths"
+    ESTIMATOR = "/estimator"
+    STOPPING = "/stopping"
+    PROPOSALS = "/proposals"
+    OBSERVATIONS = "/observations"
+    OPTIMIZER_STATE = "/optimizer_state"
+    PROFILES_SENT = "/profiles_sent"
+    ACKS = "/acks"
+    FORCE_FEEDBACK = "/force_feedback"
+    DEVICE_STATUS = "/device_status"
+    EVENTS = "/events"
+    REJECTS = "/rejects"
+
+
+class EventLevel(enum.IntEnum):
+    """Severity of an ``/events`` message (the values of ``foxglove.LogLevel``)."""
+
+    UNKNOWN = 0
+    DEBUG = 1
+    INFO = 2
+    WARNING = 3
+    ERROR = 4
+    FATAL = 5
+
+
+# High-rate channels: left to the flush timer (flushing each would make a chunk per frame batch).
+# Everything else (breaths, estimates, decisions, proposals, profiles, acks, events) is at most a
+# few messages per breath and is flushed as soon as it is written when flush_immediately is on.
+_TIMER_TOPICS = frozenset({Topic.FORCE_FEEDBACK, Topic.DEVICE_STATUS})
+
+
+# ---------------------------------------------------------------------------------- schemas
+def _p(kind: str, description: str, **extra: Any) -> dict[str, Any]:
+    return {"type": kind, "description": description, **extra}
+
+
+def _obj(description: str, properties: Mapping[str, Any] | None = None,
+         required: Sequence[str] = (), **extra: Any) -> dict[str, Any]:
+    # Foxglove's JSON-schema parser iterates "properties" of every object: always list it.
+    d: dict[str, Any] = {"type": "object", "description": description,
+                         "properties": dict(properties or {}), **extra}
+    if required:
+        d["required"] = list(required)
+    return d
+
+
+def _arr(description: str, items: Mapping[str, Any]) -> dict[str, Any]:
+    return {"type": "array", "description": description, "items": dict(items)}
+
+
+_PARAMS = _obj("The setting, {parameter name: value in its unit} (derived parameters included)",
+               additionalProperties={"type": "number"})
+_T_S = _p("number", "Breath time in s on the cart's clock (the session's time base)")
+_INDEX = _p("integer", "0-based evaluation number (the index the evaluation gets when it completes)",
+            minimum=0)
+_BREATH = _p("integer", "0-based breath index within the evaluation", minimum=0)
+_PHASE = _p("string", "Phase of Algorithm 1: exploration, optimization or done")
+
+
+@dataclass(frozen=True)
+class ChannelSpec:
+    """One channel: its topic, schema name, description and JSON-schema properties.
+
+    Attributes:
+        topic: MCAP topic.
+        schema_name: Schema name (``hilbo.*``, or ``foxglove.Log`` for events).
+        description: What one message is.
+        properties: JSON-schema properties of the message object.
+        required: Keys every message has.
+        time_base: ``"breath"`` when publish_time is the breath-time base, else ``"log"``.
+    """
+
+    topic: str
+    schema_name: str
+    description: str
+    properties: Mapping[str, Mapping[str, Any]]
+    required: tuple[str, ...]
+    time_base: str = "log"
+
+    def json_schema(self, param_names: Sequence[str] = ()) -> dict[str, Any]:
+        """The draft-07 JSON schema; ``params`` objects name ``param_names`` when given."""
+        props = {k: dict(v) for k, v in self.properties.items()}
+        if param_names:
+            named = {n: _p("number", f"parameter {n}") for n in param_names}
+            for key, value in props.items():
+                if value.get("description") == _PARAMS["description"]:
+                    props[key] = {**value, "properties": named}
+        return {
+            "$schema": "http://json-schema.org/draft-07/schema#",
+            "title": self.schema_name,
+            "description": f"{self.description} (publish_time: "
+                           f"{'breath-time base' if self.time_base == 'breath' else 'log time'})",
+            "type": "object",
+            "properties": props,
+            "required": list(self.required),
+        }
+
+
+_CHANNEL_LIST = (
+    ChannelSpec(
+        Topic.CONFIG, "hilbo.Config",
+        "The session's identity and configuration; the first message of the file",
+        {
+            "session_id": _p("string", "Session id, the same in every file of a resumed session"),
+            "previous_log": _p("string", "Path of the log this session resumes (absent if new)"),
+            "resumed": _p("boolean", "True when this file continues a crashed session"),
+            "config": _obj("The session config as loaded (TOML as JSON)"),
+            "param_names": _arr("Names of the optimised parameters", {"type": "string"}),
+            "hilbo_version": _p("string", "hilbo package version"),
+            "format_version": _p("integer", "Version of this channel layout", minimum=1),
+            "started_unix_ns": _p("integer", "Wall clock when the log was opened, ns since 1970",
+                                  minimum=0),
+        },
+        ("session_id", "resumed", "config", "hilbo_version", "format_version", "started_unix_ns"),
+    ),
+    ChannelSpec(
+        Topic.BREATHS, "hilbo.Breath",
+        "One breath as the cart reported it (every breath: warm-up, pauses and gaps included)",
+        {
+            "t_s": _T_S,
+            "vo2_ml_min": _p("number", "Oxygen uptake in ml/min"),
+            "vco2_ml_min": _p("number", "Carbon-dioxide output in ml/min"),
+            "ve_l_min": _p("number", "Minute ventilation in l/min (absent if not reported)"),
+            "rer": _p("number", "Respiratory exchange ratio (absent if not reported)"),
+            "hr_bpm": _p("number", "Heart rate in beats/min (absent if not reported)"),
+            "watts": _p("number", "Metabolic power in W by Brockway's equation"),
+        },
+        ("t_s", "vo2_ml_min", "vco2_ml_min", "watts"), "breath",
+    ),
+    ChannelSpec(
+        Topic.ESTIMATOR, "hilbo.Estimate",
+        "A breath fed to the optimizer and the estimator's state after it; resume replays these",
+        {
+            "index": _INDEX,
+            "breath": _BREATH,
+            "t_s": _T_S,
+            "t_setting_s": _p("number", "Seconds since the setting was applied (what the optimizer got)"),
+            "watts": _p("number", "Metabolic power in W fed to the optimizer"),
+            "mean_w": _p("number", "Estimated steady-state cost of the setting in W"),
+            "var_w2": _p("number", "Variance of that estimate in W²"),
+            "sd_w": _p("number", "Standard deviation of that estimate in W"),
+            "lo95_w": _p("number", "mean − 1.96·sd in W (lower edge of the plotted band)"),
+            "hi95_w": _p("number", "mean + 1.96·sd in W (upper edge of the plotted band)"),
+            "phase": _PHASE,
+        },
+        ("index", "breath", "t_setting_s", "watts", "mean_w", "var_w2"), "breath",
+    ),
+    ChannelSpec(
+        Topic.STOPPING, "hilbo.StopDecision",
+        "The stopping rule's decision after a breath (optimisation phase, seed 000 §II.D)",
+        {
+            "index": _INDEX,
+            "breath": _BREATH,
+            "t_s": _T_S,
+            "stop": _p("boolean", "True when the evaluation ends with this breath"),
+            "reason": _p("string", "continue, threshold, max_measurements or budget"),
+            "z": _p("number", "(μ − μ*)/σ, standardised distance from the incumbent (positive = worse)"),
+            "threshold": _p("number", "A_i, the threshold at this breath (absent for the fixed rule)"),
+            "incumbent_mean_w": _p("number", "μ*, the incumbent's estimated cost in W"),
+            "incumbent_var_w2": _p("number", "σ*², the incumbent's variance in W²"),
+        },
+        ("index", "breath", "stop", "reason"), "breath",
+    ),
+    ChannelSpec(
+        Topic.PROPOSALS, "hilbo.Proposal",
+        "A setting the optimizer asked for (one per ask(); a re-ask after a cancel repeats the index)",
+        {
+            "index": _INDEX,
+            "params": _PARAMS,
+            "phase": _PHASE,
+            "t_s": _T_S,
+            "incumbent": _obj("The stopping rule's x* when proposed", {
+                "params": _PARAMS, "mean": _p("number", "μ* in W"), "var": _p("number", "σ*² in W²")}),
+        },
+        ("index", "params", "phase"),
+    ),
+    ChannelSpec(
+        Topic.OBSERVATIONS, "hilbo.Evaluation",
+        "A completed evaluation (what the GP is told)",
+        {
+            "index": _INDEX,
+            "params": _PARAMS,
+            "mean": _p("number", "Estimated steady-state cost at the end, W"),
+            "var": _p("number", "Its variance, W²"),
+            "breaths": _p("integer", "Breaths measured", minimum=0),
+            "duration_s": _p("number", "Breath time from the setting's start to its last breath, s"),
+            "phase": _PHASE,
+            "stopped_early": _p("boolean", "Stopped by the σ-scaled rule before N breaths"),
+            "reason": _p("string", "threshold, max_measurements, budget or told"),
+            "t_start": _p("number", "Session time when the setting was applied, s"),
+            "t_end": _p("number", "Session time of its last breath, s"),
+        },
+        ("index", "params", "mean", "var", "breaths", "duration_s", "phase", "stopped_early", "reason"),
+        "breath",
+    ),
+    ChannelSpec(
+        Topic.OPTIMIZER_STATE, "hilbo.OptimizerState",
+        "A full HILOptimizer.to_json() snapshot (after each evaluation and at start); resume starts here",
+        {
+            "state": _obj("HILOptimizer.to_json(): space, config, RNG state, evaluations, traces, ..."),
+            "reason": _p("string", "Why the snapshot was taken: start, evaluation, cancel, budget, resume"),
+            "n_evaluations": _p("integer", "Completed evaluations in the snapshot", minimum=0),
+            "thresholds": _arr("Algorithm 2's threshold vector A over breath index (after exploration)",
+                               {"type": "number"}),
+        },
+        ("state",), "breath",
+    ),
+    ChannelSpec(
+        Topic.PROFILES_SENT, "hilbo.ProfileSent",
+        "A force profile pushed to the device (after the safety limits admitted it)",
+        {
+            "version": _p("integer", "Profile version on the bus, 1..255", minimum=0),
+            "n_points": _p("integer", "Points in the transmitted table", minimum=0),
+            "crc32": _p("integer", "CRC-32 of the table as committed", minimum=0),
+            "index": _INDEX,
+            "params": _PARAMS,
+            "force_n": _arr("The transmitted table (all actuators concatenated), N", {"type": "number"}),
+            "profiles": _arr("Per-actuator tables", _obj("One actuator's table", {
+                "actuator": _p("string", "Load path (hip, ankle)"),
+                "gait_pct": _arr("Gait-cycle positions, %", {"type": "number"}),
+                "force_n": _arr("Desired force, N", {"type": "number"}),
+            })),
+        },
+        ("version",),
+    ),
+    ChannelSpec(
+        Topic.ACKS, "hilbo.ProfileAck",
+        "The device's answer to a profile commit (or the push's failure)",
+        {
+            "version": _p("integer", "Profile version answered", minimum=0),
+            "accepted": _p("boolean", "True for an ack"),
+            "reason": _p("string", "Nack reason, lower case (none for an ack)"),
+            "detail": _p("integer", "Reason-specific detail", minimum=0),
+            "attempts": _p("integer", "Transfers needed", minimum=0),
+            "elapsed_s": _p("number", "Time from the first segment to the ack, s"),
+            "crc32": _p("integer", "CRC-32 acknowledged", minimum=0),
+            "error": _p("string", "Why the push failed, if it did"),
+        },
+        ("version", "accepted"),
+    ),
+    ChannelSpec(
+        Topic.FORCE_FEEDBACK, "hilbo.ForceFeedback",
+        "Desired vs measured force of one actuator; a batch of controller samples per message",
+        {
+            "actuator": _p("integer", "Actuator number", minimum=0),
+            "n": _p("integer", "Samples in this batch", minimum=0),
+            "desired_n": _arr("Desired force of the active profile, N", {"type": "number"}),
+            "measured_n": _arr("Measured cable force, N", {"type": "number"}),
+            "gait_phase_pct": _arr("Gait phase of each sample, % (−1 = unknown)", {"type": "number"}),
+            "profile_version": _p("integer", "Active profile version", minimum=0),
+            "desired_mean_n": _p("number", "Mean desired force of the batch, N (for plotting)"),
+            "measured_mean_n": _p("number", "Mean measured force of the batch, N (for plotting)"),
+        },
+        ("actuator", "n", "desired_n", "measured_n"),
+    ),
+    ChannelSpec(
+        Topic.DEVICE_STATUS, "hilbo.DeviceStatus",
+        "Device status/heartbeat of one actuator (logged on change and periodically)",
+        {
+            "actuator": _p("integer", "Actuator number", minimum=0),
+            "mode": _p("string", "Operating mode, lower case (off, assist, transparent, ...)"),
+            "faults": _p("integer", "Active fault bits", minimum=0),
+            "fault_names": _arr("Names of the active faults", {"type": "string"}),
+            "gait_phase_pct": _p("number", "Gait phase, % (absent if unknown)"),
+            "profile_version_active": _p("integer", "Version being executed, 0 = none", minimum=0),
+            "profile_version_pending": _p("integer", "Version waiting for the gait boundary", minimum=0),
+        },
+        ("actuator", "mode", "faults"),
+    ),
+    ChannelSpec(
+        Topic.EVENTS, "foxglove.Log",
+        "A session event (pause, resume, assistance off, fault...), shown by Foxglove's Log panel",
+        {
+            "timestamp": _obj("Log time of the event", {
+                "sec": _p("integer", "seconds", minimum=0),
+                "nsec": _p("integer", "nanoseconds", minimum=0, maximum=999_999_999)}),
+            "level": {"title": "foxglove.LogLevel", "description": "Severity",
+                      "oneOf": [{"title": lv.name, "const": int(lv)} for lv in EventLevel]},
+            "message": _p("string", "Human-readable text"),
+            "name": _p("string", "Component (hilbo)"),
+            "file": _p("string", "Unused (empty)"),
+            "line": _p("integer", "Unused (0)", minimum=0),
+            "kind": _p("string", "Machine-readable event kind (pause, resume, assistance_off...)"),
+            "t_s": _T_S,
+            "details": _obj("Event-specific values"),
+        },
+        ("timestamp", "level", "message", "name", "file", "line", "kind"),
+    ),
+    ChannelSpec(
+        Topic.REJECTS, "hilbo.Rejects",
+        "Cumulative counts of rejected records or frames by reason",
+        {
+            "source": _p("string", "Where they were rejected: cart, can"),
+            "counts": _obj("{reason: count}", additionalProperties={"type": "integer"}),
+            "total": _p("integer", "Sum of the counts", minimum=0),
+            "t_s": _T_S,
+        },
+        ("source", "counts", "total"),
+    ),
+)
+
+CHANNELS: Mapping[str, ChannelSpec] = {spec.topic: spec for spec in _CHANNEL_LIST}
+"""Every channel of a session log by topic."""
+
+
+# ---------------------------------------------------------------------------------- helpers
+def new_session_id() -> str:
+    """A fresh session id: UTC start time plus a random suffix (sortable, unique)."""
+    return time.strftime("%Y%m%dT%H%M%SZ", time.gmtime()) + "-" + uuid.uuid4().hex[:8]
+
+
+def hilbo_version() -> str:
+    """The installed hilbo version (``"unknown"`` when running from an uninstalled tree)."""
+    try:
+        return version("hilbo")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, enum.Enum):
+        return obj.name.lower() if isinstance(obj.value, int) else obj.value
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"{type(obj).__name__} is not JSON-serialisable")
+
+
+def _finite_or_none(obj: Any) -> Any:
+    """Copy of ``obj`` with NaN/±inf replaced by None (JSON has no NaN; Foxglove rejects it)."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, Mapping):
+        return {k: _finite_or_none(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_finite_or_none(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _finite_or_none(obj.tolist())
+    if isinstance(obj, np.floating):
+        return _finite_or_none(float(obj))
+    return obj
+
+
+def _drop_none(d: Mapping[str, Any]) -> dict[str, Any]:
+    # Optional fields are omitted rather than null: the schemas use one type per field.
+    return {k: v for k, v in d.items() if v is not None}
+
+
+def check_message(schema: Mapping[str, Any], message: Any, path: str = "") -> list[str]:
+    """Problems of ``message`` against a channel schema (the subset our schemas use).
+
+    Checks ``type`` (object, array, number, integer, string, boolean), ``required``,
+    ``properties``, ``additionalProperties`` given as a schema, ``items``, ``minimum``,
+    ``maximum`` and ``oneOf`` of constants. Not a general JSON-schema validator.
+
+    Returns:
+        Human-readable problems, empty when the message conforms.
+    """
+    where = path or "message"
+    if "oneOf" in schema:
+        consts = [alt.get("const") for alt in schema["oneOf"]]
+        return [] if message in consts else [f"{where}={message!r} is not one of {consts}"]
+    kind = schema.get("type")
+    checks = {
+        "object": lambda v: isinstance(v, dict),
+        "array": lambda v: isinstance(v, list),
+        "number": lambda v: isinstance(v, int | float) and not isinstance(v, bool),
+        "integer": lambda v: isinstance(v, int) and not isinstance(v, bool),
+        "string": lambda v: isinstance(v, str),
+        "boolean": lambda v: isinstance(v, bool),
+    }
+    if kind is not None and not checks[kind](message):
+        return [f"{where}={message!r} is not of type {kind}"]
+    problems: list[str] = []
+    if kind in ("number", "integer"):
+        if "minimum" in schema and message < schema["minimum"]:
+            problems.append(f"{where}={message!r} < minimum {schema['minimum']}")
+        if "maximum" in schema and message > schema["maximum"]:
+            problems.append(f"{where}={message!r} > maximum {schema['maximum']}")
+    elif kind == "object":
+        props = schema.get("properties", {})
+        problems += [f"{where}: missing required key {k!r}" for k in schema.get("required", ())
+                     if k not in message]
+        extra = schema.get("additionalProperties")
+        for k, v in message.items():
+            if k in props:
+                problems += check_message(props[k], v, f"{where}.{k}")
+            elif isinstance(extra, Mapping):
+                problems += check_message(extra, v, f"{where}.{k}")
+    elif kind == "array" and "items" in schema:
+        for i, v in enumerate(message):
+            problems += check_message(schema["items"], v, f"{where}[{i}]")
+    return problems
+
+
+@dataclass
+class LogStats:
+    """What a :class:`SessionLog` has written so far.
+
+    Attributes:
+        messages: Messages written.
+        per_topic: Messages per topic.
+        flushes: Chunk flushes that wrote something.
+        fsyncs: ``os.fsync`` calls.
+    """
+
+    messages: int = 0
+    per_topic: Counter[str] = field(default_factory=Counter)
+    flushes: int = 0
+    fsyncs: int = 0
+
+
+class SessionLog:
+    """Writes one session's MCAP log; a context manager.
+
+    Args:
+        path: The file to create (``.mcap``). An existing file is never overwritten unless
+            ``overwrite`` is True: a session log is data that cannot be re-collected.
+        session_id: The session's id (:func:`new_session_id`; a resumed session keeps its id).
+        config_json: The session config as a JSON-able mapping (or JSON text), stored in
+            ``/config``.
+        previous_log: Path of the log this session resumes, or None for a new session.
+        flush_interval_s: Pending messages reach the file at least this often (s); None turns
+            the background flusher off (then call :meth:`flush` yourself).
+        fsync_interval_s: ``os.fsync`` at most this often (s) from the background flusher;
+            None: only on close.
+        flush_immediately: Flush right after every message except ``/force_feedback`` and
+            ``/device_status`` (those wait for the timer), so a breath, estimate, decision or
+            event is in the file when its ``log_*`` call returns.
+        param_names: Names of the optimised parameters: the ``params`` objects of the schemas
+            list them, so Foxglove offers them for plotting.
+        chunk_size: A chunk is also closed when it grows past this many bytes.
+        compression: ``"zstd"`` (default), ``"lz4"`` or ``"none"``.
+        chunked: Group messages in chunks (indexed, compressed; the default). False writes each
+            message as its own record and flushes the file object instead (what an mcap
+            without ``Writer.flush()`` gets).
+        clock_ns: The ``log_time`` clock in ns (wall clock by default).
+        overwrite: Replace an existing file.
+
+    Raises:
+        LogValueError: A bad option.
+        LogWriteError: The file cannot be created (or exists and ``overwrite`` is False).
+
+    Example:
+        >>> with SessionLog("run/session.mcap", session_id=new_session_id(), config_json=cfg) as log:
+        ...     log.log_optimizer_state(opt, reason="start")
+        ...     log.log_breath(record)
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        *,
+        session_id: str,
+        config_json: Mapping[str, Any] | str,
+        previous_log: str | os.PathLike[str] | None = None,
+        flush_interval_s: float | None = 0.1,
+        fsync_interval_s: float | None = 2.0,
+        flush_immediately: bool = True,
+        param_names: Sequence[str] = (),
+        chunk_size: int = _DEFAULT_CHUNK_SIZE,
+        compression: str = "zstd",
+        chunked: bool = True,
+        clock_ns: Callable[[], int] = time.time_ns,
+        overwrite: bool = False,
+    ) -> None:
+        if not isinstance(session_id, str) or not session_id.strip():
+            raise LogValueError(f"session_id={session_id!r}; expected a non-empty string")
+        for name, value in (("flush_interval_s", flush_interval_s), ("fsync_interval_s", fsync_interval_s)):
+            if value is not None and not (isinstance(value, int | float) and 0 < value < math.inf):
+                raise LogValueError(f"{name}={value!r}; expected a positive number of seconds or None")
+        if isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1024:
+            raise LogValueError(f"chunk_size={chunk_size!r}; expected an integer >= 1024 bytes")
+        codecs = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+        if compression not in codecs:
+            raise LogValueError(f"compression={compression!r}; expected one of {sorted(codecs)}")
+        if isinstance(config_json, str):
+            try:
+                config_json = json.loads(config_json)
+            except json.JSONDecodeError as err:
+                raise LogValueError(f"config_json is not valid JSON text: {err}") from err
+        if not isinstance(config_json, Mapping):
+            raise LogValueError(f"config_json must be a mapping, got {type(config_json).__name__}")
+        self.path = Path(path)
+        self.session_id = session_id
+        self.previous_log = None if previous_log is None else str(previous_log)
+        self.stats = LogStats()
+        self._param_names = tuple(param_names)
+        self._clock_ns = clock_ns
+        self._flush_immediately = flush_immediately
+        self._lock = threading.Lock()
+        self._pending = False
+        self._closed = False
+        self._sequence = 0
+        self._thread_error: BaseException | None = None
+        try:
+            self._file = open(self.path, "wb" if overwrite else "xb")  # closed in close()
+        except OSError as err:
+            raise LogWriteError(f"cannot create the session log {str(self.path)!r}: {err}") from err
+        # mcap < 1.6 has no Writer.flush() (no public way to close a chunk early): fall back to
+        # unchunked records, which reach the file on every file flush.
+        self._chunked = chunked and hasattr(Writer, "flush")
+        if chunked and not self._chunked:
+            logger.warning("this mcap package has no Writer.flush(); writing an unchunked log")
+        try:
+            self._writer = Writer(self._file, chunk_size=chunk_size, compression=codecs[compression],
+                                  use_chunking=self._chunked)
+            self._writer.start(profile=_PROFILE, library=f"hilbo {hilbo_version()}; {LIBRARY_IDENTIFIER}")
+            started_ns = time.time_ns()
+            self._writer.add_metadata(METADATA_NAME, {
+                "session_id": session_id,
+                "previous_log": self.previous_log or "",
+                "format_version": str(FORMAT_VERSION),
+                "hilbo_version": hilbo_version(),
+                "started_unix_ns": str(started_ns),
+            })
+            self._channel_ids: dict[str, int] = {}
+            for spec in _CHANNEL_LIST:
+                self._register(spec.topic, spec.schema_name, spec.json_schema(self._param_names))
+            self._write(Topic.CONFIG, {
+                "session_id": session_id,
+                "previous_log": self.previous_log,
+                "resumed": self.previous_log is not None,
+                "config": dict(config_json),
+                "param_names": list(self._param_names),
+                "hilbo_version": hilbo_version(),
+                "format_version": FORMAT_VERSION,
+                "started_unix_ns": started_ns,
+            }, None)
+            self._flush_locked()
+        except (OSError, LogError) as err:
+            # The file is ours and holds nothing yet: remove it so a corrected retry can create it.
+            self._file.close()
+            self.path.unlink(missing_ok=True)
+            if isinstance(err, LogError):
+                raise  # e.g. a config that is not JSON-able
+            raise LogWriteError(f"cannot write the session log {str(self.path)!r}: {err}") from err
+        self._fsync_interval_s = fsync_interval_s
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        if flush_interval_s is not None:
+            self._thread = threading.Thread(target=self._flusher, args=(float(flush_interval_s),),
+                                            name=f"SessionLog flusher {self.path.name}", daemon=True)
+            self._thread.start()
+
+    # ------------------------------------------------------------------ context manager
+    def __enter__(self) -> SessionLog:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def closed(self) -> bool:
+        """True once :meth:`close` has run."""
+        return self._closed
+
+    def close(self) -> None:
+        """Write the summary section (indexes, statistics) and close the file. Idempotent."""
+        if self._closed:
+            return
+        if self._thread is not None:
+            self._stop.set()
+            self._thread.join()
+        with self._lock:
+            self._closed = True
+            try:
+                self._writer.add_metadata(METADATA_NAME + ".end", {
+                    "messages": str(self.stats.messages), "clean_close": "true"})
+                self._writer.finish()
+                self._file.flush()
+                os.fsync(self._file.fileno())
+            except OSError as err:
+                raise LogWriteError(f"cannot finish the session log {str(self.path)!r}: {err}") from err
+            finally:
+                self._file.close()
+
+    # ------------------------------------------------------------------ writing
+    def log(self, topic: str, message: Mapping[str, Any], publish_time_ns: int | None = None) -> None:
+        """Write one JSON message on ``topic`` (any topic; unknown topics get a permissive schema).
+
+        Top-level ``None`` values are dropped (optional fields are omitted, not null), NaN and
+        infinities become absent/None, numpy values become numbers. On ``/events`` the
+        ``foxglove.Log`` fields missing from ``message`` are filled in (``message`` from
+        ``text``, level INFO, the log time as ``timestamp``).
+
+        Args:
+            topic: Channel topic (``/breaths``, ... or a new one).
+            message: The message (a JSON object).
+            publish_time_ns: Breath-time base in ns for breath-tied messages; None = log time.
+
+        Raises:
+            LogStateError: The log is closed.
+            LogValueError: ``publish_time_ns`` is negative, or the message is not JSON-able.
+            LogWriteError: The file could not be written.
+        """
+        if not isinstance(message, Mapping):
+            raise LogValueError(f"log({topic!r}): message must be a mapping, got {type(message).__name__}")
+        with self._lock:
+            self._check_open()
+            self._write(topic, message, publish_time_ns)
+            if self._flush_immediately and topic not in _TIMER_TOPICS:
+                self._flush_locked()
+
+    def flush(self, *, fsync: bool = False) -> None:
+        """Close the open chunk and hand everything to the OS now (optionally fsync too)."""
+        with self._lock:
+            self._check_open()
+            self._flush_locked()
+            if fsync:
+                self._fsync()
+
+    # typed helpers ------------------------------------------------------------------
+    def log_breath(self, record: BreathRecord) -> None:
+        """``/breaths``: one breath as the cart reported it (publish_time = its breath time)."""
+        self.log(Topic.BREATHS, {
+            "t_s": record.t_s, "vo2_ml_min": record.vo2_ml_min, "vco2_ml_min": record.vco2_ml_min,
+            "ve_l_min": record.ve_l_min, "rer": record.rer, "hr_bpm": record.hr_bpm,
+            "watts": record.watts,
+        }, _t_ns(record.t_s))
+
+    def log_step(self, step: BreathStep, *, index: int, t_setting_s: float, watts: float,
+                 t_s: float | None = None,
+                 incumbent: tuple[Mapping[str, float], float, float] | None = None) -> None:
+        """``/estimator`` and (when the rule decided) ``/stopping`` for one observed breath.
+
+        Call right after ``HILOptimizer.observe_breath(t_setting_s, watts)`` returned ``step``,
+        with the very ``t_setting_s`` and ``watts`` given to it: resume replays them.
+
+        Args:
+            step: What the breath did.
+            index: The evaluation's index (``len(opt.evaluations)`` before the breath).
+            t_setting_s: Seconds since the setting was applied, as given to the optimizer.
+            watts: Metabolic power as given to the optimizer (W).
+            t_s: The breath's time on the cart clock (publish_time), if known.
+            incumbent: ``opt.incumbent`` (x*, μ*, σ*²), logged with the decision.
+        """
+        self.log_estimate(index=index, breath=step.index, t_setting_s=t_setting_s, watts=watts,
+                          mean_w=step.mean, var_w2=step.var, phase=step.phase.value, t_s=t_s)
+        if step.decision is not None:
+            self.log_stopping(step.decision, index=index, t_s=t_s, stop=step.stop,
+                              reason=step.evaluation.reason if step.evaluation else None,
+                              incumbent=incumbent)
+
+    def log_estimate(self, *, index: int, breath: int, t_setting_s: float, watts: float,
+                     mean_w: float, var_w2: float, phase: str, t_s: float | None = None) -> None:
+        """``/estimator``: a breath the optimizer consumed and the estimate after it."""
+        sd = math.sqrt(var_w2) if var_w2 >= 0 else float("nan")
+        self.log(Topic.ESTIMATOR, {
+            "index": index, "breath": breath, "t_s": t_s, "t_setting_s": t_setting_s, "watts": watts,
+            "mean_w": mean_w, "var_w2": var_w2, "sd_w": sd, "lo95_w": mean_w - 1.96 * sd,
+            "hi95_w": mean_w + 1.96 * sd, "phase": phase,
+        }, None if t_s is None else _t_ns(t_s))
+
+    def log_stopping(self, decision: StopDecision, *, index: int, t_s: float | None = None,
+                     stop: bool | None = None, reason: str | None = None,
+                     incumbent: tuple[Mapping[str, float], float, float] | None = None) -> None:
+        """``/stopping``: the rule's decision (``reason`` overrides it, e.g. ``budget``)."""
+        self.log(Topic.STOPPING, {
+            "index": index, "breath": decision.index, "t_s": t_s,
+            "stop": decision.stop if stop is None else bool(stop),
+            "reason": reason or decision.reason.value, "z": decision.z, "threshold": decision.threshold,
+            "incumbent_mean_w": None if incumbent is None else incumbent[1],
+            "incumbent_var_w2": None if incumbent is None else incumbent[2],
+        }, None if t_s is None else _t_ns(t_s))
+
+    def log_proposal(self, params: Mapping[str, float], *, index: int, phase: str,
+                     t_s: float | None = None,
+                     incumbent: tuple[Mapping[str, float], float, float] | None = None) -> None:
+        """``/proposals``: the setting ``ask()`` returned, logged right after every ask()."""
+        self.log(Topic.PROPOSALS, {
+            "index": index, "params": dict(params), "phase": phase, "t_s": t_s,
+            "incumbent": None if incumbent is None else {
+                "params": dict(incumbent[0]), "mean": incumbent[1], "var": incumbent[2]},
+        })
+
+    def log_observation(self, evaluation: Evaluation, *, t_start: float | None = None,
+                        t_end: float | None = None, t_s: float | None = None) -> None:
+        """``/observations``: a completed evaluation (session times ``t_start``/``t_end`` in s)."""
+        self.log(Topic.OBSERVATIONS, {**evaluation.to_json(), "t_start": t_start, "t_end": t_end},
+                 None if t_s is None else _t_ns(t_s))
+
+    def log_optimizer_state(self, optimizer: HILOptimizer, *, reason: str,
+                            t_s: float | None = None) -> None:
+        """``/optimizer_state``: a full snapshot, the starting point of a resume.
+
+        Log one at the start of a session (``reason="start"``; a resumed session logs its
+        rebuilt optimizer with ``"resume"``), after every completed evaluation
+        (``"evaluation"``), and after ``cancel_current``/``set_budget`` (``"cancel"``,
+        ``"budget"``).
+        """
+        thresholds = optimizer.thresholds
+        self.log(Topic.OPTIMIZER_STATE, {
+            "state": optimizer.to_json(), "reason": reason,
+            "n_evaluations": len(optimizer.evaluations),
+            "thresholds": None if thresholds is None else thresholds.tolist(),
+        }, None if t_s is None else _t_ns(t_s))
+
+    def log_profile_sent(self, profiles: Sequence[ForceProfile], *, version: int,
+                         crc32: int | None = None, index: int | None = None,
+                         params: Mapping[str, float] | None = None, t_s: float | None = None) -> None:
+        """``/profiles_sent``: the tables pushed to the device under ``version``."""
+        table = [float(f) for p in profiles for f in p.force_n]
+        self.log(Topic.PROFILES_SENT, {
+            "version": version, "n_points": len(table), "crc32": crc32, "index": index,
+            "params": None if params is None else dict(params), "force_n": table,
+            "profiles": [p.to_json() for p in profiles], "t_s": t_s,
+        })
+
+    def log_ack(self, *, version: int, accepted: bool, reason: str | enum.Enum = "none", detail: int = 0,
+                attempts: int | None = None, elapsed_s: float | None = None,
+                crc32: int | None = None, error: str | None = None) -> None:
+        """``/acks``: the device's ack/nack of a commit, or why the push failed."""
+        self.log(Topic.ACKS, {
+            "version": version, "accepted": bool(accepted), "reason": _name(reason), "detail": detail,
+            "attempts": attempts, "elapsed_s": elapsed_s, "crc32": crc32, "error": error,
+        })
+
+    def log_force_feedback(self, *, actuator: int, desired_n: Sequence[float],
+                           measured_n: Sequence[float],
+                           gait_phase_pct: Sequence[float | None] | None = None,
+                           profile_version: int | None = None) -> None:
+        """``/force_feedback``: a batch of controller samples of one actuator.
+
+        Unknown gait phases (None) are written as −1 (the schema has one number type).
+        """
+        desired = [float(v) for v in desired_n]
+        measured = [float(v) for v in measured_n]
+        if len(desired) != len(measured):
+            raise LogValueError(f"force feedback batch: {len(desired)} desired vs {len(measured)} "
+                                "measured samples; expected equal lengths")
+        gait = None if gait_phase_pct is None else [-1.0 if g is None else float(g) for g in gait_phase_pct]
+        self.log(Topic.FORCE_FEEDBACK, {
+            "actuator": actuator, "n": len(desired), "desired_n": desired, "measured_n": measured,
+            "gait_phase_pct": gait, "profile_version": profile_version,
+            "desired_mean_n": float(np.mean(desired)) if desired else None,
+            "measured_mean_n": float(np.mean(measured)) if measured else None,
+        })
+
+    def log_device_status(self, *, actuator: int, mode: str | enum.Enum, faults: int | enum.Flag,
+                          gait_phase_pct: float | None = None, profile_version_active: int = 0,
+                          profile_version_pending: int = 0) -> None:
+        """``/device_status``: one actuator's status (``faults`` as bits or an enum.Flag)."""
+        names = ([m.name.lower() for m in type(faults) if m in faults and m.name]
+                 if isinstance(faults, enum.Flag) else None)
+        self.log(Topic.DEVICE_STATUS, {
+            "actuator": actuator, "mode": _name(mode), "faults": int(faults), "fault_names": names,
+            "gait_phase_pct": gait_phase_pct, "profile_version_active": profile_version_active,
+            "profile_version_pending": profile_version_pending,
+        })
+
+    def log_event(self, kind: str, text: str, *, level: EventLevel = EventLevel.INFO,
+                  t_s: float | None = None, **details: Any) -> None:
+        """``/events``: a session event (Foxglove's Log panel shows ``text``)."""
+        self.log(Topic.EVENTS, {"kind": kind, "message": text, "level": int(level), "t_s": t_s,
+                                "details": details or None})
+
+    def log_rejects(self, source: str, counts: Mapping[str, int], *, t_s: float | None = None) -> None:
+        """``/rejects``: cumulative rejected records/frames of ``source`` by reason."""
+        c = {str(k): int(v) for k, v in counts.items()}
+        self.log(Topic.REJECTS, {"source": source, "counts": c, "total": sum(c.values()), "t_s": t_s})
+
+    # ------------------------------------------------------------------ internals
+    def _check_open(self) -> None:
+        if self._closed:
+            raise LogStateError(f"the session log {str(self.path)!r} is closed")
+        if self._thread_error is not None:
+            err = self._thread_error
+            raise LogWriteError(f"the session log {str(self.path)!r} failed in the background: "
+                                f"{err}") from err
+
+    def _register(self, topic: str, schema_name: str, schema: Mapping[str, Any]) -> int:
+        sid = self._writer.register_schema(schema_name, SchemaEncoding.JSONSchema,
+                                           json.dumps(schema).encode())
+        cid = self._writer.register_channel(topic, MessageEncoding.JSON, sid)
+        self._channel_ids[topic] = cid
+        return cid
+
+    def _write(self, topic: str, message: Mapping[str, Any], publish_time_ns: int | None) -> None:
+        log_ns = int(self._clock_ns())
+        if publish_time_ns is None:
+            publish_ns = log_ns
+        else:
+            if isinstance(publish_time_ns, bool) or not isinstance(publish_time_ns, int | np.integer) \
+                    or publish_time_ns < 0:
+                raise LogValueError(f"log({topic!r}): publish_time_ns={publish_time_ns!r}; expected an "
+                                    "integer >= 0 (breath time in ns)")
+            publish_ns = int(publish_time_ns)
+        if log_ns < 0:
+            raise LogValueError(f"clock_ns() returned {log_ns}; expected ns >= 0")
+        msg = _drop_none(message)
+        if topic == Topic.EVENTS:
+            msg = _complete_event(msg, log_ns)
+        data = _encode(topic, msg)
+        cid = self._channel_ids.get(topic)
+        if cid is None:
+            cid = self._register(topic, "hilbo.Generic" + topic.replace("/", "."),
+                                 {"$schema": "http://json-schema.org/draft-07/schema#",
+                                  "title": "hilbo.Generic", "type": "object", "properties": {}})
+        try:
+            self._writer.add_message(cid, log_time=log_ns, data=data, publish_time=publish_ns,
+                                     sequence=self._sequence % 2**32)
+        except OSError as err:
+            raise LogWriteError(f"cannot write to the session log {str(self.path)!r}: {err}") from err
+        self._sequence += 1
+        self._pending = True
+        self.stats.messages += 1
+        self.stats.per_topic[topic] += 1
+
+    def _flush_locked(self) -> None:
+        if not self._pending:
+            return
+        try:
+            if self._chunked:
+                self._writer.flush()  # closes the open chunk, writes it, flushes the file object
+            else:
+                self._file.flush()
+        except OSError as err:
+            raise LogWriteError(f"cannot flush the session log {str(self.path)!r}: {err}") from err
+        self._pending = False
+        self.stats.flushes += 1
+
+    def _fsync(self) -> None:
+        os.fsync(self._file.fileno())
+        self.stats.fsyncs += 1
+
+    def _flusher(self, interval_s: float) -> None:
+        last_fsync = time.monotonic()
+        while not self._stop.wait(interval_s):
+            try:
+                with self._lock:
+                    if self._closed:
+                        return
+                    self._flush_locked()
+                now = time.monotonic()
+                if self._fsync_interval_s is not None and now - last_fsync >= self._fsync_interval_s:
+                    # Outside the lock: an fsync can take long and must not block the loggers.
+                    self._fsync()
+                    last_fsync = now
+            except (LogError, OSError, ValueError) as err:
+                # Surfaced on the next log call (this thread has no caller to raise to).
+                logger.error("session log %s: background flush failed: %s", self.path, err)
+                self._thread_error = err
+                return
+
+
+def _t_ns(t_s: float) -> int:
+    t = float(t_s)
+    if not math.isfinite(t) or t < 0:
+        raise LogValueError(f"breath time t_s={t_s!r}; expected a finite time >= 0 s")
+    return round(t * 1e9)
+
+
+def _name(value: str | enum.Enum) -> str:
+    return value.name.lower() if isinstance(value, enum.Enum) and value.name else str(value)
+
+
+def _complete_event(msg: dict[str, Any], log_ns: int) -> dict[str, Any]:
+    out = dict(msg)
+    out.setdefault("message", str(out.get("text", out.get("kind", ""))))
+    out.setdefault("kind", "event")
+    out.setdefault("level", int(EventLevel.INFO))
+    out.setdefault("timestamp", {"sec": log_ns // 1_000_000_000, "nsec": log_ns % 1_000_000_000})
+    out.setdefault("name", "hilbo")
+    out.setdefault("file", "")
+    out.setdefault("line", 0)
+    return out
+
+
+def _encode(topic: str, msg: Mapping[str, Any]) -> bytes:
+    try:
+        return json.dumps(msg, separators=(",", ":"), allow_nan=False, default=_json_default).encode()
+    except ValueError:
+        pass
+    except TypeError as err:
+        raise LogValueError(f"log({topic!r}): message is not JSON-serialisable: {err}") from err
+    if topic == Topic.OPTIMIZER_STATE:
+        # The snapshot must round-trip exactly for resume: keep Python's NaN/Infinity tokens
+        # (json.loads reads them; only Foxglove's viewer would choke on this one message).
+        logger.warning("optimizer snapshot contains a non-finite number; written as a JSON extension")
+        return json.dumps(msg, separators=(",", ":"), default=_json_default).encode()
+    return json.dumps(_drop_none(_finite_or_none(msg)), separators=(",", ":"), allow_nan=False,
+                      default=_json_default).encode()
