@@ -118,8 +118,10 @@ def build_parser() -> argparse.ArgumentParser:
     add_log_parser(sub)
 
     from virtual_hw.cli_cart import add_virtual_cart_parser
+    from virtual_hw.cli_exosuit import add_virtual_exosuit_parser
 
     add_virtual_cart_parser(sub)
+    add_virtual_exosuit_parser(sub)
 
     vcan = sub.add_parser(
         "vcan-setup", help="print the shell commands that bring up a (v)can interface",

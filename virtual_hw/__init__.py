@@ -28,6 +28,12 @@ _EXPORTS = {
     "FaultCatalog": "virtual_hw.faults",
     "FaultSchedule": "virtual_hw.faults",
     "FaultSpec": "virtual_hw.faults",
+    "AppliedProfileListener": "virtual_hw.exosuit",
+    "DeviceLimits": "virtual_hw.exosuit",
+    "EXOSUIT_FAULTS": "virtual_hw.exosuit",
+    "SUIT_JOINTS": "virtual_hw.exosuit",
+    "VirtualExosuit": "virtual_hw.exosuit",
+    "applied_profile_feed": "virtual_hw.exosuit",
 }
 
 __all__ = sorted(_EXPORTS)

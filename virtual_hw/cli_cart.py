@@ -20,10 +20,11 @@ bridge). ``--speed max`` runs as fast as the cart's reader takes the lines, and 
 session when the first client attaches (UDP: at once).
 
 Assistance: the wearer feels the profile the exosuit *applies*. In-process, the virtual exosuit
-calls :meth:`VirtualCart.on_profile_applied`. A separate cart process will learn it from the
-exosuit's applied-profile status on CAN (``--can-interface``/``--can-channel``): that listener is
-not implemented yet, so this process's wearer walks without assistance. It plugs in as a
-:data:`ProfileFeed` returned by :func:`profile_feed_from_args`.
+calls :meth:`VirtualCart.on_profile_applied`. A separate cart process learns it from the
+exosuit's bus (``--can-interface``/``--can-channel``): it reassembles the pushed tables and
+follows the device's active version (:class:`virtual_hw.exosuit.AppliedProfileListener`);
+without those options its wearer walks unassisted. The feed is the :data:`ProfileFeed`
+returned by :func:`profile_feed_from_args`.
 """
 
 from __future__ import annotations
@@ -151,18 +152,26 @@ def add_virtual_cart_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def profile_feed_from_args(args: argparse.Namespace) -> ProfileFeed | None:
-    """Where the cart process learns the applied profile: None (nowhere) until the CAN
-    listener of the virtual exosuit exists.
+    """Where the cart process learns the applied profile: from the exosuit's bus when
+    ``--can-interface`` and ``--can-channel`` are given (the pushed tables and the device's
+    status, :class:`virtual_hw.exosuit.AppliedProfileListener`), else nowhere (the wearer walks
+    unassisted).
 
     Raises:
-        VirtualConfigError: ``--can-interface``/``--can-channel`` given (not implemented yet).
+        VirtualConfigError: Only one of the two options given.
     """
-    if args.can_interface is not None or args.can_channel is not None:
+    if args.can_interface is None and args.can_channel is None:
+        return None
+    if args.can_interface is None or args.can_channel is None:
         raise VirtualConfigError(
-            "--can-interface/--can-channel: listening for the exosuit's applied profile on CAN is not "
-            "implemented yet; run without them (the wearer walks unassisted)"
+            "--can-interface and --can-channel go together (the exosuit's bus, e.g. "
+            "--can-interface socketcan --can-channel vcan0)"
         )
-    return None
+    from drivers.exosuit import CanBusConfig
+    from virtual_hw.exosuit import SUIT_JOINTS, applied_profile_feed
+
+    return applied_profile_feed(CanBusConfig(args.can_interface, args.can_channel),
+                                joints=SUIT_JOINTS[args.preset])
 
 
 async def serve(

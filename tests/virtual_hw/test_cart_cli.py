@@ -143,7 +143,7 @@ def test_bad_options_exit_2_naming_the_problem(
     [
         (["--transport", "udp"], "UDP needs the receiver's port"),
         (["--speed", "max", "--epoch", "1700000000"], "epoch"),
-        (["--can-interface", "virtual"], "not implemented yet"),
+        (["--can-interface", "virtual"], "--can-interface and --can-channel go together"),
     ],
 )
 def test_bad_combinations_exit_2_before_serving(
