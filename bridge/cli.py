@@ -40,6 +40,64 @@ def write_json_atomic(path: Path, data: Any) -> None:
 
 
 def _cmd_sim(args: argparse.Namespace) -> int:
+    if args.engine == "core":
+        return _cmd_sim_core(args)
+    import asyncio
+
+    from rich.console import Console
+
+    from bridge.sim import MAX_SPEED, VirtualSimConfig, run_virtual_sim
+
+    console = Console(stderr=True)
+    cfg = VirtualSimConfig(minutes=args.minutes, seed=args.seed, speed=args.speed,
+                           preset=args.preset, stopping=args.stopping)
+    out = Path(args.out)
+    speed = cfg.speed or MAX_SPEED
+    console.print(f"hilbo sim: {cfg.minutes:g}-minute {cfg.preset} session on the virtual exosuit and "
+                  f"cart, seed {cfg.seed}, {speed:g}x real time "
+                  f"(about {cfg.minutes * 60 / speed:.0f} s)")
+    summary = asyncio.run(run_virtual_sim(cfg, out, operator_view=console.is_terminal))
+    _print_done(console, summary)
+    print(out / "summary.json")
+    print(out / "session.mcap")
+    return 0
+
+
+def _print_done(console: Any, summary: dict[str, Any]) -> None:
+    best = summary.get("best_mean")
+    line = (f"done: {summary['n_evaluations']} evaluations ({summary['n_early_stops']} early stops) "
+            f"in {summary['wall_time_s']:.1f} s wall")
+    if best is not None and "true_cost_of_best" in summary:
+        line += (f"; best {best:.1f} W estimated, {summary['true_cost_of_best']:.1f} W true vs optimum "
+                 f"{summary['true_optimum']['cost_w']:.1f} W (regret {summary['regret_w']:.1f} W)")
+    console.print(line)
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from rich.console import Console
+
+    from bridge.config import load_config
+    from bridge.run import run_session
+
+    console = Console(stderr=True)
+    cfg = load_config(args.config)
+    resume = Path(args.resume) if args.resume else None
+    console.print(f"hilbo run: {cfg.source} (subject {cfg.session.subject})"
+                  + (f", resuming {resume}" if resume else ""))
+    result = asyncio.run(run_session(cfg, resume=resume, out_dir=Path(args.out) if args.out else None,
+                                     operator_view=not args.no_view))
+    s = result.summary
+    console.print(f"session ended: {s['n_evaluations']} evaluations ({s['n_early_stops']} early stops); "
+                  f"best {s['best_mean']} W" if s.get("best_mean") is not None else
+                  f"session ended: {s['n_evaluations']} evaluations")
+    print(result.log_path)
+    print(result.summary_path)
+    return 0
+
+
+def _cmd_sim_core(args: argparse.Namespace) -> int:
     from rich.console import Console
 
     from bridge.insim import SimConfig, SimEvaluation, run_insim
@@ -64,12 +122,7 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     summary = run_insim(cfg, on_evaluation=progress)
     path = out / "summary.json"
     write_json_atomic(path, summary)
-    console.print(
-        f"done: {summary['n_evaluations']} evaluations ({summary['n_early_stops']} early stops) "
-        f"in {summary['wall_time_s']:.1f} s wall; best {summary['best_mean']:.1f} W estimated, "
-        f"{summary['true_cost_of_best']:.1f} W true vs optimum {summary['true_optimum']['cost_w']:.1f} W "
-        f"(regret {summary['regret_w']:.1f} W)"
-    )
+    _print_done(console, summary)
     print(path)
     return 0
 
@@ -95,25 +148,50 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    sim = sub.add_parser("sim", help="run a whole session against a simulated wearer",
-                         description="Run a whole HIL session against a simulated wearer and "
-                                     "write DIR/summary.json.")
+    sim = sub.add_parser("sim", help="run a whole session on the virtual exosuit and cart",
+                         description="Run a whole HIL session: the bridge drives the virtual exosuit "
+                                     "(python-can virtual bus) and the virtual cart (TCP on loopback) "
+                                     "with a simulated wearer; writes DIR/session.mcap and "
+                                     "DIR/summary.json. --engine core runs the optimizer against the "
+                                     "wearer directly, without devices or log (fastest).")
     sim.add_argument("--minutes", type=float, default=60.0, help="session length in minutes (default 60)")
     sim.add_argument("--speed", type=_speed, default=None,
-                     help="'max' (default) or a real-time factor such as 1 or 10")
+                     help="'max' (default; 100x with the devices, unlimited with --engine core) "
+                          "or a real-time factor such as 1 or 10")
     sim.add_argument("--seed", type=int, default=1, help="subject and optimizer seed (default 1)")
     sim.add_argument("--out", default="runs/sim", help="output directory (default runs/sim)")
     sim.add_argument("--preset", default="hip_6d", choices=["hip_6d", "hip_ankle_4d"],
                      help="parameter space (default hip_6d)")
     sim.add_argument("--stopping", default="adaptive", choices=["adaptive", "fixed"],
                      help="stopping rule in the optimisation phase (default adaptive)")
+    sim.add_argument("--engine", default="bridge", choices=["bridge", "core"],
+                     help="bridge (default): the whole system over real transports; core: the "
+                          "optimizer and the wearer only")
     sim.set_defaults(func=_cmd_sim)
+
+    run = sub.add_parser("run", help="run a lab session from a config file",
+                         description="Run a HIL session: read the cart, estimate, stop, propose and "
+                                     "push profiles to the exosuit as CONFIG.toml says. Keys in the "
+                                     "live view: p pause (assistance off), r resume, q stop; Ctrl-C "
+                                     "stops safely too.")
+    run.add_argument("config", help="the session config (see: hilbo config example)")
+    run.add_argument("--resume", metavar="LOG.mcap", default=None,
+                     help="continue the session of this log (also one cut off by a crash) in a new log")
+    run.add_argument("--out", default=None, help="output directory (default: [session] out_dir)")
+    run.add_argument("--no-view", action="store_true", help="no live terminal view")
+    run.set_defaults(func=_cmd_run)
 
     from bridge.config import add_config_parser
 
     add_config_parser(sub)
 
+    from bridge.bench.cli import add_bench_parser
+    from bridge.bench_tutor import add_tutor_bench_parser
     from bridge.cli_log import add_log_parser
+    from bridge.tune_stopping import add_tune_stopping_parser
+
+    add_tutor_bench_parser(add_bench_parser(sub))
+    add_tune_stopping_parser(sub)
 
     add_log_parser(sub)
 

@@ -228,7 +228,7 @@ class ActuatorLimits:
     min_onset_pct: float = 0.0
     max_offset_pct: float = 60.0
     max_slope_n_per_pct: float = 40.0
-    max_peak_change_n: float = 200.0
+    max_peak_change_n: float = 250.0
 
     def __post_init__(self) -> None:
         checked = _check_actuator_values({f.name: getattr(self, f.name) for f in fields(self)}, "limits")
@@ -277,7 +277,7 @@ class ProfileLimits:
     min_onset_pct: float = 0.0
     max_offset_pct: float = 60.0
     max_slope_n_per_pct: float = 40.0
-    max_peak_change_n: float = 200.0
+    max_peak_change_n: float = 250.0
     n_points: int = 101
     max_consecutive_rejections: int = 3
     actuators: Mapping[str, ActuatorLimits] = field(default_factory=dict)

@@ -55,7 +55,7 @@ def test_bad_sim_config(kw, match) -> None:
 @pytest.mark.slow
 def test_cli_writes_summary(tmp_path, capsys) -> None:
     out = tmp_path / "run"
-    assert main(["sim", "--minutes", "22", "--seed", "3", "--out", str(out)]) == 0
+    assert main(["sim", "--engine", "core", "--minutes", "22", "--seed", "3", "--out", str(out)]) == 0
     summary = json.loads((out / "summary.json").read_text())
     for key in ("n_evaluations", "n_early_stops", "evaluations", "best_params", "best_mean",
                 "true_optimum", "true_cost_of_best"):

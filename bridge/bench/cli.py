@@ -1,0 +1,365 @@
+"""The ``hilbo bench`` subcommands: ``stopping``, ``hil`` and ``perf``.
+
+:func:`add_bench_parser` registers them on the main ``hilbo`` parser; :func:`bench_main` is a
+standalone entry point (``python -m bridge.bench ...``) with the same exit codes: 0 on success,
+2 for bad input (named in the message, before any work starts), 130 when interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+
+from bridge.bench.common import choices, machine_info, numbers, round_sig, write_json
+from hilbo_core.benchmarks import FUNCTIONS, METHODS, NOISE_LEVELS, StoppingProtocol
+from hilbo_core.errors import ConfigError, HilboError
+
+__all__ = ["add_bench_parser", "bench_main"]
+
+logger = logging.getLogger(__name__)
+
+
+def _int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from err
+    return value
+
+
+def _add_executor_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--workers", type=_int, default=None,
+                   help="local worker processes (default: all cores; 1 = in this process)")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="run on a Dask distributed cluster, e.g. tcp://10.0.0.5:8786 "
+                        "(the workers need hilbo installed)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _executor(args: argparse.Namespace) -> Any:
+    from bridge.bench.executors import make_executor
+
+    if args.workers is not None and args.workers < 1:
+        raise ConfigError(f"--workers {args.workers}; expected an integer >= 1")
+    return make_executor(args.workers, args.scheduler, progress=False if args.no_progress else None)
+
+
+def _console() -> Console:
+    return Console(highlight=False, soft_wrap=True)
+
+
+# ------------------------------------------------------------------------------------ stopping
+def _stopping_command(args: argparse.Namespace, campaign: Any) -> str:
+    p = campaign.protocol
+    return (f"hilbo bench stopping --trials {campaign.trials} --functions {','.join(campaign.functions)} "
+            f"--noise {','.join(f'{n:g}' for n in campaign.noises)} --methods {','.join(campaign.methods)} "
+            f"--noise-model {p.noise_model.value} --budget {p.budget} --n-explore {p.n_explore} "
+            f"--max-breaths {p.max_breaths} --window {p.window} --n-candidates {p.n_candidates} "
+            f"--seed {campaign.seed} "
+            f"--grid-step {args.grid_step} --out {args.out}"
+            + (" --summarize-only" if args.summarize_only else "")
+            + "".join(f" --merge {d}" for d in args.merge or []))
+
+
+def _cmd_stopping(args: argparse.Namespace) -> int:
+    from bridge.bench.plots import plot_stopping_function
+    from bridge.bench.stopping import (
+        StoppingCampaign,
+        function_descriptions,
+        load_trials,
+        method_descriptions,
+        run_campaign,
+        stopping_table,
+        summarize_stopping,
+    )
+
+    # Everything is validated before any work starts (exit code 2 with the offending value).
+    functions = choices(args.functions, FUNCTIONS, "function", list(FUNCTIONS))
+    methods = choices(args.methods, METHODS, "method", ["fixed", "adaptive"])
+    noises = numbers(args.noise, "noise level", NOISE_LEVELS)
+    if args.grid_step < 1:
+        raise ConfigError(f"--grid-step {args.grid_step}; expected an integer >= 1")
+    protocol = StoppingProtocol(n_explore=args.n_explore, max_breaths=args.max_breaths, window=args.window,
+                                budget=args.budget, noise_model=args.noise_model,
+                                n_candidates=args.n_candidates)
+    campaign = StoppingCampaign(functions=tuple(functions), noises=tuple(noises), methods=tuple(methods),
+                                trials=args.trials, seed=args.seed, protocol=protocol)
+    out = Path(args.out)
+    console = _console()
+    if args.merge and not args.summarize_only:
+        raise ConfigError("--merge only goes with --summarize-only")
+    if args.summarize_only:
+        have: dict[Any, dict[str, Any]] = {}
+        sources = [out, *(Path(d) for d in args.merge or [])]
+        for d in sources:
+            have.update(load_trials(d / "trials.jsonl", protocol))
+        results = [have[t.key()] for t in campaign.tasks() if t.key() in have]
+        if not results:
+            raise ConfigError(f"--summarize-only: no trial of this campaign in "
+                              f"{[str(d / 'trials.jsonl') for d in sources]}")
+        wall = None
+    else:
+        executor = _executor(args)
+        console.print(f"hilbo bench stopping: {len(campaign.tasks())} trials on {executor.name}")
+        results, wall = run_campaign(campaign, executor, out, resume=args.resume)
+    summary = summarize_stopping(results, campaign, grid_step=args.grid_step)
+    per_trial = [s["trial_wall_s_mean"] for s in summary["settings"]]
+    complete = len(per_trial) == len(functions) * len(noises) * len(methods) and None not in per_trial
+    doc = {
+        "benchmark": "stopping",
+        "command": _stopping_command(args, campaign),
+        "campaign": campaign.to_json(),
+        "trials_found": len(results),
+        "machine": machine_info(),
+        "executor": None if args.summarize_only else executor.name,
+        "wall_s": wall,
+        # Σ over settings of the mean wall time of one trial × the trials asked for: the CPU
+        # time the whole campaign needs at the speed these trials ran (divide by the workers).
+        "projected_campaign_core_s": sum(per_trial) * campaign.trials if complete else None,
+        "methods": method_descriptions(methods),
+        "functions": function_descriptions(functions),
+        "noise": "σ_z²/σ̃² (seed 000 §III.2 levels 0.1, 1, 10); noise_model 'matched': measurements "
+                 "have variance σ_z² and the estimator knows it; 'assumed': measurements have "
+                 "variance σ̃² and σ_z² is the estimator's assumption",
+        **summary,
+    }
+    write_json(out / "results.json", doc)
+    table = stopping_table(summary)
+    (out / "table.md").write_text(table)
+    pngs = [plot_stopping_function(summary["settings"], f, out / f"stopping_{f}.png") for f in functions]
+    console.print(table)
+    if wall is not None:
+        console.print(f"{len(results)} trials, this run {wall:.1f} s wall")
+    for p in [out / "results.json", out / "table.md", *pngs]:
+        console.print(str(p))
+    return 0
+
+
+# ------------------------------------------------------------------------------------ hil
+def _cmd_hil(args: argparse.Namespace) -> int:
+    from bridge.bench.hil import (
+        HIL_METHODS,
+        HilProtocol,
+        HilTask,
+        hil_comparisons,
+        hil_table,
+        load_sessions,
+        run_hil_task,
+        summarize_hil,
+    )
+    from bridge.bench.plots import plot_hil
+    from hilbo_core.presets import PRESETS
+
+    spaces = choices(args.spaces, PRESETS, "space", list(PRESETS))
+    methods = choices(args.methods, HIL_METHODS, "method", list(HIL_METHODS))
+    if args.subjects < 1:
+        raise ConfigError(f"--subjects {args.subjects}; expected an integer >= 1")
+    if args.seed < 0:
+        raise ConfigError(f"--seed {args.seed}; expected an integer >= 0")
+    protocol = HilProtocol(minutes=args.minutes, warmup_s=args.warmup_s, condition_s=args.condition_s,
+                           popsize=args.popsize, sigma0=args.sigma0, penalty_w=args.penalty_w,
+                           n_explore=args.n_explore, max_breaths=args.max_breaths, window=args.window,
+                           grid_min=args.grid_min)
+    seeds = list(range(args.seed, args.seed + args.subjects))
+    # Subject-major: an interrupted run has every method on the first subjects.
+    tasks = [HilTask(m, s, k, protocol) for k in seeds for s in spaces for m in methods]
+    out = Path(args.out)
+    console = _console()
+    done = load_sessions(out / "sessions.jsonl", protocol) if (args.resume or args.summarize_only) else {}
+    if args.summarize_only:
+        results = [done[t.key()] for t in tasks if t.key() in done]
+        if not results:
+            raise ConfigError(f"--summarize-only: {out / 'sessions.jsonl'} holds no session of this run")
+        wall, executor_name = None, None
+    else:
+        executor = _executor(args)
+        todo = [t for t in tasks if t.key() not in done]
+        console.print(f"hilbo bench hil: {len(tasks)} sessions ({len(todo)} to run) on {executor.name}")
+        out.mkdir(parents=True, exist_ok=True)
+        if not args.resume and (out / "sessions.jsonl").exists():
+            (out / "sessions.jsonl").unlink()
+        t0 = time.perf_counter()
+        with (out / "sessions.jsonl").open("a") as fh:
+
+            def record(i: int, result: dict[str, Any]) -> None:
+                fh.write(json.dumps(round_sig(result | {"protocol": protocol.to_json()}, 10)) + "\n")
+                fh.flush()
+
+            new = executor.map(run_hil_task, todo, label="HIL sessions", on_result=record)
+        wall = time.perf_counter() - t0
+        for t, r in zip(todo, new, strict=True):
+            done[t.key()] = r
+        results = [done[t.key()] for t in tasks]
+        executor_name = executor.name
+    entries = summarize_hil(results, spaces, methods, protocol)
+    comparisons = hil_comparisons(results, spaces, methods)
+    command = (f"hilbo bench hil --subjects {args.subjects} --seed {args.seed} --spaces {','.join(spaces)} "
+               f"--methods {','.join(methods)} --minutes {args.minutes:g} --warmup-s {args.warmup_s:g} "
+               f"--condition-s {args.condition_s:g} --popsize {args.popsize} --sigma0 {args.sigma0:g} "
+               f"--penalty-w {args.penalty_w:g} --n-explore {args.n_explore} "
+               f"--max-breaths {args.max_breaths} --window {args.window} --grid-min {args.grid_min:g} "
+               f"--out {args.out}"
+               + (" --summarize-only" if args.summarize_only else ""))
+    write_json(out / "hil.json", {
+        "benchmark": "hil", "command": command, "protocol": protocol.to_json(), "subjects": seeds,
+        "machine": machine_info(), "executor": executor_name, "wall_s": wall,
+        "sessions_found": len(results), "results": entries, "comparisons": comparisons,
+        # Per-session numbers without the recommendation traces (those stay in sessions.jsonl).
+        "sessions": [{k: v for k, v in r.items() if k not in ("protocol", "trace")} for r in results],
+    })
+    table = hil_table(entries, comparisons=comparisons)
+    (out / "hil_table.md").write_text(table)
+    nested: dict[str, dict[str, Any]] = {}
+    for e in entries:
+        nested.setdefault(e["space"], {})[e["method"]] = e
+    png = plot_hil(nested, out / "hil.png")
+    console.print(table)
+    if wall is not None:
+        console.print(f"{len(results)} sessions, this run {wall:.1f} s wall")
+    for p in (out / "hil.json", out / "hil_table.md", png):
+        console.print(str(p))
+    return 0
+
+
+# ------------------------------------------------------------------------------------ perf
+def _cmd_perf(args: argparse.Namespace) -> int:
+    from bridge.bench.perf import PerfConfig, perf_table, run_perf
+
+    sizes = [int(v) for v in numbers(args.sizes, "observation count", (10, 30, 60, 100))]
+    cfg = PerfConfig(breaths=args.breaths, sizes=tuple(sizes), reps=args.reps, sessions=args.sessions,
+                     seed=args.seed)
+    console = _console()
+    console.print("hilbo bench perf: timing breath, proposal and session (in this process)")
+    result = run_perf(cfg)
+    result["command"] = (f"hilbo bench perf --breaths {cfg.breaths} --sizes {','.join(map(str, sizes))} "
+                         f"--reps {cfg.reps} --sessions {cfg.sessions} --seed {cfg.seed} --out {args.out}")
+    result["machine"] = machine_info()
+    out = Path(args.out)
+    write_json(out / "perf.json", result)
+    table = perf_table(result)
+    (out / "perf_table.md").write_text(table)
+    console.print(table)
+    prof = result.get("proposal_profile") or {}
+    if prof:
+        console.print(f"one proposal at {prof['observations']} observations: {prof['total_ms']:.1f} ms, "
+                      f"GP fit {prof['gp_fit_ms']:.1f} ms, EI maximisation {prof['maximize_ei_ms']:.1f} ms")
+    for p in (out / "perf.json", out / "perf_table.md"):
+        console.print(str(p))
+    return 0
+
+
+# ------------------------------------------------------------------------------------ parser
+def add_bench_parser(subparsers: Any) -> Any:
+    """Register ``bench`` with ``stopping``, ``hil`` and ``perf`` on a subparsers object.
+
+    Returns:
+        The ``bench`` command's own subparsers, so other benchmarks can join it, e.g.
+        ``add_tutor_bench_parser(add_bench_parser(sub))`` for ``hilbo bench tutor``.
+    """
+    bench = subparsers.add_parser(
+        "bench", help="benchmarks: results as JSON, Markdown tables and plots",
+        description="Benchmarks of hilbo. Results go to --out as JSON, a Markdown table and PNGs.")
+    bsub = bench.add_subparsers(dest="bench_command", required=True, metavar="BENCH")
+
+    st = bsub.add_parser(
+        "stopping", help="seed 000 §III.2: stopping vs fixed-interval BO on the Table I functions",
+        description="The simulation study of seed 000 §III.2 (Table I functions, Gaussian-product "
+                    "measurements, three noise levels, 6 exploration points, N = 45, 630 measurements).")
+    st.add_argument("--trials", type=_int, default=100, help="trials per function and noise (default 100)")
+    st.add_argument("--functions", default=None,
+                    help=f"comma-separated, from {','.join(FUNCTIONS)} (default all)")
+    st.add_argument("--noise", default=None,
+                    help="comma-separated σ_z²/σ̃² factors (default 0.1,1,10)")
+    st.add_argument("--methods", default=None,
+                    help=f"comma-separated, from {','.join(METHODS)} (default fixed,adaptive)")
+    st.add_argument("--noise-model", default="matched", choices=["matched", "assumed"],
+                    help="matched: measurements have variance σ_z²; assumed: they have σ̃² and σ_z² "
+                         "is only the estimator's assumption (default matched)")
+    st.add_argument("--budget", type=_int, default=630, help="measurements after exploration (630)")
+    st.add_argument("--n-explore", type=_int, default=6, help="exploration points (6)")
+    st.add_argument("--max-breaths", type=_int, default=45, help="N, measurements per evaluation (45)")
+    st.add_argument("--window", type=_int, default=2, help="Algorithm 2's window W (2)")
+    st.add_argument("--n-candidates", type=_int, default=1024,
+                    help="EI candidates per proposal (1024)")
+    st.add_argument("--seed", type=_int, default=0, help="seed of the first trial (0)")
+    st.add_argument("--grid-step", type=_int, default=1, help="keep y_t every k measurements (1)")
+    st.add_argument("--out", default="runs/bench/stopping", help="output directory")
+    st.add_argument("--resume", action="store_true",
+                    help="keep the trials already in OUT/trials.jsonl and run only the missing ones")
+    st.add_argument("--summarize-only", action="store_true",
+                    help="run nothing: summarise the trials of this campaign found in OUT/trials.jsonl")
+    st.add_argument("--merge", action="append", metavar="DIR",
+                    help="with --summarize-only: also read DIR/trials.jsonl (repeatable), e.g. the "
+                         "directories of campaigns run in parts or on several machines")
+    _add_executor_args(st)
+    st.set_defaults(func=_cmd_stopping)
+
+    hil = bsub.add_parser(
+        "hil", help="whole simulated sessions: stopping BO, fixed BO, CMA-ES, random search",
+        description="Whole HIL sessions on simulated wearers; regret of the recommended setting "
+                    "against minutes walked.")
+    hil.add_argument("--subjects", type=_int, default=10, help="subject seeds per space (10)")
+    hil.add_argument("--seed", type=_int, default=1, help="first subject seed (1)")
+    hil.add_argument("--spaces", default=None,
+                     help="comma-separated, from hip_6d,hip_ankle_4d (default both)")
+    hil.add_argument("--methods", default=None,
+                     help="comma-separated, from adaptive,fixed,cmaes,random (default all)")
+    hil.add_argument("--minutes", type=float, default=60.0, help="session length incl. warm-ups (60)")
+    hil.add_argument("--warmup-s", type=float, default=180.0, help="each of the two warm-ups (180 s)")
+    hil.add_argument("--condition-s", type=float, default=120.0,
+                     help="CMA-ES/random condition length (120 s)")
+    hil.add_argument("--popsize", type=_int, default=8, help="CMA-ES generation size (8)")
+    hil.add_argument("--sigma0", type=float, default=0.25, help="CMA-ES initial step in the unit cube (0.25)")
+    hil.add_argument("--penalty-w", type=float, default=500.0,
+                     help="CMA-ES constraint penalty, W per squared unit-cube distance (500)")
+    hil.add_argument("--n-explore", type=_int, default=6, help="BO exploration points (6)")
+    hil.add_argument("--max-breaths", type=_int, default=45, help="BO's N (45)")
+    hil.add_argument("--window", type=_int, default=2, help="BO's window W (2)")
+    hil.add_argument("--grid-min", type=float, default=1.0, help="minutes grid of the summary (1)")
+    hil.add_argument("--out", default="runs/bench/hil", help="output directory")
+    hil.add_argument("--resume", action="store_true",
+                     help="keep the sessions already in OUT/sessions.jsonl and run only the missing ones")
+    hil.add_argument("--summarize-only", action="store_true",
+                     help="run nothing: summarise the sessions of this run found in OUT/sessions.jsonl")
+    _add_executor_args(hil)
+    hil.set_defaults(func=_cmd_hil)
+
+    pf = bsub.add_parser("perf", help="compute latency: breath, proposal, whole session",
+                         description="Latency of one breath, one proposal and a 60-minute simulated session.")
+    pf.add_argument("--breaths", type=_int, default=1500, help="optimisation-phase breaths to time (1500)")
+    pf.add_argument("--sizes", default="10,30,60,100", help="observation counts for proposals (10,30,60,100)")
+    pf.add_argument("--reps", type=_int, default=20, help="timed proposals per size (20)")
+    pf.add_argument("--sessions", type=_int, default=3, help="60-minute sessions to time (3)")
+    pf.add_argument("--seed", type=_int, default=1, help="first seed (1)")
+    pf.add_argument("--out", default="runs/bench/perf", help="output directory")
+    pf.set_defaults(func=_cmd_perf)
+    return bsub
+
+
+def bench_main(argv: Sequence[str] | None = None) -> int:
+    """Standalone entry point: ``argv`` is what follows ``hilbo bench``; same exit codes."""
+    parser = argparse.ArgumentParser(prog="hilbo")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    add_bench_parser(sub)
+    args = parser.parse_args(["bench", *(sys.argv[1:] if argv is None else argv)])
+    logging.basicConfig(level=logging.WARNING)
+    try:
+        return int(args.func(args))
+    except HilboError as err:
+        sys.stderr.write(f"hilbo bench {args.bench_command}: error: {err}\n")
+        return 2
+    except KeyboardInterrupt:
+        sys.stderr.write(f"hilbo bench {args.bench_command}: interrupted\n")
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(bench_main())

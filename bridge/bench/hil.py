@@ -1,0 +1,514 @@
+"""``hilbo bench hil``: whole simulated HIL sessions on simulated wearers, four methods.
+
+Every session is one subject (a :class:`~virtual_hw.wearer.SimulatedWearer` seed) walking a
+session of ``minutes`` on the wearer's breath clock (default 60, like the seed's protocol,
+§IV.A.3): a 3-minute unassisted warm-up, a first bout, a second 3-minute warm-up and a second
+bout until the session ends. The methods:
+
+* ``adaptive`` / ``fixed`` — Bayesian optimisation with / without the estimator stopping process,
+  exactly as ``hilbo sim`` runs it (:func:`bridge.insim.run_insim`): bout 1 is the exploration
+  (6 points × N = 45 breaths, ≈ 14 min), bout 2 the optimisation until the session ends (≈ 40
+  min). The recommendation after every evaluation is :meth:`HILOptimizer.best`.
+* ``cmaes`` — CMA-ES as HIL studies run it (the ``cma`` package): generations of 8 conditions of
+  2 minutes each, every condition's cost the UKF estimate (seed 000 §II.C) from that condition's
+  breaths; bout 1 is the first generation. CMA-ES searches the unit cube (``bounds=[0, 1]``, cma's
+  own boundary transformation); the linear constraints (e.g. ``t_on <= t_p − 15``) are handled
+  by *projection with a penalty*: an infeasible sample is walked as its Euclidean projection onto
+  the feasible polytope (so the wearer only ever gets a feasible setting), and CMA-ES is told the
+  measured cost plus ``penalty_w · ||x − proj(x)||²`` (unit-cube distance), which pulls the
+  distribution back into the feasible set without discarding the measurement. Its recommendation
+  is the distribution mean (projected), updated after every complete generation; a generation
+  cut short by the end of the session does not count.
+* ``random`` — uniform random feasible settings (rejection sampling), 2-minute conditions, the
+  same UKF estimate; recommendation: the lowest estimate so far. Bout 1 is its first 8 conditions.
+
+The metric is the *true* (noiseless) steady-state cost of the recommended setting minus the
+subject's true optimum (W, and % of the optimum's reduction from unassisted walking), on a grid
+of minutes walked (session clock, warm-ups included, so every method walks the same time). A
+grid point is ``None`` until every session of that method has made a recommendation.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cma
+import numpy as np
+from scipy.optimize import minimize
+
+from bridge.bench.common import blas_threads, markdown_table, round_sig
+from bridge.insim import SimConfig, SimEvaluation, run_insim
+from hilbo_core.errors import ConfigError, InfeasibleError
+from hilbo_core.metabolic import MetabolicUKF
+from hilbo_core.optimizer import HILOptimizer
+from hilbo_core.presets import PRESETS, preset
+from hilbo_core.space import ParameterSpace
+from virtual_hw.wearer import SimulatedWearer, WearerConfig
+
+__all__ = [
+    "HIL_METHODS",
+    "HilProtocol",
+    "HilTask",
+    "hil_comparisons",
+    "hil_table",
+    "load_sessions",
+    "project_feasible",
+    "run_hil_task",
+    "summarize_hil",
+]
+
+HIL_METHODS: tuple[str, ...] = ("adaptive", "fixed", "cmaes", "random")
+_BO_METHODS = ("adaptive", "fixed")
+_CMA_STREAM = 0xC3A
+_RANDOM_STREAM = 0x5A3D
+
+
+@dataclass(frozen=True)
+class HilProtocol:
+    """The session protocol shared by every method.
+
+    Attributes:
+        minutes: Session length on the breath clock, warm-ups included.
+        warmup_s: Each of the two unassisted warm-ups (s).
+        n_explore: BO exploration points (bout 1).
+        max_breaths: BO's N.
+        window: Algorithm 2's W.
+        condition_s: CMA-ES and random-search condition length (s).
+        popsize: CMA-ES generation size (conditions per generation).
+        sigma0: CMA-ES initial step size in the unit cube.
+        penalty_w: CMA-ES constraint penalty in W per squared unit-cube distance.
+        bout1_conditions: CMA-ES / random-search conditions before the second warm-up.
+        grid_min: Spacing of the minutes grid of the summary.
+    """
+
+    minutes: float = 60.0
+    warmup_s: float = 180.0
+    n_explore: int = 6
+    max_breaths: int = 45
+    window: int = 2
+    condition_s: float = 120.0
+    popsize: int = 8
+    sigma0: float = 0.25
+    penalty_w: float = 500.0
+    bout1_conditions: int = 8
+    grid_min: float = 1.0
+
+    def __post_init__(self) -> None:
+        for name, low in (("n_explore", 1), ("max_breaths", 2), ("window", 0), ("popsize", 2),
+                          ("bout1_conditions", 0)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < low:
+                raise ConfigError(f"{name}={v!r}; expected an integer >= {low}")
+        for name in ("minutes", "condition_s", "sigma0", "grid_min"):
+            v = getattr(self, name)
+            if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
+                raise ConfigError(f"{name}={v!r}; expected a positive number")
+        for name in ("warmup_s", "penalty_w"):
+            v = getattr(self, name)
+            if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
+                raise ConfigError(f"{name}={v!r}; expected a number >= 0")
+        if self.minutes > 600:
+            raise ConfigError(f"minutes={self.minutes!r}; expected at most 600")
+        session_s = self.minutes * 60.0
+        # The exploration bout at the slowest mean breathing of the wearer population.
+        explore_s = self.n_explore * self.max_breaths * WearerConfig().breath_interval_s[1]
+        if 2 * self.warmup_s + explore_s >= session_s:
+            raise ConfigError(
+                f"minutes={self.minutes:g} is too short: the warm-ups ({2 * self.warmup_s / 60:g} min) "
+                f"and the BO exploration ({self.n_explore} × {self.max_breaths} breaths, up to "
+                f"{explore_s / 60:.1f} min) leave no optimisation time; give minutes > "
+                f"{math.ceil((2 * self.warmup_s + explore_s) / 60)}"
+            )
+        if 2 * self.warmup_s + (self.bout1_conditions + 1) * self.condition_s > session_s:
+            raise ConfigError(
+                f"minutes={self.minutes:g} is too short for the warm-ups and "
+                f"{self.bout1_conditions + 1} conditions of {self.condition_s:g} s"
+            )
+
+    def to_json(self) -> dict[str, Any]:
+        """JSON-able form."""
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class HilTask:
+    """One session: a method on one subject in one space (picklable)."""
+
+    method: str
+    space: str
+    seed: int
+    protocol: HilProtocol = field(default_factory=HilProtocol)
+
+    def key(self) -> tuple[str, str, int]:
+        """Identity of the session within a run."""
+        return (self.method, self.space, self.seed)
+
+    def __post_init__(self) -> None:
+        if self.method not in HIL_METHODS:
+            raise ConfigError(f"unknown method {self.method!r}; choose from {list(HIL_METHODS)}")
+        if self.space not in PRESETS:
+            raise ConfigError(f"unknown space {self.space!r}; choose from {sorted(PRESETS)}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise ConfigError(f"seed={self.seed!r}; expected an integer >= 0")
+
+
+# --------------------------------------------------------------------------------------------
+# Constraint handling for CMA-ES
+# --------------------------------------------------------------------------------------------
+
+
+def project_feasible(v: np.ndarray, A: np.ndarray, b: np.ndarray, tol: float = 1e-9) -> np.ndarray:
+    """Euclidean projection of v onto ``P = {u : A u <= b, 0 <= u <= 1}``.
+
+    Args:
+        v: Point, shape (d,).
+        A: Constraint matrix, shape (m, d) (m may be 0).
+        b: Right-hand sides, shape (m,).
+        tol: Constraint tolerance of the result.
+
+    Returns:
+        The nearest point of P, shape (d,).
+
+    Raises:
+        InfeasibleError: The solver returned a point outside P (it should not for a non-empty P).
+    """
+    v = np.asarray(v, dtype=float)
+    u = np.clip(v, 0.0, 1.0)
+    # The box projection is the answer whenever it already satisfies A u <= b (P ⊂ box).
+    if len(b) == 0 or np.all(A @ u <= b + tol):
+        return u
+    res = minimize(lambda w: 0.5 * float(np.sum((w - v) ** 2)), u, jac=lambda w: w - v,
+                   method="SLSQP", bounds=[(0.0, 1.0)] * len(u),
+                   constraints=[{"type": "ineq", "fun": lambda w: b - A @ w, "jac": lambda w: -A}],
+                   options={"ftol": 1e-14, "maxiter": 200})
+    w = np.clip(res.x, 0.0, 1.0)
+    if np.any(A @ w > b + tol):
+        raise InfeasibleError(f"projection of {v.tolist()} failed: {res.message}")
+    return w
+
+
+# --------------------------------------------------------------------------------------------
+# Sessions
+# --------------------------------------------------------------------------------------------
+
+
+class _Session:
+    """Warm-ups and fixed-length conditions on a simulated wearer (CMA-ES, random search)."""
+
+    def __init__(self, space: ParameterSpace, seed: int, proto: HilProtocol) -> None:
+        self.space = space
+        self.wearer = SimulatedWearer(space, seed=seed)
+        self.proto = proto
+        self.end_s = proto.minutes * 60.0
+        self.n_conditions = 0
+        self.assisted_s = 0.0
+        self.bout2_conditions = 0
+        self.bout2_start_s = math.nan
+        self._warm_up(proto.warmup_s)
+
+    def _warm_up(self, duration_s: float) -> None:
+        w = self.wearer
+        w.apply_profiles((), w.t_s)
+        until = w.t_s + duration_s
+        while w.t_s < until:
+            w.next_breath()
+
+    def has_time(self) -> bool:
+        """A whole condition (and the second warm-up, if due) still fits in the session."""
+        extra = self.proto.warmup_s if self.n_conditions == self.proto.bout1_conditions else 0.0
+        return self.wearer.t_s + extra + self.proto.condition_s <= self.end_s
+
+    def condition(self, params: Mapping[str, float]) -> tuple[float, float]:
+        """Walk one condition; returns (UKF mean of the steady-state cost in W, end time in s)."""
+        if self.n_conditions == self.proto.bout1_conditions:
+            self._warm_up(self.proto.warmup_s)
+            self.bout2_start_s = self.wearer.t_s
+        w = self.wearer
+        t0 = w.t_s
+        w.apply_params(params, t0)
+        ukf = MetabolicUKF()
+        while True:
+            breath = w.next_breath()
+            ukf.update(breath.t_s - t0, breath.watts)
+            if breath.t_s - t0 >= self.proto.condition_s:
+                break
+        self.n_conditions += 1
+        self.assisted_s += breath.t_s - t0
+        if self.n_conditions > self.proto.bout1_conditions:
+            self.bout2_conditions += 1
+        return ukf.mean, breath.t_s
+
+
+def _run_bo(task: HilTask) -> dict[str, Any]:
+    proto = task.protocol
+    trace: list[tuple[float, dict[str, float]]] = []
+
+    def on_eval(rec: SimEvaluation, opt: HILOptimizer) -> None:
+        trace.append((rec.t_end, opt.best()[0]))
+
+    summary = run_insim(
+        SimConfig(minutes=proto.minutes, seed=task.seed, preset=task.space, n_explore=proto.n_explore,
+                  max_breaths=proto.max_breaths, window=proto.window, warmup_s=proto.warmup_s,
+                  stopping=task.method),
+        on_evaluation=on_eval,
+    )
+    evals = summary["evaluations"]
+    opt_evals = [e for e in evals if e["phase"] == "optimization"]
+    bout2_start = opt_evals[0]["t_start"] if opt_evals else math.nan
+    return {
+        "trace": trace,
+        "n_evaluations": summary["n_evaluations"],
+        "n_evaluations_bout2": len(opt_evals),
+        "early_stops": summary["n_early_stops"],
+        "assisted_s": sum(e["t_end"] - e["t_start"] for e in evals),
+        "bout2_s": (evals[-1]["t_end"] - bout2_start) if opt_evals else 0.0,
+        "session_s": summary["session_minutes"] * 60.0,
+    }
+
+
+def _run_cmaes(task: HilTask) -> dict[str, Any]:
+    proto = task.protocol
+    space = preset(task.space)
+    session = _Session(space, task.seed, proto)
+    A, b = space.unit_constraints()
+    rng = np.random.default_rng([task.seed, _CMA_STREAM])
+    x0 = space.sample_unit(256, rng).mean(axis=0)  # centre of the (convex) feasible set
+    es = cma.CMAEvolutionStrategy(x0, proto.sigma0, {
+        "popsize": proto.popsize, "bounds": [0.0, 1.0],
+        # Our own generator instead of numpy's global one: the run depends on the task alone.
+        "seed": math.nan, "randn": lambda lam, n: rng.standard_normal((lam, n)),
+        "verbose": -9, "verb_log": 0, "verb_disp": 0, "tolfun": 0.0, "tolx": 0.0,
+        "tolfunhist": 0.0, "tolstagnation": 10**9, "tolflatfitness": 10**9,
+    })
+    trace: list[tuple[float, dict[str, float]]] = []
+    t_end = 0.0
+    while session.has_time():
+        X = es.ask()
+        fitness = []
+        for x in X:
+            if not session.has_time():
+                break
+            xf = project_feasible(np.asarray(x), A, b)
+            cost, t_end = session.condition(space.to_dict(space.from_unit(xf)))
+            fitness.append(cost + proto.penalty_w * float(np.sum((np.asarray(x) - xf) ** 2)))
+        if len(fitness) < len(X):
+            break  # the session ended mid-generation: CMA-ES cannot update on a part
+        es.tell(X, fitness)
+        mean = project_feasible(np.asarray(es.result.xfavorite), A, b)
+        trace.append((t_end, space.to_dict(space.from_unit(mean))))
+    return _fixed_condition_result(session, trace)
+
+
+def _run_random(task: HilTask) -> dict[str, Any]:
+    proto = task.protocol
+    space = preset(task.space)
+    session = _Session(space, task.seed, proto)
+    A, b = space.unit_constraints()
+    rng = np.random.default_rng([task.seed, _RANDOM_STREAM])
+    trace: list[tuple[float, dict[str, float]]] = []
+    best = math.inf
+    while session.has_time():
+        while True:  # uniform on the feasible set by rejection
+            u = rng.uniform(size=space.dim)
+            if len(b) == 0 or np.all(A @ u <= b):
+                break
+        params = space.to_dict(space.from_unit(u))
+        cost, t_end = session.condition(params)
+        if cost < best:
+            best = cost
+            trace.append((t_end, params))
+        else:
+            trace.append((t_end, trace[-1][1]))
+    return _fixed_condition_result(session, trace)
+
+
+def _fixed_condition_result(session: _Session, trace: list[tuple[float, dict[str, float]]]) -> dict[str, Any]:
+    return {
+        "trace": trace,
+        "n_evaluations": session.n_conditions,
+        "n_evaluations_bout2": session.bout2_conditions,
+        "early_stops": 0,
+        "assisted_s": session.assisted_s,
+        "bout2_s": session.wearer.t_s - session.bout2_start_s if session.bout2_conditions else 0.0,
+        "session_s": session.wearer.t_s,
+    }
+
+
+def run_hil_task(task: HilTask) -> dict[str, Any]:
+    """Run one session (in a worker) and score its recommendations against the true landscape.
+
+    Returns:
+        JSON-able dict: ``method``, ``space``, ``seed``; ``trace`` — ``[t_s, regret_w]`` after
+        every recommendation; ``baseline_cost_w``, ``optimum_cost_w``; ``final_regret_w`` and
+        ``final_regret_pct`` (% of the optimum's reduction from unassisted walking);
+        ``n_evaluations``, ``n_evaluations_bout2``, ``early_stops``; ``assisted_s`` (time on
+        conditions), ``bout2_s``; ``evaluations_per_hour`` (conditions per hour of assisted
+        walking, warm-ups excluded); ``wall_s``.
+    """
+    blas_threads(1)  # wherever it runs: see bridge.bench.common.blas_threads
+    t0 = time.perf_counter()
+    runner = {"adaptive": _run_bo, "fixed": _run_bo, "cmaes": _run_cmaes, "random": _run_random}[task.method]
+    out = runner(task)
+    # The true landscape of the same subject (same seed); the optimum is found numerically.
+    judge = SimulatedWearer(preset(task.space), seed=task.seed)
+    _, opt_cost = judge.true_optimum
+    baseline = judge.baseline_cost_w
+    reduction = max(baseline - opt_cost, 1e-9)
+    trace = [(t, judge.true_cost_w(p) - opt_cost) for t, p in out.pop("trace")]
+    final = trace[-1][1] if trace else math.nan
+    return {
+        "method": task.method, "space": task.space, "seed": task.seed,
+        "trace": [[t, r] for t, r in trace],
+        "baseline_cost_w": baseline, "optimum_cost_w": opt_cost,
+        "final_regret_w": final, "final_regret_pct": 100.0 * final / reduction,
+        "evaluations_per_hour": out["n_evaluations"] / max(out["assisted_s"] / 3600.0, 1e-9),
+        **out,
+        "wall_s": time.perf_counter() - t0,
+    }
+
+
+def load_sessions(path: Path, protocol: HilProtocol) -> dict[tuple[str, str, int], dict[str, Any]]:
+    """Finished sessions of ``sessions.jsonl`` run under ``protocol``, by :meth:`HilTask.key`.
+
+    Lines of other protocols are skipped; a truncated last line (a killed run) is ignored.
+    """
+    out: dict[tuple[str, str, int], dict[str, Any]] = {}
+    if not path.exists():
+        return out
+    want = protocol.to_json()
+    for line in path.read_text().splitlines():
+        try:
+            rec = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if rec.get("protocol") == want:
+            out[(rec["method"], rec["space"], int(rec["seed"]))] = rec
+    return out
+
+
+def regret_at(trace: Sequence[Sequence[float]], t_s: float) -> float:
+    """Regret of the latest recommendation made by ``t_s`` (NaN before the first)."""
+    value = math.nan
+    for t, r in trace:
+        if t <= t_s:
+            value = r
+        else:
+            break
+    return value
+
+
+def summarize_hil(results: Iterable[Mapping[str, Any]], spaces: Sequence[str], methods: Sequence[str],
+                  protocol: HilProtocol) -> list[dict[str, Any]]:
+    """One entry per method × space: regret quantiles on the minutes grid and rates.
+
+    Each entry: ``method``, ``space``, ``n_sessions``, ``minutes``, ``regret_w_median``,
+    ``regret_w_p75``, ``regret_pct_median`` (None until every session has a recommendation),
+    ``final_regret_w_median``/``_p75``/``_mean``, ``final_regret_pct_median``,
+    ``baseline_cost_w_median`` and ``optimum_reduction_w_median`` (unassisted cost minus optimum),
+    ``evaluations_per_hour`` (mean over sessions), ``evaluations_bout2_mean``,
+    ``early_stops_mean``, ``session_wall_s_mean``.
+    """
+    by: dict[tuple[str, str], list[Mapping[str, Any]]] = {}
+    for r in results:
+        by.setdefault((r["method"], r["space"]), []).append(r)
+    n_grid = math.floor(protocol.minutes / protocol.grid_min + 1e-9)
+    minutes = [round(k * protocol.grid_min, 6) for k in range(n_grid + 1)]
+    out: list[dict[str, Any]] = []
+    for space in spaces:
+        for method in methods:
+            rs = sorted(by.get((method, space), []), key=lambda r: r["seed"])
+            if not rs:
+                continue
+            R = np.array([[regret_at(r["trace"], m * 60.0) for m in minutes] for r in rs])
+            red = np.array([r["baseline_cost_w"] - r["optimum_cost_w"] for r in rs])
+            complete = ~np.isnan(R).any(axis=0)
+            with np.errstate(invalid="ignore"):
+                med = np.where(complete, np.median(R, axis=0), np.nan)
+                p75 = np.where(complete, np.percentile(R, 75, axis=0), np.nan)
+                pct = np.where(complete, np.median(100.0 * R / red[:, None], axis=0), np.nan)
+            fin = np.array([r["final_regret_w"] for r in rs])
+            fin_pct = np.array([r["final_regret_pct"] for r in rs])
+            out.append(round_sig({
+                "method": method, "space": space, "n_sessions": len(rs), "minutes": minutes,
+                "regret_w_median": med, "regret_w_p75": p75, "regret_pct_median": pct,
+                "final_regret_w_median": float(np.median(fin)),
+                "final_regret_w_p75": float(np.percentile(fin, 75)),
+                "final_regret_w_mean": float(np.mean(fin)),
+                "final_regret_pct_median": float(np.median(fin_pct)),
+                "baseline_cost_w_median": float(np.median([r["baseline_cost_w"] for r in rs])),
+                "optimum_reduction_w_median": float(np.median(red)),
+                "evaluations_per_hour": float(np.mean([r["evaluations_per_hour"] for r in rs])),
+                "evaluations_bout2_mean": float(np.mean([r["n_evaluations_bout2"] for r in rs])),
+                "bout2_min_mean": float(np.mean([r["bout2_s"] for r in rs])) / 60.0,
+                "early_stops_mean": float(np.mean([r["early_stops"] for r in rs])),
+                "session_wall_s_mean": float(np.mean([r["wall_s"] for r in rs])),
+            }))
+    return out
+
+
+def hil_comparisons(results: Iterable[Mapping[str, Any]], spaces: Sequence[str],
+                    methods: Sequence[str]) -> list[dict[str, Any]]:
+    """Paired per-subject differences of the final regret against the first method.
+
+    For every space and every method after the first: over the subjects both ran, the median
+    and mean of ``final_regret_w(method) − final_regret_w(first)`` and the fraction of subjects
+    where the method ended with the lower regret.
+    """
+    by = {(r["method"], r["space"], r["seed"]): r["final_regret_w"] for r in results}
+    out = []
+    base = methods[0]
+    for space in spaces:
+        for method in methods[1:]:
+            seeds = sorted(k[2] for k in by if k[0] == method and k[1] == space
+                           and (base, space, k[2]) in by)
+            if not seeds:
+                continue
+            d = np.array([by[(method, space, s)] - by[(base, space, s)] for s in seeds])
+            out.append(round_sig({
+                "space": space, "method": method, "baseline": base, "n_subjects": len(seeds),
+                "final_regret_diff_w_median": float(np.median(d)),
+                "final_regret_diff_w_mean": float(d.mean()),
+                "final_regret_diff_w_se": float(d.std(ddof=1) / math.sqrt(len(d))) if len(d) > 1 else None,
+                "frac_lower": float(np.mean(d < 0)),
+            }))
+    return out
+
+
+def hil_table(entries: Sequence[Mapping[str, Any]],
+              at_minutes: Sequence[float] = (20, 30, 40, 50, 60),
+              comparisons: Sequence[Mapping[str, Any]] = ()) -> str:
+    """Markdown: median regret (W) at a few session minutes, final regret, rates; then the
+    paired differences of :func:`hil_comparisons`."""
+    header = ["space", "method", "sessions"] + [f"median regret @{m:g} min (W)" for m in at_minutes] + [
+        "final regret median / p75 (W)", "final regret median (% of reduction)",
+        "evaluations / h", "bout-2 evaluations", "early stops"]
+    rows = []
+    for e in entries:
+        cells = []
+        for m in at_minutes:
+            v = None
+            if m in e["minutes"]:
+                v = e["regret_w_median"][e["minutes"].index(m)]
+            cells.append("–" if v is None else f"{v:.1f}")
+        rows.append([e["space"], e["method"], e["n_sessions"], *cells,
+                     f"{e['final_regret_w_median']:.1f} / {e['final_regret_w_p75']:.1f}",
+                     f"{e['final_regret_pct_median']:.1f} %", f"{e['evaluations_per_hour']:.1f}",
+                     f"{e['evaluations_bout2_mean']:.1f}", f"{e['early_stops_mean']:.1f}"])
+    out = markdown_table(header, rows)
+    if comparisons:
+        crow = [[c["space"], f"{c['method']} − {c['baseline']}", c["n_subjects"],
+                 f"{c['final_regret_diff_w_median']:.1f}",
+                 f"{c['final_regret_diff_w_mean']:.1f}"
+                 + ("" if c["final_regret_diff_w_se"] is None else f" ± {c['final_regret_diff_w_se']:.1f}"),
+                 f"{100 * c['frac_lower']:.0f} %"]
+                for c in comparisons]
+        out += "\n" + markdown_table(
+            ["space", "paired difference of final regret", "subjects", "median (W)", "mean ± SE (W)",
+             "subjects where the method ended lower"], crow)
+    return out

@@ -1,0 +1,319 @@
+"""``hilbo bench stopping``: seed 000 §III.2's simulation study, campaign and summary.
+
+One *trial* is :func:`hilbo_core.benchmarks.stopping_trial` for one (function, noise, method,
+seed). A campaign runs ``trials`` seeds for every function × noise level × method; the methods
+of one trial share the seed, hence the exploration design, the exploration measurements and x_0,
+so methods are compared pairwise on the same trials (as the seed compares them).
+
+Every finished trial is appended to ``OUT/trials.jsonl`` as it completes, so an interrupted
+campaign continues with ``--resume`` and a campaign can be grown by re-running with more
+trials. The summary (``results.json``), the Markdown table and one PNG per function (the layout
+of the seed's Fig. 2) are written from all trials of the campaign at the end.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bridge.bench.common import blas_threads, markdown_table, round_sig
+from hilbo_core.benchmarks import (
+    FUNCTIONS,
+    METHODS,
+    NOISE_LEVELS,
+    StoppingProtocol,
+    check_noise,
+    resolve_function,
+    resolve_method,
+    stopping_trial,
+)
+from hilbo_core.errors import ConfigError
+
+__all__ = [
+    "StoppingCampaign",
+    "StoppingTask",
+    "load_trials",
+    "run_stopping_task",
+    "stopping_table",
+    "summarize_stopping",
+]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class StoppingTask:
+    """One trial of one method (picklable; everything the worker needs)."""
+
+    function: str
+    noise: float
+    method: str
+    seed: int
+    protocol: StoppingProtocol = field(default_factory=StoppingProtocol)
+
+    def key(self) -> tuple[str, float, str, int]:
+        """Identity of the trial within a campaign."""
+        return (self.function, self.noise, self.method, self.seed)
+
+
+def run_stopping_task(task: StoppingTask) -> dict[str, Any]:
+    """Run one trial (in a worker); the result of :func:`stopping_trial` plus ``wall_s``."""
+    blas_threads(1)  # wherever it runs: see bridge.bench.common.blas_threads
+    t0 = time.perf_counter()
+    result = stopping_trial(task.function, task.noise, task.method, task.seed, task.protocol)
+    result["wall_s"] = time.perf_counter() - t0
+    result["protocol"] = task.protocol.to_json()
+    return result
+
+
+@dataclass(frozen=True)
+class StoppingCampaign:
+    """Which trials a ``bench stopping`` run consists of; validated before any work starts.
+
+    Attributes:
+        functions: Names in :data:`hilbo_core.benchmarks.FUNCTIONS`.
+        noises: σ_z²/σ̃² factors (the seed's: 0.1, 1, 10).
+        methods: Names in :data:`hilbo_core.benchmarks.METHODS`.
+        trials: Trials per function × noise (>= 1); trial k uses seed ``seed + k``.
+        seed: Seed of the first trial (>= 0).
+        protocol: The study's protocol.
+    """
+
+    functions: tuple[str, ...] = tuple(FUNCTIONS)
+    noises: tuple[float, ...] = NOISE_LEVELS
+    methods: tuple[str, ...] = ("fixed", "adaptive")
+    trials: int = 100
+    seed: int = 0
+    protocol: StoppingProtocol = field(default_factory=StoppingProtocol)
+
+    def __post_init__(self) -> None:
+        for name in ("trials", "seed"):
+            value = getattr(self, name)
+            low = 1 if name == "trials" else 0
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise ConfigError(f"{name}={value!r}; expected an integer >= {low}")
+        if not self.functions or not self.methods or not self.noises:
+            raise ConfigError("a campaign needs at least one function, one noise level and one method")
+        for f in self.functions:
+            resolve_function(f)
+        for m in self.methods:
+            resolve_method(m)
+        object.__setattr__(self, "noises", tuple(check_noise(n) for n in self.noises))
+        for what, values in (("function", self.functions), ("method", self.methods),
+                             ("noise level", self.noises)):
+            if len(set(values)) != len(values):
+                raise ConfigError(f"a {what} is listed twice in {list(values)}")
+
+    def tasks(self) -> list[StoppingTask]:
+        """All trials, trial-major: an interrupted campaign has covered every setting evenly."""
+        return [StoppingTask(f, n, m, self.seed + k, self.protocol)
+                for k in range(self.trials) for f in self.functions for n in self.noises
+                for m in self.methods]
+
+    def to_json(self) -> dict[str, Any]:
+        """JSON-able form."""
+        return {"functions": list(self.functions), "noises": list(self.noises),
+                "methods": list(self.methods), "trials": self.trials, "seed": self.seed,
+                "protocol": self.protocol.to_json()}
+
+
+def load_trials(path: Path, protocol: StoppingProtocol) -> dict[tuple[str, float, str, int], dict[str, Any]]:
+    """Finished trials of ``trials.jsonl`` run under ``protocol``, by :meth:`StoppingTask.key`.
+
+    Lines of other protocols are skipped; a truncated last line (a killed run) is ignored.
+    """
+    out: dict[tuple[str, float, str, int], dict[str, Any]] = {}
+    if not path.exists():
+        return out
+    want = protocol.to_json()
+    for n, line in enumerate(path.read_text().splitlines(), start=1):
+        if not line.strip():
+            continue
+        try:
+            rec = json.loads(line)
+        except json.JSONDecodeError:
+            logger.warning("%s:%d: unreadable line skipped (interrupted write?)", path, n)
+            continue
+        if rec.get("protocol") != want:
+            continue
+        out[(rec["function"], float(rec["noise"]), rec["method"], int(rec["seed"]))] = rec
+    return out
+
+
+def _mean_se(values: np.ndarray, axis: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    n = values.shape[axis]
+    mean = values.mean(axis=axis)
+    se = values.std(axis=axis, ddof=1) / math.sqrt(n) if n > 1 else np.full_like(mean, np.nan)
+    return mean, se
+
+
+def summarize_stopping(results: Iterable[Mapping[str, Any]], campaign: StoppingCampaign,
+                       grid_step: int = 1, paired: bool = True) -> dict[str, Any]:
+    """Aggregate trials into one entry per method × function × noise (and paired comparisons).
+
+    Args:
+        results: Trial results (:func:`run_stopping_task`) of this campaign.
+        campaign: The campaign (gives the order and the expected trial count).
+        grid_step: Keep y_t every ``grid_step`` measurements (the last one always).
+        paired: Summarise, per function × noise, only the seeds every method finished (the
+            default; ``n_trials_run`` still counts all of a method's trials).
+
+    Returns:
+        ``{"settings": [...], "comparisons": [...]}``. A setting holds ``method``,
+        ``function``, ``noise``, ``n_trials``, ``t`` (measurement counts), ``y_mean``,
+        ``y_se`` (on ``t``), ``y_final_mean``/``_se`` (t = budget), ``y_avg_mean``/``_se`` (y
+        averaged over all t: the anytime performance), ``evaluations_mean``,
+        ``early_stops_mean``, ``trial_wall_s_mean``. A comparison holds, per function × noise
+        and method other than the first, the paired difference of y_final and of y_avg
+        (method − first method) over the shared seeds, with its SE and the fraction of trials
+        where the method ended lower.
+    """
+    if isinstance(grid_step, bool) or not isinstance(grid_step, int) or grid_step < 1:
+        raise ConfigError(f"grid_step={grid_step!r}; expected an integer >= 1")
+    groups: dict[tuple[str, str, float], dict[int, Mapping[str, Any]]] = {}
+    for r in results:
+        groups.setdefault((r["method"], r["function"], float(r["noise"])), {})[int(r["seed"])] = r
+    budget = campaign.protocol.budget
+    t_grid = list(range(0, budget + 1, grid_step))
+    if t_grid[-1] != budget:
+        t_grid.append(budget)
+    settings: list[dict[str, Any]] = []
+    comparisons: list[dict[str, Any]] = []
+    for f in campaign.functions:
+        for noise in campaign.noises:
+            per_method = {m: groups.get((m, f, noise), {}) for m in campaign.methods}
+            shared = set.intersection(*(set(t) for t in per_method.values()))
+            for method in campaign.methods:
+                ran = per_method[method]
+                # Paired design: a method's curve uses only the trials every method finished,
+                # so all curves of a panel start from the same x_0s.
+                trials = {k: v for k, v in ran.items() if k in shared} if paired else ran
+                if not trials:
+                    continue
+                Y = np.array([trials[s]["y"] for s in sorted(trials)], dtype=float)
+                y_mean, y_se = _mean_se(Y[:, t_grid])
+                fin_m, fin_se = _mean_se(Y[:, -1])
+                avg_m, avg_se = _mean_se(Y.mean(axis=1))
+                settings.append({
+                    "method": method, "function": f, "noise": noise, "n_trials": len(trials),
+                    "n_trials_run": len(ran),
+                    "t": t_grid, "y_mean": y_mean, "y_se": y_se,
+                    "y_final_mean": fin_m, "y_final_se": fin_se,
+                    "y_avg_mean": avg_m, "y_avg_se": avg_se,
+                    "y_final_median": float(np.median(Y[:, -1])),
+                    "evaluations_mean": float(np.mean([trials[s]["evaluations"] for s in trials])),
+                    "early_stops_mean": float(np.mean([trials[s]["early_stops"] for s in trials])),
+                    "trial_wall_s_mean": float(np.mean([trials[s].get("wall_s", math.nan) for s in trials])),
+                })
+            base = campaign.methods[0]
+            base_trials = groups.get((base, f, noise), {})
+            for method in campaign.methods[1:]:
+                trials = groups.get((method, f, noise), {})
+                seeds = sorted(set(trials) & set(base_trials))
+                if not seeds:
+                    continue
+                ym = np.array([trials[s]["y"] for s in seeds], dtype=float)
+                yb = np.array([base_trials[s]["y"] for s in seeds], dtype=float)
+                d_fin = ym[:, -1] - yb[:, -1]
+                d_avg = ym.mean(axis=1) - yb.mean(axis=1)
+                fm, fse = _mean_se(d_fin)
+                am, ase = _mean_se(d_avg)
+                comparisons.append({
+                    "function": f, "noise": noise, "method": method, "baseline": base,
+                    "n_pairs": len(seeds),
+                    "y_final_diff_mean": fm, "y_final_diff_se": fse,
+                    "y_avg_diff_mean": am, "y_avg_diff_se": ase,
+                    "frac_final_lower": float(np.mean(d_fin < 0)),
+                    "frac_final_tied": float(np.mean(d_fin == 0)),
+                })
+    return {"settings": round_sig(settings), "comparisons": round_sig(comparisons)}
+
+
+def _pm(mean: Any, se: Any, digits: int = 3) -> str:
+    if mean is None:
+        return "–"
+    if se is None:
+        return f"{mean:.{digits}f}"
+    return f"{mean:.{digits}f} ± {se:.{digits}f}"
+
+
+def stopping_table(summary: Mapping[str, Any]) -> str:
+    """Markdown: per function × noise × method, y_final and y averaged over t (mean ± SE),
+    evaluations and early stops; then the paired differences against the first method."""
+    rows = []
+    for s in summary["settings"]:
+        rows.append([s["function"], f"{s['noise']:g}", s["method"], s["n_trials"],
+                     _pm(s["y_final_mean"], s["y_final_se"]), f"{s['y_final_median']:.3f}",
+                     _pm(s["y_avg_mean"], s["y_avg_se"]),
+                     f"{s['evaluations_mean']:.1f}", f"{s['early_stops_mean']:.1f}",
+                     "–" if s["trial_wall_s_mean"] is None else f"{s['trial_wall_s_mean']:.1f}"])
+    out = markdown_table(
+        ["function", "σ_z²/σ̃²", "method", "trials", "y_final (mean ± SE)", "y_final median",
+         "mean y_t over t", "evaluations", "early stops", "s / trial"], rows)
+    comp = summary.get("comparisons") or []
+    if comp:
+        crow = [[c["function"], f"{c['noise']:g}", f"{c['method']} − {c['baseline']}", c["n_pairs"],
+                 _pm(c["y_final_diff_mean"], c["y_final_diff_se"]),
+                 _pm(c["y_avg_diff_mean"], c["y_avg_diff_se"]),
+                 f"{100 * c['frac_final_lower']:.0f} %"]
+                for c in comp]
+        out += "\n" + markdown_table(
+            ["function", "σ_z²/σ̃²", "paired difference", "pairs", "Δ y_final (mean ± SE)",
+             "Δ mean y_t (mean ± SE)", "trials ending lower"], crow)
+    return out
+
+
+def run_campaign(campaign: StoppingCampaign, executor: Any, out_dir: Path, *, resume: bool = False,
+                 on_result: Callable[[int, dict[str, Any]], None] | None = None,
+                 ) -> tuple[list[dict[str, Any]], float]:
+    """Run (or finish) a campaign; every trial is appended to ``out_dir/trials.jsonl``.
+
+    Returns:
+        (all results of the campaign in task order, wall time of this run in s).
+    """
+    tasks = campaign.tasks()
+    path = out_dir / "trials.jsonl"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    done = load_trials(path, campaign.protocol) if resume else {}
+    if not resume and path.exists():
+        path.unlink()  # a fresh campaign; --resume keeps what is there
+    todo = [t for t in tasks if t.key() not in done]
+    logger.info("stopping campaign: %d trials, %d already done, %d to run on %s",
+                len(tasks), len(tasks) - len(todo), len(todo), getattr(executor, "name", executor))
+    with path.open("a") as fh:
+
+        def record(i: int, result: dict[str, Any]) -> None:
+            fh.write(json.dumps(round_sig(result, 10)) + "\n")
+            fh.flush()
+            if on_result is not None:
+                on_result(i, result)
+
+        t0 = time.perf_counter()
+        new = executor.map(run_stopping_task, todo, label="stopping trials", on_result=record)
+        wall = time.perf_counter() - t0
+    for t, r in zip(todo, new, strict=True):
+        done[t.key()] = r
+    return [done[t.key()] for t in tasks], wall
+
+
+def method_descriptions(methods: Sequence[str]) -> dict[str, str]:
+    """One line per method, for results.json."""
+    return {m: METHODS[m].description for m in methods}
+
+
+def function_descriptions(functions: Sequence[str]) -> dict[str, Any]:
+    """Table I rows of the functions, for results.json."""
+    out = {}
+    for f in functions:
+        fn = FUNCTIONS[f]
+        out[f] = {"dim": fn.dim, "lower": list(fn.lower), "upper": list(fn.upper), "f_min": fn.f_min,
+                  "prior_mean": fn.prior_mean, "prior_std": fn.prior_std}
+    return out

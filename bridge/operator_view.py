@@ -1,0 +1,105 @@
+"""Operator view: a live terminal status of the session, and keys to pause, resume and stop.
+
+Keys (when stdin is a terminal): ``p`` pause (assistance off), ``r`` resume, ``q`` stop.
+Without a terminal (CI, a pipe) the view prints nothing live; signals still stop the session.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import sys
+from collections.abc import Callable
+
+from rich.console import Console, Group
+from rich.live import Live
+from rich.panel import Panel
+from rich.table import Table
+from rich.text import Text
+
+from bridge.runtime import BridgeSession, Command, SessionStatus
+
+__all__ = ["KEYS", "render_status", "run_operator_view"]
+
+KEYS = {"p": Command.PAUSE, "r": Command.RESUME, "q": Command.STOP}
+
+
+def render_status(st: SessionStatus) -> Panel:
+    """One frame of the operator view."""
+    t = Table.grid(padding=(0, 2))
+    t.add_column(style="bold")
+    t.add_column()
+    budget = "" if st.budget_s is None else f" / {st.budget_s / 60:.1f} min"
+    t.add_row("state", st.state)
+    t.add_row("bout", st.bout)
+    t.add_row("elapsed", f"{st.breath_time_s / 60:.1f} min walked; optimisation "
+                         f"{st.budget_used_s / 60:.1f} min{budget}")
+    t.add_row("evaluation", str(st.evaluation))
+    if st.params:
+        t.add_row("setting", ", ".join(f"{k}={v:.3g}" for k, v in st.params.items()))
+    estimate = "—" if st.mean_w is None else f"{st.mean_w:.0f} ± {1.96 * (st.sd_w or 0):.0f} W (95 %)"
+    t.add_row("estimate", f"{estimate}  after {st.breaths_in_setting} breaths")
+    t.add_row("decision", st.last_decision or "—")
+    t.add_row("best so far", "—" if st.best_mean_w is None else f"{st.best_mean_w:.0f} W")
+    dev_style = "green" if st.device == "ok" else "bold red"
+    cart_style = "green" if st.cart == "ok" else "bold red"
+    t.add_row("device", Text(st.device, style=dev_style))
+    t.add_row("cart", Text(st.cart, style=cart_style))
+    events = Text("\n".join(st.events[-5:]) or "—", style="dim")
+    keys = Text("keys: [p] pause (assistance off)  [r] resume  [q] stop", style="cyan")
+    return Panel(Group(t, Text(""), events, keys), title="hilbo session")
+
+
+async def _read_keys(on_key: Callable[[str], None]) -> None:
+    """Read single keys from a terminal in cbreak mode (restored on exit)."""
+    import termios
+    import tty
+
+    fd = sys.stdin.fileno()
+    old = termios.tcgetattr(fd)
+    loop = asyncio.get_running_loop()
+    queue: asyncio.Queue[str] = asyncio.Queue()
+
+    def readable() -> None:
+        ch = os.read(fd, 1).decode(errors="ignore")
+        if ch:
+            queue.put_nowait(ch)
+
+    try:
+        tty.setcbreak(fd)
+        loop.add_reader(fd, readable)
+        while True:
+            on_key(await queue.get())
+    finally:
+        loop.remove_reader(fd)
+        termios.tcsetattr(fd, termios.TCSADRAIN, old)
+
+
+async def run_operator_view(session: BridgeSession, console: Console | None = None,
+                            refresh_s: float = 0.25) -> None:
+    """Show the live status until cancelled; forward keys as commands when stdin is a TTY."""
+    console = console or Console(stderr=True)
+    if not console.is_terminal:
+        await asyncio.Event().wait()  # nothing to draw; wait to be cancelled
+        return
+    keys_task: asyncio.Task[None] | None = None
+    if sys.stdin.isatty():
+        def on_key(ch: str) -> None:
+            cmd = KEYS.get(ch.lower())
+            if cmd is not None:
+                session.command(cmd)
+
+        keys_task = asyncio.create_task(_read_keys(on_key), name="operator-keys")
+    try:
+        with Live(render_status(session.status), console=console, refresh_per_second=4) as live:
+            while True:
+                await asyncio.sleep(refresh_s)
+                live.update(render_status(session.status))
+                if keys_task is not None and keys_task.done():
+                    keys_task.result()  # surface a key-reader error instead of losing keys silently
+    finally:
+        if keys_task is not None:
+            keys_task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await keys_task

@@ -1,0 +1,151 @@
+"""``hilbo run``: wire a config's devices into a :class:`~bridge.runtime.BridgeSession` and run it.
+
+The same function runs the lab session (real CAN adapter and cart) and ``hilbo sim`` (virtual
+devices started by :mod:`bridge.sim`, reached over the same transports). A session writes
+``OUT_DIR/<subject>_<time>.mcap`` and, at the end, ``<same name>.summary.json``; a resumed session
+writes a new log linked to the old one.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import datetime as dt
+import json
+import logging
+import os
+import signal
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from bridge.config import HilboConfig
+from bridge.log import SessionLog, new_session_id
+from bridge.operator_view import run_operator_view
+from bridge.resume import rebuild_optimizer
+from bridge.runtime import BridgeSession, Command, RuntimeSettings
+from drivers.cart import BreathStream
+from drivers.exosuit import CanEndpoint
+from hilbo_core import HILOptimizer
+
+__all__ = ["RunResult", "run_session", "runtime_settings", "write_json_atomic"]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RunResult:
+    """Where a session's files went, and its summary."""
+
+    log_path: Path
+    summary_path: Path
+    summary: dict[str, Any]
+
+
+def runtime_settings(cfg: HilboConfig, *, auto_resume_s: float | None = None,
+                     n_actuators: int = 2, feedback_log_period_s: float = 0.1) -> RuntimeSettings:
+    """The runtime's settings from a validated config."""
+    return RuntimeSettings(
+        warmup_s=cfg.protocol.warmup_s,
+        pause_between_bouts=cfg.protocol.pause_between_bouts,
+        auto_resume_s=auto_resume_s,
+        device_timeout_s=cfg.watchdog.device_heartbeat_timeout_ms / 1000.0,
+        cart_timeout_s=cfg.watchdog.cart_data_timeout_s,
+        push_timeout_s=cfg.can.push_timeout_ms / 1000.0,
+        push_retries=cfg.can.push_retries,
+        pace_s=cfg.can.segment_pace_ms / 1000.0,
+        heartbeat_period_s=cfg.can.heartbeat_period_s,
+        feedback_log_period_s=feedback_log_period_s,
+        n_actuators=n_actuators,
+    )
+
+
+def write_json_atomic(path: Path, data: Any) -> None:
+    """Write JSON so a reader never sees half a file (temporary file, then rename)."""
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2) + "\n")
+    os.replace(tmp, path)
+
+
+def _log_path(cfg: HilboConfig, out_dir: Path | None) -> Path:
+    directory = Path(out_dir) if out_dir is not None else Path(cfg.session.out_dir)
+    directory.mkdir(parents=True, exist_ok=True)
+    stamp = dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+    path = directory / f"{cfg.session.subject}_{stamp}.mcap"
+    n = 1
+    while path.exists():
+        n += 1
+        path = directory / f"{cfg.session.subject}_{stamp}_{n}.mcap"
+    return path
+
+
+async def run_session(
+    cfg: HilboConfig,
+    *,
+    resume: Path | None = None,
+    out_dir: Path | None = None,
+    log_path: Path | None = None,
+    auto_resume_s: float | None = None,
+    operator_view: bool = True,
+    n_actuators: int = 2,
+    on_session: Callable[[BridgeSession], None] | None = None,
+) -> RunResult:
+    """Run one session from a config to its end.
+
+    Args:
+        cfg: The validated config.
+        resume: A previous session's log (possibly cut off by a crash) to continue.
+        out_dir: Overrides ``[session] out_dir``.
+        log_path: Exact log path (else ``OUT_DIR/<subject>_<time>.mcap``).
+        auto_resume_s: Resume a bout pause by itself after this long (simulation only).
+        operator_view: Show the live terminal view (when stderr is a terminal).
+        n_actuators: Actuators whose heartbeat the watchdog requires.
+        on_session: Called with the session before it runs (tests, simulation wiring).
+
+    Returns:
+        Paths of the log and summary, and the summary.
+    """
+    space = cfg.space.space
+    previous: str | None = None
+    if resume is not None:
+        opt, info = rebuild_optimizer(resume)
+        session_id, previous = info.session_id, str(resume)
+        logger.info("resuming %s: %d evaluations recovered", resume, info.n_evaluations)
+    else:
+        opt = HILOptimizer(space, config=cfg.protocol.optimizer_config())
+        session_id = new_session_id()
+    path = Path(log_path) if log_path is not None else _log_path(cfg, out_dir)
+    summary_path = path.with_suffix(".summary.json")
+    settings = runtime_settings(cfg, auto_resume_s=auto_resume_s, n_actuators=n_actuators)
+    loop = asyncio.get_running_loop()
+    stream = BreathStream.from_config(cfg.cart)
+    async with CanEndpoint(cfg.can.bus) as endpoint, stream:
+        with SessionLog(path, session_id=session_id, config_json=cfg.to_json(),
+                        previous_log=previous, param_names=space.names) as log:
+            if resume is not None:
+                log.log_optimizer_state(opt, reason="resume")
+            session = BridgeSession(opt, cfg.make_gate(), endpoint, stream, log, settings)
+            session.status.budget_s = opt.config.budget_s
+            if on_session is not None:
+                on_session(session)
+            installed = []
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                with contextlib.suppress(NotImplementedError, RuntimeError):
+                    loop.add_signal_handler(sig, session.command, Command.STOP)
+                    installed.append(sig)
+            view = asyncio.create_task(run_operator_view(session), name="operator-view") \
+                if operator_view else None
+            try:
+                summary = await session.run()
+            finally:
+                for sig in installed:
+                    loop.remove_signal_handler(sig)
+                if view is not None:
+                    view.cancel()
+                    with contextlib.suppress(asyncio.CancelledError):
+                        await view
+    summary.update(session_id=session_id, log=str(path), previous_log=previous,
+                   config_source=str(cfg.source))
+    write_json_atomic(summary_path, summary)
+    return RunResult(path, summary_path, summary)

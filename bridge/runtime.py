@@ -1,0 +1,610 @@
+"""The bridge's session: one asyncio process from breaths to force profiles on the bus.
+
+Data flow (shared/DESIGN.md "One breath through the system")::
+
+    cart stream ─▶ breath queue ─▶ HILOptimizer.observe_breath ─▶ stop? ─▶ ask() ─▶ safety gate
+                                                                              ─▶ CAN push ─▶ ack
+                                                                              ─▶ device applies
+
+Ownership: the optimizer, the current setting and the protocol phase belong to the *main* task
+alone; the cart task only enqueues breaths; the CAN tasks only update the device view
+(:class:`DeviceView`); the watchdog reads both views and is the only task that may command
+assistance-off on its own. Every task runs in one ``asyncio.TaskGroup`` so an error in any of
+them surfaces and stops the session (after assistance-off) instead of dying silently.
+
+Time: estimation, stopping and budgets use the cart's breath time. A new setting's clock starts
+at the last breath received before the device reported the setting *active* (it switches at a
+gait-cycle boundary): at most one breath interval (~3 s) early against a metabolic time
+constant of ~40 s, and independent of any clock offset between the cart and this PC. Wall clock
+(``time.monotonic``) is used only by watchdogs and latency measurements.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import enum
+import logging
+import math
+import time
+from collections.abc import AsyncIterator, Callable
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from bridge.errors import UnsafeProfileError
+from bridge.log import SessionLog
+from drivers.errors import DriverError, ProfilePushError
+from drivers.exosuit import (
+    AssistanceOffReason,
+    BridgeState,
+    CanEndpoint,
+    DeviceMode,
+    DeviceStatus,
+    ForceFeedback,
+)
+from hilbo_core import HILOptimizer, brockway_watts
+from hilbo_core.optimizer import Phase
+from hilbo_core.types import BreathRecord
+
+__all__ = [
+    "BridgeSession",
+    "Command",
+    "DeviceView",
+    "RuntimeSettings",
+    "SessionStatus",
+]
+
+logger = logging.getLogger(__name__)
+
+
+class ProfileGate(Protocol):
+    """What the session needs from the safety layer (bridge.safety.SafeProfileGate)."""
+
+    def admit(self, params: dict[str, float]) -> Any:
+        """Build and check the profiles of ``params``; raise when anything is out of limits."""
+
+    def acknowledge(self, admitted: Any) -> None:
+        """Record that the device acknowledged ``admitted`` (the reference for rate limits)."""
+
+    def assistance_off(self) -> None:
+        """Assistance went off: the next profile has no rate-of-change baseline."""
+
+    @property
+    def rejections_exhausted(self) -> bool:
+        """Too many consecutive proposals were rejected."""
+
+
+class Command(enum.Enum):
+    """Operator commands."""
+
+    PAUSE = "pause"
+    RESUME = "resume"
+    STOP = "stop"
+
+
+@dataclass(frozen=True)
+class RuntimeSettings:
+    """Protocol and supervision settings of a session (from the config's [protocol]/[can]/[watchdog]).
+
+    Attributes:
+        warmup_s: Walking without assistance at the start of each bout (breath time, s).
+        pause_between_bouts: Pause after exploration until the operator resumes.
+        auto_resume_s: In simulation, resume a bout pause by itself after this long (wall s).
+        device_timeout_s: Device status silence that triggers assistance-off (wall s).
+        cart_timeout_s: Breath silence after which estimation pauses (wall s).
+        apply_timeout_s: How long to wait for the device to report a pushed profile active.
+        push_timeout_s, push_retries, pace_s: Profile push (see CanEndpoint.push_profile).
+        heartbeat_period_s: Bridge heartbeat period (s).
+        feedback_log_period_s: Force feedback is logged in batches this long (s).
+        status_log_period_s: Device status is logged at most this often per actuator (s).
+        n_actuators: Actuators whose status must be alive.
+    """
+
+    warmup_s: float = 180.0
+    pause_between_bouts: bool = True
+    auto_resume_s: float | None = None
+    device_timeout_s: float = 0.25
+    cart_timeout_s: float = 20.0
+    apply_timeout_s: float = 5.0
+    push_timeout_s: float = 0.25
+    push_retries: int = 3
+    pace_s: float = 0.002
+    heartbeat_period_s: float = 0.02
+    feedback_log_period_s: float = 0.1
+    status_log_period_s: float = 0.5
+    n_actuators: int = 2
+
+
+@dataclass
+class DeviceView:
+    """What the bridge knows about the exosuit (updated by the CAN tasks only)."""
+
+    last_status_wall: dict[int, float] = field(default_factory=dict)
+    status: dict[int, DeviceStatus] = field(default_factory=dict)
+    feedback_frames: int = 0
+
+    def active_version(self, n_actuators: int) -> int | None:
+        """The profile version every actuator runs, or None when they disagree or are unknown."""
+        versions = {s.profile_version_active for a, s in self.status.items() if a < n_actuators}
+        if len(versions) != 1 or len(self.status) < n_actuators:
+            return None
+        return versions.pop()
+
+    def silent_for(self, now: float, n_actuators: int) -> float:
+        """Seconds since the stalest actuator's last status (inf before any)."""
+        if len(self.last_status_wall) < n_actuators:
+            return math.inf
+        return now - min(self.last_status_wall[a] for a in range(n_actuators))
+
+
+@dataclass
+class SessionStatus:
+    """A snapshot for the operator view (written by the main task, read by the display)."""
+
+    state: str = "starting"
+    bout: str = "warm-up"
+    evaluation: int = 0
+    params: dict[str, float] | None = None
+    breaths_in_setting: int = 0
+    mean_w: float | None = None
+    sd_w: float | None = None
+    last_decision: str = ""
+    best_mean_w: float | None = None
+    breath_time_s: float = 0.0
+    budget_used_s: float = 0.0
+    budget_s: float | None = None
+    device: str = "unknown"
+    cart: str = "waiting"
+    events: list[str] = field(default_factory=list)
+
+    def event(self, text: str) -> None:
+        """Remember a recent event for the display."""
+        self.events.append(text)
+        del self.events[:-6]
+
+
+class _Paused(Exception):
+    """Raised inside the measurement loop when the session pauses (internal control flow)."""
+
+
+class _Stopped(Exception):
+    """Raised when the operator or a signal stops the session (internal control flow)."""
+
+
+@dataclass
+class _Breaths:
+    """Breath queue with arrival bookkeeping (owned by the cart task; read by the others)."""
+
+    queue: asyncio.Queue[BreathRecord] = field(default_factory=asyncio.Queue)
+    last_wall: float | None = None
+    last_t: float | None = None
+    count: int = 0
+    ended: bool = False
+
+
+class BridgeSession:
+    """One HIL session: the optimizer driven by breaths, its proposals pushed to the exosuit.
+
+    Args:
+        optimizer: A new or resumed optimizer.
+        gate: The safety layer; the only source of profiles that may be sent.
+        endpoint: An open CAN endpoint.
+        breaths: The cart's validated breath stream.
+        log: The session log.
+        settings: Protocol and supervision settings.
+        clock: Wall clock for watchdogs (monotonic seconds); injectable for tests.
+    """
+
+    def __init__(
+        self,
+        optimizer: HILOptimizer,
+        gate: ProfileGate,
+        endpoint: CanEndpoint,
+        breaths: AsyncIterator[BreathRecord],
+        log: SessionLog,
+        settings: RuntimeSettings | None = None,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.opt = optimizer
+        self.gate = gate
+        self.endpoint = endpoint
+        self._stream = breaths
+        self.log = log
+        self.settings = settings or RuntimeSettings()
+        self._clock = clock
+        self.device = DeviceView()
+        self.status = SessionStatus()
+        self._breaths = _Breaths()
+        self._commands: asyncio.Queue[Command] = asyncio.Queue()
+        self._paused = asyncio.Event()
+        self._stop = asyncio.Event()
+        self._pause_reason = ""
+        self._version = 0
+        self._assist_on = False
+        self.latencies_s: list[float] = []  # stop decision -> profile acknowledged
+        self.records: list[dict[str, Any]] = []  # completed evaluations with session times
+        self._t_session0: float | None = None
+
+    # ------------------------------------------------------------------ public control
+    def command(self, cmd: Command) -> None:
+        """Queue an operator command (call from the event loop's thread)."""
+        self._commands.put_nowait(cmd)
+
+    async def run(self) -> dict[str, Any]:
+        """Run the session to its end (budget spent, stop command, or fatal error).
+
+        Returns:
+            Summary fields: evaluations, counts, best setting.
+        """
+        # The starting point of a resume: without it a crash before the first completed
+        # evaluation could not be resumed.
+        self.log.log_optimizer_state(self.opt, reason="start")
+        self._event("session_start", f"session started ({self.opt.phase.value})")
+        try:
+            async with asyncio.TaskGroup() as tg:
+                tasks = [
+                    tg.create_task(self._cart_task(), name="cart"),
+                    tg.create_task(self._status_task(), name="device-status"),
+                    tg.create_task(self._feedback_task(), name="force-feedback"),
+                    tg.create_task(self._watchdog_task(), name="watchdog"),
+                    tg.create_task(self._command_task(), name="commands"),
+                    tg.create_task(self._bus_failure_task(), name="bus-failure"),
+                ]
+                self.endpoint.start_heartbeat(self.settings.heartbeat_period_s)
+                try:
+                    await self._main()
+                finally:
+                    for t in tasks:
+                        t.cancel()
+        except* _Stopped:
+            pass
+        finally:
+            await self._safe_off(AssistanceOffReason.OPERATOR_STOP if self._stop.is_set()
+                                 else AssistanceOffReason.SESSION_END, "session end")
+            self._log_counters()
+            with contextlib.suppress(DriverError):
+                await self.endpoint.stop_heartbeat()
+        self._event("session_end", f"session ended after {len(self.records)} evaluations")
+        return self.summary()
+
+    def summary(self) -> dict[str, Any]:
+        """The summary.json fields of shared/DESIGN.md (without simulation truth)."""
+        out: dict[str, Any] = {
+            "n_evaluations": len(self.records),
+            "n_early_stops": sum(r["stopped_early"] for r in self.records),
+            "n_breaths": self._breaths.count,
+            "evaluations": self.records,
+            "best_params": None, "best_mean": None, "best_var": None,
+            "push_latency_ms": _quantiles_ms(self.latencies_s),
+        }
+        if self.opt.evaluations:
+            params, mean, var = self.opt.best()
+            out.update(best_params=params, best_mean=mean, best_var=var)
+        return out
+
+    # ------------------------------------------------------------------ main protocol
+    async def _main(self) -> None:
+        s = self.settings
+        await self._warm_up("exploration" if self.opt.phase is Phase.EXPLORATION else "optimization")
+        bout_paused = self.opt.phase is not Phase.EXPLORATION
+        while not self.opt.done:
+            if self._stop.is_set():
+                raise _Stopped
+            if not bout_paused and self.opt.phase is Phase.OPTIMIZATION:
+                bout_paused = True
+                if s.pause_between_bouts:
+                    await self._bout_pause()
+                    await self._warm_up("optimization")
+            if self._paused.is_set():
+                await self._wait_resumed()
+                await self._warm_up(self.status.bout)
+                continue
+            try:
+                await self._evaluate_one()
+            except _Paused:
+                dropped = self.opt.cancel_current()
+                if dropped is not None:
+                    self.log.log_optimizer_state(self.opt, reason="cancel")
+                    self._event("evaluation_cancelled",
+                                f"setting abandoned by the pause ({self._pause_reason}); it is re-measured")
+        self._event("budget_spent", "optimisation budget spent")
+
+    async def _evaluate_one(self) -> None:
+        t_decided = self._clock()
+        loop = asyncio.get_running_loop()
+        # The GP fit and EI maximisation take tens of ms: off the loop, so heartbeats and CAN
+        # traffic keep flowing. Only this task touches the optimizer.
+        params = await loop.run_in_executor(None, self.opt.ask)
+        self.status.bout = self.opt.phase.value
+        index = len(self.opt.evaluations)
+        self.log.log_proposal(params, index=index, phase=self.opt.phase.value,
+                              t_s=self._breaths.last_t, incumbent=self.opt.incumbent)
+        try:
+            admitted = self.gate.admit(params)
+        except UnsafeProfileError as err:
+            # Never transmit what the limits forbid, and never clip (bridge/safety.py): nothing
+            # is sent, the device keeps its last acknowledged profile, the setting is dropped
+            # and the optimizer asked again; after too many in a row, assistance-off and pause.
+            self.opt.cancel_current()
+            self.log.log_optimizer_state(self.opt, reason="cancel")
+            self.log.log_event("unsafe_proposal", str(err), verdict=err.verdict.to_json(), params=params)
+            self.status.event(f"proposal rejected by the limits: {err}")
+            if self.gate.rejections_exhausted:
+                await self._pause(AssistanceOffReason.LIMIT_VIOLATION,
+                                  "too many proposals rejected by the safety limits; check [limits] "
+                                  "against [space]")
+            return
+        table = np.concatenate([p.force_n for p in admitted.profiles])
+        self._version = self._version % 255 + 1
+        # The device assists only while the bridge heartbeat says "running" (PROTOCOL.md);
+        # assistance-off switches it to "paused".
+        self.endpoint.bridge_state = BridgeState.RUNNING
+        await self._push(table, self._version, admitted, index)
+        self.latencies_s.append(self._clock() - t_decided)
+        await self._wait_applied(self._version)
+        t0 = self._breaths.last_t if self._breaths.last_t is not None else 0.0
+        t0_session = self._session_time(t0)
+        self.status.evaluation, self.status.params = index + 1, params
+        self.status.breaths_in_setting, self.status.mean_w, self.status.sd_w = 0, None, None
+        while True:
+            rec = await self._next_breath()
+            t = rec.t_s - t0
+            if t <= 0:
+                continue  # a breath that arrived before the switch: it belongs to the old setting
+            watts = brockway_watts(rec.vo2_ml_min, rec.vco2_ml_min)
+            step = self.opt.observe_breath(t, watts)
+            self.status.breaths_in_setting = step.index + 1
+            self.status.mean_w, self.status.sd_w = step.mean, math.sqrt(step.var)
+            self.log.log_step(step, index=index, t_setting_s=t, watts=watts, t_s=rec.t_s,
+                              incumbent=self.opt.incumbent)
+            if step.decision is not None:
+                d = step.decision
+                self.status.last_decision = f"{d.reason.name.lower()} z={d.z:+.2f}"
+            used = self.opt.budget_used
+            self.status.budget_used_s = used["seconds"]
+            if step.stop and step.evaluation is not None:
+                ev = step.evaluation
+                t_end = self._session_time(rec.t_s)
+                self.records.append({**ev.to_json(), "t_start": t0_session, "t_end": t_end})
+                self.log.log_observation(ev, t_start=t0_session, t_end=t_end, t_s=rec.t_s)
+                self.log.log_optimizer_state(self.opt, reason="evaluation", t_s=rec.t_s)
+                self.status.best_mean_w = min(r["mean"] for r in self.records)
+                self.status.event(f"eval {ev.index + 1}: {ev.mean:.0f} W, {ev.breaths} breaths, {ev.reason}")
+                return
+
+    async def _push(self, table: np.ndarray, version: int, admitted: Any, index: int) -> None:
+        s = self.settings
+        self.log.log_profile_sent(admitted.profiles, version=version, index=index,
+                                  params=admitted.params, t_s=self._breaths.last_t)
+        try:
+            result = await self.endpoint.push_profile(table, version, timeout_s=s.push_timeout_s,
+                                                      retries=s.push_retries, pace_s=s.pace_s)
+        except ProfilePushError as err:
+            reason = getattr(err, "reason", "none")
+            self.log.log_ack(version=version, accepted=False, reason=reason, error=str(err))
+            await self._pause(AssistanceOffReason.INTERNAL_ERROR, f"profile push failed: {err}")
+            raise _Paused from err
+        self.gate.acknowledge(admitted)
+        self._assist_on = True
+        self.log.log_ack(version=version, accepted=True, attempts=result.attempts,
+                         elapsed_s=result.elapsed_s, crc32=result.crc32)
+
+    async def _wait_applied(self, version: int) -> None:
+        deadline = self._clock() + self.settings.apply_timeout_s
+        while self.device.active_version(self.settings.n_actuators) != version:
+            if self._paused.is_set():
+                raise _Paused
+            if self._clock() > deadline:
+                await self._pause(AssistanceOffReason.INTERNAL_ERROR,
+                                  f"profile v{version} acknowledged but not active after "
+                                  f"{self.settings.apply_timeout_s:g} s")
+                raise _Paused
+            await asyncio.sleep(0.005)
+
+    async def _next_breath(self) -> BreathRecord:
+        """The next breath, raising _Paused if the session pauses while waiting."""
+        getter = asyncio.ensure_future(self._breaths.queue.get())
+        pauser = asyncio.ensure_future(self._paused.wait())
+        try:
+            done, _ = await asyncio.wait({getter, pauser}, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            pauser.cancel()
+        if getter in done:
+            return getter.result()
+        getter.cancel()
+        raise _Paused
+
+    async def _warm_up(self, bout: str) -> None:
+        """Walk without assistance for warmup_s of breath time; breaths are logged, not used."""
+        self.status.bout = f"warm-up ({bout})"
+        await self._safe_off(AssistanceOffReason.SESSION_END, "warm-up")
+        start: float | None = None
+        while self.settings.warmup_s > 0:
+            try:
+                rec = await self._next_breath()
+            except _Paused:
+                await self._wait_resumed()
+                start = None
+                continue
+            start = rec.t_s if start is None else start
+            if rec.t_s - start >= self.settings.warmup_s:
+                break
+        self.status.bout = bout
+
+    async def _bout_pause(self) -> None:
+        self._event("bout_pause", "exploration bout complete; pausing until the operator resumes")
+        await self._pause(AssistanceOffReason.SESSION_END, "between bouts")
+        s = self.settings
+        if s.auto_resume_s is not None:
+            asyncio.get_running_loop().call_later(s.auto_resume_s, self.command, Command.RESUME)
+        await self._wait_resumed()
+
+    async def _wait_resumed(self) -> None:
+        while self._paused.is_set():
+            if self._stop.is_set():
+                raise _Stopped
+            # Breaths during a pause are drained and logged but count against nothing.
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._breaths.queue.get(), timeout=0.05)
+
+    # ------------------------------------------------------------------ safety
+    async def _pause(self, reason: AssistanceOffReason, text: str) -> None:
+        if not self._paused.is_set():
+            self._pause_reason = text
+            self._paused.set()
+            self.status.state = f"paused: {text}"
+            self._event("pause", text)
+        await self._safe_off(reason, text)
+
+    async def _safe_off(self, reason: AssistanceOffReason, text: str) -> None:
+        """Command assistance-off now (idempotent per state change; failures are logged)."""
+        try:
+            await self.endpoint.send_assistance_off(reason)
+        except DriverError as err:
+            logger.exception("assistance-off could not be sent (%s)", text)
+            self._event("assistance_off_failed", f"{text}: {err}")
+            return
+        self.gate.assistance_off()
+        if self._assist_on:
+            self._event("assistance_off", f"assistance off: {text}")
+        self._assist_on = False
+
+    # ------------------------------------------------------------------ background tasks
+    async def _cart_task(self) -> None:
+        b = self._breaths
+        async for rec in self._stream:
+            b.last_wall, b.last_t = self._clock(), rec.t_s
+            b.count += 1
+            if self._t_session0 is None:
+                self._t_session0 = rec.t_s
+            self.status.breath_time_s = self._session_time(rec.t_s)
+            self.status.cart = "ok"
+            self.log.log_breath(rec)
+            b.queue.put_nowait(rec)
+        b.ended = True
+        self._event("cart_ended", "the cart stream ended")
+        self._stop.set()
+        self._commands.put_nowait(Command.STOP)
+
+    async def _status_task(self) -> None:
+        last_logged: dict[int, tuple[float, Any]] = {}
+        with self.endpoint.subscribe(DeviceStatus) as sub:
+            async for st in sub:
+                now = self._clock()
+                self.device.last_status_wall[st.actuator] = now
+                self.device.status[st.actuator] = st
+                key = (st.mode, st.faults, st.profile_version_active, st.profile_version_pending)
+                prev = last_logged.get(st.actuator)
+                if prev is None or prev[1] != key or now - prev[0] >= self.settings.status_log_period_s:
+                    last_logged[st.actuator] = (now, key)
+                    self.log.log_device_status(
+                        actuator=st.actuator, mode=DeviceMode(st.mode), faults=st.faults,
+                        gait_phase_pct=st.gait_phase_pct,
+                        profile_version_active=st.profile_version_active,
+                        profile_version_pending=st.profile_version_pending)
+
+    async def _feedback_task(self) -> None:
+        period = self.settings.feedback_log_period_s
+        batch: dict[int, list[tuple[float, float, float | None]]] = {}
+        t_flush = self._clock() + period
+        with self.endpoint.subscribe(ForceFeedback, maxsize=8192) as sub:
+            while True:
+                try:
+                    fb = await asyncio.wait_for(sub.get(), timeout=period)
+                    self.device.feedback_frames += 1
+                    batch.setdefault(fb.actuator, []).append(
+                        (fb.desired_force_n, fb.measured_force_n, fb.gait_phase_pct))
+                except TimeoutError:
+                    pass
+                now = self._clock()
+                if now >= t_flush:
+                    # Batched: 2 actuators at 1 kHz would be 2000 log messages a second.
+                    version = self.device.active_version(self.settings.n_actuators)
+                    for act, rows in batch.items():
+                        if rows:
+                            d, m, g = zip(*rows, strict=True)
+                            self.log.log_force_feedback(actuator=act, desired_n=d, measured_n=m,
+                                                        gait_phase_pct=g, profile_version=version)
+                    batch = {}
+                    t_flush = now + period
+
+    async def _watchdog_task(self) -> None:
+        s = self.settings
+        started = self._clock()
+        next_counts = started + 5.0
+        while True:
+            await asyncio.sleep(0.01)
+            now = self._clock()
+            if now >= next_counts:
+                next_counts = now + 5.0
+                self._log_counters()
+            silent = self.device.silent_for(now, s.n_actuators)
+            if silent > s.device_timeout_s and now - started > s.device_timeout_s:
+                healthy = self.status.device == "ok"
+                self.status.device = "LOST"
+                if healthy or not self._paused.is_set():
+                    await self._pause(AssistanceOffReason.DEVICE_HEARTBEAT_LOST,
+                                      f"device heartbeat lost for {silent * 1e3:.0f} ms")
+            elif silent <= s.device_timeout_s:
+                faults = [int(st.faults) for st in self.device.status.values() if int(st.faults)]
+                self.status.device = "ok" if not faults else f"faults {faults}"
+            b = self._breaths
+            if b.last_wall is not None and now - b.last_wall > s.cart_timeout_s:
+                if self.status.cart == "ok":
+                    self.status.cart = "SILENT"
+                    await self._pause(AssistanceOffReason.INTERNAL_ERROR,
+                                      f"no breath for {now - b.last_wall:.0f} s")
+
+    def _log_counters(self) -> None:
+        """Rejected breaths and frames by reason (cumulative), for the log and the review."""
+        cart_counts = getattr(self._stream, "counters", None)
+        if cart_counts:
+            self.log.log_rejects("cart", cart_counts, t_s=self._breaths.last_t)
+        if self.endpoint.counters:
+            self.log.log_rejects("can", self.endpoint.counters, t_s=self._breaths.last_t)
+
+    async def _bus_failure_task(self) -> None:
+        err = await self.endpoint.wait_failed()
+        self._event("bus_error", f"CAN bus failed: {err}")
+        self._paused.set()
+        self._stop.set()
+        raise _Stopped from err
+
+    async def _command_task(self) -> None:
+        while True:
+            cmd = await self._commands.get()
+            if cmd is Command.PAUSE:
+                await self._pause(AssistanceOffReason.OPERATOR_STOP, "operator pause")
+            elif cmd is Command.RESUME:
+                if self.status.device != "ok":
+                    self._event("resume_refused", f"cannot resume: device {self.status.device}")
+                    continue
+                self._paused.clear()
+                self.status.state = "running"
+                self._event("resume", "resumed by the operator")
+            elif cmd is Command.STOP:
+                self._stop.set()
+                self._paused.set()
+                await self._safe_off(AssistanceOffReason.OPERATOR_STOP, "operator stop")
+                raise _Stopped
+
+    # ------------------------------------------------------------------ helpers
+    def _session_time(self, t_cart: float) -> float:
+        return t_cart - (self._t_session0 if self._t_session0 is not None else t_cart)
+
+    def _event(self, kind: str, text: str) -> None:
+        logger.info("%s: %s", kind, text)
+        self.status.event(text)
+        self.log.log_event(kind, text)
+
+
+
+def _quantiles_ms(values: list[float]) -> dict[str, float] | None:
+    if not values:
+        return None
+    a = np.asarray(values) * 1e3
+    return {"median": float(np.median(a)), "p99": float(np.quantile(a, 0.99)), "max": float(a.max()),
+            "n": len(values)}

@@ -1,0 +1,481 @@
+"""``hilbo tune-stopping LOG.mcap…``: tune the estimator stopping rule offline with BO-RESAMPLE.
+
+The σ-scaled offset rule of seed 000 §II.D is itself an optimal-stopping policy: after breath i
+of a setting it stops when ``μ_i − μ* > A_i·σ_i`` (σ_i² = var_i + σ*²). Its hyperparameter is
+either a constant K (``A_i = K``; family ``k``) or Algorithm 2's window W (``A`` = the threshold
+schedule of the given traces with window W; family ``window``). Every full-length breath
+trajectory — an exploration bout, or an optimisation-phase evaluation that ran all N breaths —
+can replay *any* rule that stops at or before N (seed 003 §4.2), so BO-RESAMPLE
+(:func:`hilbo_core.resample.bo_resample`) can search the hyperparameter with few "real"
+episodes and many off-policy resamples.
+
+An **episode** is one full-length trajectory j (drawn in random order, as a new evaluation's
+breaths would arrive) compared, as the optimizer compares a new setting with its best one, with
+every other trajectory k as the incumbent: the rule watches j's running UKF estimate (seed 000
+§II.C) against k's final estimate (μ*, σ*²) and stops after s_k breaths. Its cost, in units of
+one full evaluation's walking time, is the mean over k of
+
+    s_k / N  +  λ · I(s_k < N and μ_N(j) <= μ_N(k))
+
+— the breaths used, plus λ for every *wrong early stop*: a setting stopped early although its
+full-length estimate was no worse than the incumbent's (the error Algorithm 2 is built to avoid;
+its own construction admits none on its exploration traces). λ (``--error-weight``, default 2)
+says how many evaluations' time a wrongly discarded setting is worth; the tuned value depends
+on it. Averaging over the incumbents inside an episode (rather than drawing one incumbent per
+episode) keeps a single wrong stop from dominating the GP's view of a rule. Because every stored
+trajectory is full length, every rule can be replayed on it; BO-RESAMPLE's bound on reuse is
+what keeps the resampled episodes from being the same few trajectories over and over.
+
+Besides the BO-RESAMPLE recommendation the result reports an exhaustive evaluation of a grid of
+hyperparameters on *all* ordered pairs (cheap offline, and a check of what BO found) and the
+same numbers for Algorithm 2's schedule with the session's window (W = 2 by default). Algorithm
+2's schedules (the reference and the ``window`` family) are always out of sample: trajectory j is
+judged with the schedule built from ``n_explore`` = 6 *other* trajectories, as a session builds it
+from its own exploration bout and then applies it to new settings.
+
+Logs are read with :func:`bridge.logread.read_log`: the ``/estimator`` channel holds every breath
+the optimizer consumed (``t_setting_s``, ``watts``) by evaluation, ``/observations`` how many
+breaths each evaluation kept.
+"""
+
+from __future__ import annotations
+
+import argparse
+import enum
+import json
+import logging
+import math
+import os
+import sys
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hilbo_core.errors import ConfigError, MeasurementError
+from hilbo_core.metabolic import Estimator, MetabolicUKF
+from hilbo_core.resample import ResampleConfig, Trajectory, bo_resample
+from hilbo_core.space import Parameter, ParameterSpace
+from hilbo_core.stopping import threshold_schedule
+
+__all__ = [
+    "BreathTrace",
+    "StoppingFamily",
+    "TuneStoppingConfig",
+    "add_tune_stopping_parser",
+    "breath_traces",
+    "evaluate_schedule",
+    "evaluations_from_log",
+    "trajectories_from_log",
+    "tune_stopping",
+]
+
+logger = logging.getLogger(__name__)
+
+
+class StoppingFamily(enum.Enum):
+    """Which hyperparameter of the σ-scaled rule is tuned."""
+
+    CONSTANT_K = "k"  # A_i = K for every breath
+    WINDOW = "window"  # A = Algorithm 2's schedule (threshold_schedule) with window W
+
+
+@dataclass(frozen=True)
+class TuneStoppingConfig:
+    """Options of :func:`tune_stopping`.
+
+    Attributes:
+        family: :class:`StoppingFamily`.
+        n_max: N, breaths of a full evaluation; shorter trajectories are skipped, longer ones cut.
+        k_bounds: Search interval of K (in σ).
+        max_window: Largest W searched (window family).
+        error_weight: λ, the cost of a wrong early stop in evaluations' time.
+        reference_window: W of Algorithm 2's schedule reported for comparison.
+        n_explore: Traces behind each Algorithm 2 schedule: trace j is judged with the schedule
+            of ``n_explore`` other traces (a session's exploration bout), never its own.
+        n_real: Real episodes of BO-RESAMPLE.
+        n_resamples: K of BO-RESAMPLE (resamples per real episode). Keep it below
+            ``max_reuse``: with K >= max_reuse the older trajectories are soon used up and every
+            resample of a round falls on the newest one, which the GP then sees K times over.
+        max_reuse: Resamples allowed per trajectory.
+        n_grid: Grid size of the exhaustive check (K family).
+        seed: Seeds episodes and BO.
+    """
+
+    family: StoppingFamily = StoppingFamily.CONSTANT_K
+    n_max: int = 45
+    k_bounds: tuple[float, float] = (0.0, 4.0)
+    max_window: int = 10
+    error_weight: float = 2.0
+    reference_window: int = 2
+    n_explore: int = 6
+    n_real: int = 60
+    n_resamples: int = 3
+    max_reuse: int = 5
+    n_grid: int = 41
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        try:
+            object.__setattr__(self, "family", StoppingFamily(self.family))
+        except ValueError as err:
+            raise ConfigError(f"family={self.family!r}; expected one of "
+                              f"{[f.value for f in StoppingFamily]}") from err
+        for name, low in (("n_max", 2), ("max_window", 0), ("reference_window", 0), ("n_explore", 1),
+                          ("n_real", 1), ("n_resamples", 0), ("max_reuse", 0), ("n_grid", 2),
+                          ("seed", 0)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < low:
+                raise ConfigError(f"{name}={v!r}; expected an integer >= {low}")
+        lo, hi = (float(b) for b in self.k_bounds)
+        if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+            raise ConfigError(f"k_bounds={self.k_bounds!r}; expected finite low < high")
+        if not (math.isfinite(self.error_weight) and self.error_weight >= 0):
+            raise ConfigError(f"error_weight={self.error_weight!r}; expected a number >= 0")
+
+
+@dataclass(frozen=True)
+class BreathTrace:
+    """The running estimate of one full-length evaluation.
+
+    Attributes:
+        means: Estimated steady-state cost after each breath (W), shape (N,).
+        vars: Its variance (W²), shape (N,).
+        source: Where the breaths came from.
+    """
+
+    means: np.ndarray
+    vars: np.ndarray
+    source: str = ""
+
+    @property
+    def final_mean(self) -> float:
+        """μ_N."""
+        return float(self.means[-1])
+
+    @property
+    def final_var(self) -> float:
+        """σ_N²."""
+        return float(self.vars[-1])
+
+
+def breath_traces(trajectories: Sequence[Any], n_max: int,
+                  estimator_factory: Callable[[], Estimator] = MetabolicUKF,
+                  sources: Sequence[str] | None = None) -> tuple[list[BreathTrace], int]:
+    """Run the estimator over breath trajectories.
+
+    Args:
+        trajectories: Each an array-like of shape (n, 2): per breath ``(t_s, watts)`` with
+            ``t_s`` the time since the setting began.
+        n_max: N; trajectories with fewer breaths are skipped, longer ones use their first N.
+        estimator_factory: A fresh estimator per trajectory (default the UKF of seed 000 §II.C).
+        sources: Labels of the trajectories (for errors and the result).
+
+    Returns:
+        (traces, number of trajectories skipped as too short).
+
+    Raises:
+        MeasurementError: A trajectory with non-finite values or times that do not increase
+            (naming its index).
+    """
+    traces: list[BreathTrace] = []
+    skipped = 0
+    for i, traj in enumerate(trajectories):
+        label = sources[i] if sources is not None else f"trajectory {i}"
+        a = np.asarray(traj, dtype=float)
+        if a.ndim != 2 or a.shape[1] != 2:
+            raise MeasurementError(f"{label}: expected shape (n, 2) of (t_s, watts), got {a.shape}")
+        if a.shape[0] < n_max:
+            skipped += 1
+            continue
+        a = a[:n_max]
+        if not np.all(np.isfinite(a)):
+            raise MeasurementError(f"{label}: contains non-finite breaths")
+        est = estimator_factory()
+        means, variances = np.empty(n_max), np.empty(n_max)
+        try:
+            for b, (t, w) in enumerate(a):
+                means[b], variances[b] = est.update(float(t), float(w))
+        except MeasurementError as err:
+            raise MeasurementError(f"{label}, breath {b}: {err}") from err
+        traces.append(BreathTrace(means, variances, label))
+    return traces, skipped
+
+
+def _stop_step(trace: BreathTrace, thresholds: np.ndarray, mu_star: float, var_star: float) -> int:
+    """Breaths used by the σ-scaled rule on a trace against an incumbent (N if never early)."""
+    sigma = np.sqrt(trace.vars + var_star)
+    hits = np.flatnonzero(trace.means[:-1] - mu_star > thresholds[:-1] * sigma[:-1])
+    return int(hits[0]) + 1 if hits.size else len(trace.means)
+
+
+def evaluate_schedule(traces: Sequence[BreathTrace], thresholds: np.ndarray,
+                      error_weight: float) -> dict[str, float]:
+    """Exhaustive cost of a threshold schedule over every ordered pair (j, k ≠ j) of traces.
+
+    Args:
+        traces: Full-length traces.
+        thresholds: One schedule (N,), or one per trace (n, N) (row j is used for trace j).
+        error_weight: λ.
+
+    Returns:
+        ``{"cost", "breath_fraction", "early_stop_rate", "wrong_stop_rate"}`` (means over pairs;
+        the wrong-stop rate is per pair, not per early stop).
+    """
+    n = len(traces)
+    if n < 2:
+        raise ConfigError(f"need at least 2 full-length trajectories, got {n}")
+    N = len(traces[0].means)
+    A = np.broadcast_to(np.asarray(thresholds, dtype=float), (n, N))
+    used, early, wrong = [], [], []
+    for j, tj in enumerate(traces):
+        for k, tk in enumerate(traces):
+            if j == k:
+                continue
+            s = _stop_step(tj, A[j], tk.final_mean, tk.final_var)
+            used.append(s / N)
+            early.append(s < N)
+            wrong.append(s < N and tj.final_mean <= tk.final_mean)
+    bf = float(np.mean(used))
+    wr = float(np.mean(wrong))
+    return {"cost": bf + error_weight * wr, "breath_fraction": bf,
+            "early_stop_rate": float(np.mean(early)), "wrong_stop_rate": wr}
+
+
+def _exploration_groups(n: int, size: int, seed: int) -> np.ndarray:
+    """For each trace j, ``size`` other traces standing in for its session's exploration bout."""
+    rng = np.random.default_rng([seed, 0x57])
+    size = min(size, n - 1)
+    return np.array([rng.choice(np.delete(np.arange(n), j), size, replace=False) for j in range(n)])
+
+
+def _schedules(traces: Sequence[BreathTrace], window: int, groups: np.ndarray) -> np.ndarray:
+    """Algorithm 2's schedule for each trace j from its group's traces: (n, N)."""
+    M = np.array([t.means for t in traces])
+    S = np.array([t.vars for t in traces])
+    return np.array([threshold_schedule(M[g], S[g], window) for g in groups])
+
+
+def _thresholds_fn(cfg: TuneStoppingConfig, traces: Sequence[BreathTrace], groups: np.ndarray
+                   ) -> tuple[ParameterSpace, Callable[[Mapping[str, float]], np.ndarray]]:
+    """The search space and params → per-trace threshold schedules (n, N)."""
+    N = cfg.n_max
+    n = len(traces)
+    if cfg.family is StoppingFamily.CONSTANT_K:
+        space = ParameterSpace([Parameter("k", *cfg.k_bounds, "σ", "constant threshold K")],
+                               name="stopping_k")
+        return space, lambda p: np.full((n, N), float(p["k"]))
+    w_max = min(cfg.max_window, N - 1)
+    schedules = [_schedules(traces, w, groups) for w in range(w_max + 1)]
+    space = ParameterSpace([Parameter("window", -0.5, w_max + 0.5, "breaths", "Algorithm 2 window W")],
+                           name="stopping_window")
+    return space, lambda p: schedules[int(np.clip(round(p["window"]), 0, w_max))]
+
+
+def tune_stopping(trajectories: Sequence[Any], config: TuneStoppingConfig | None = None, *,
+                  sources: Sequence[str] | None = None,
+                  estimator_factory: Callable[[], Estimator] = MetabolicUKF) -> dict[str, Any]:
+    """Tune K or W of the σ-scaled stopping rule with BO-RESAMPLE (module docstring).
+
+    Args:
+        trajectories: Per-evaluation breath arrays (n, 2) of ``(t_s since the setting began, W)``.
+        config: Options.
+        sources: Labels of the trajectories.
+        estimator_factory: The estimator whose running estimate the rule watches.
+
+    Returns:
+        A JSON-able dict: the recommendation, its exhaustive cost, Algorithm 2's, the grid, the
+        BO-RESAMPLE evaluations and counts.
+
+    Raises:
+        ConfigError: Fewer than 3 full-length trajectories.
+        MeasurementError: A malformed trajectory.
+    """
+    cfg = TuneStoppingConfig() if config is None else config
+    traces, skipped = breath_traces(trajectories, cfg.n_max, estimator_factory, sources)
+    if len(traces) < 3:
+        raise ConfigError(
+            f"need at least 3 trajectories of >= {cfg.n_max} breaths, got {len(traces)} "
+            f"({skipped} shorter ones skipped)"
+        )
+    groups = _exploration_groups(len(traces), cfg.n_explore, cfg.seed)
+    space, thresholds = _thresholds_fn(cfg, traces, groups)
+    N = cfg.n_max
+    lam = cfg.error_weight
+    pool = [tuple(zip(t.means.tolist(), t.vars.tolist(), strict=True)) for t in traces]
+    finals = np.array([[t.final_mean, t.final_var] for t in traces])
+    order: list[int] = []
+
+    def execute(params: dict[str, float], rng: np.random.Generator) -> Trajectory:
+        # The next trajectory, in a random order without replacement (reshuffled when used up),
+        # as a new evaluation's breaths would arrive.
+        if not order:
+            order.extend(int(i) for i in rng.permutation(len(traces)))
+        j = order.pop()
+        return Trajectory(pool[j], N, {"trace": j})
+
+    def stop_steps(params: Mapping[str, float], j: int) -> np.ndarray:
+        others = np.arange(len(traces)) != j
+        a = thresholds(params)[j]
+        return np.array([_stop_step(traces[j], a, m, v) for m, v in finals[others]])
+
+    def halt(params: Mapping[str, float], prefix: Sequence[Any], ctx: Mapping[str, Any]) -> bool:
+        # The episode is over once the rule has stopped against every incumbent (at N at the latest).
+        return len(prefix) >= int(stop_steps(params, ctx["trace"]).max())
+
+    def objective(obs: Sequence[Any], s: int, ctx: Mapping[str, Any], params: Mapping[str, float]) -> float:
+        j = ctx["trace"]
+        steps = stop_steps(params, j)
+        others = np.arange(len(traces)) != j
+        wrong = (steps < N) & (traces[j].final_mean <= finals[others, 0])
+        return float(np.mean(steps / N + lam * wrong))
+
+    rcfg = ResampleConfig(n_resamples=cfg.n_resamples, max_reuse=cfg.max_reuse, n_init=2,
+                          n_candidates=128, n_local=1)
+    run = bo_resample(space, execute, halt, objective, n_real=cfg.n_real,
+                      rng=np.random.default_rng(cfg.seed), config=rcfg)
+    best = run.recommendations[-1]
+    if cfg.family is StoppingFamily.CONSTANT_K:
+        grid_values = np.linspace(cfg.k_bounds[0], cfg.k_bounds[1], cfg.n_grid).tolist()
+        key = "k"
+    else:
+        grid_values = list(range(min(cfg.max_window, N - 1) + 1))
+        key = "window"
+    grid = [{key: v, **evaluate_schedule(traces, thresholds({key: v}), lam)} for v in grid_values]
+    alg2 = _schedules(traces, min(cfg.reference_window, N - 1), groups)
+    if key == "window":
+        recommended: dict[str, float] = {key: int(np.clip(round(best[key]), 0, min(cfg.max_window, N - 1)))}
+    else:
+        recommended = {key: best[key]}
+    return {
+        "config": asdict(cfg) | {"family": cfg.family.value},
+        "n_trajectories": len(traces),
+        "n_skipped_short": skipped,
+        "recommended": recommended,
+        "recommended_exhaustive": evaluate_schedule(traces, thresholds(best), lam),
+        "grid_best": min(grid, key=lambda g: g["cost"]),
+        "algorithm2": {"window": cfg.reference_window, **evaluate_schedule(traces, alg2, lam)},
+        "never_stop": evaluate_schedule(traces, np.full(N, np.inf), lam),
+        "grid": grid,
+        "bo_resample": {"n_real": run.n_real, "n_simulated": run.n_simulated,
+                        "max_trajectory_uses": max(run.trajectory_uses, default=0),
+                        "recommendations": run.recommendations,
+                        "evaluations": [e.to_json() for e in run.evaluations]},
+    }
+
+
+# --------------------------------------------------------------------------------------------
+# Log adapters (bridge.logread)
+# --------------------------------------------------------------------------------------------
+
+
+def evaluations_from_log(path: str | os.PathLike[str]) -> list[dict[str, Any]]:
+    """The completed evaluations of a session log (``/observations``), as plain dicts.
+
+    Suitable for :func:`hilbo_core.priors.priors_from_evaluations` (a previous session's prior).
+    """
+    from bridge.logread import read_log
+
+    return [dict(d) for d in read_log(path, topics=["/observations"]).data("/observations")]
+
+
+def trajectories_from_log(path: str | os.PathLike[str]) -> tuple[list[np.ndarray], list[dict[str, Any]]]:
+    """Breath trajectories ``(t_setting_s, watts)`` of every completed evaluation of a log.
+
+    The breaths come from ``/estimator`` (what the optimizer consumed). An evaluation index that
+    was cancelled and asked again restarts at breath 0, so the breaths after its last restart are
+    used, and only as many as ``/observations`` says the evaluation kept.
+
+    Returns:
+        (trajectories, their ``/observations`` entries), in evaluation order.
+    """
+    from bridge.logread import read_log
+
+    log = read_log(path, topics=["/estimator", "/observations"])
+    by_index: dict[int, list[tuple[float, float]]] = {}
+    for d in log.data("/estimator"):
+        idx, breath = int(d["index"]), int(d["breath"])
+        if breath == 0:
+            by_index[idx] = []
+        by_index.setdefault(idx, []).append((float(d["t_setting_s"]), float(d["watts"])))
+    trajs, evs = [], []
+    for ev in log.data("/observations"):
+        breaths = by_index.get(int(ev["index"]), [])
+        n = int(ev.get("breaths") or len(breaths))
+        if len(breaths) >= n > 0:
+            trajs.append(np.array(breaths[:n], dtype=float))
+            evs.append(dict(ev))
+    return trajs, evs
+
+
+def _n_max_from(evs: Iterable[Mapping[str, Any]]) -> int | None:
+    full = [int(e["breaths"]) for e in evs if e.get("reason") == "max_measurements"]
+    return max(set(full), key=full.count) if full else None
+
+
+def _cmd_tune_stopping(args: argparse.Namespace) -> int:
+    from rich.console import Console
+
+    console = Console(stderr=True)
+    trajs: list[np.ndarray] = []
+    sources: list[str] = []
+    evs: list[dict[str, Any]] = []
+    for path in args.logs:
+        t, e = trajectories_from_log(path)
+        trajs += t
+        evs += e
+        sources += [f"{Path(path).name}:evaluation {ev['index']}" for ev in e]
+    n_max = args.n_max if args.n_max is not None else (_n_max_from(evs) or 45)
+    cfg = TuneStoppingConfig(family=StoppingFamily(args.family), n_max=n_max,
+                             error_weight=args.error_weight, n_real=args.real,
+                             n_resamples=args.resamples, max_reuse=args.max_reuse, seed=args.seed,
+                             reference_window=args.window)
+    console.print(f"hilbo tune-stopping: {len(trajs)} evaluations from {len(args.logs)} log(s), N = {n_max}")
+    result = tune_stopping(trajs, cfg, sources=sources)
+    rec = result["recommended_exhaustive"]
+    alg2 = result["algorithm2"]
+    bo = result["bo_resample"]
+    console.print(f"{result['n_trajectories']} full-length trajectories "
+                  f"({result['n_skipped_short']} shorter skipped); BO-RESAMPLE: {bo['n_real']} real + "
+                  f"{bo['n_simulated']} resampled episodes")
+    for label, r in ((f"recommended {result['recommended']}", rec),
+                     (f"Algorithm 2 (W = {alg2['window']})", alg2)):
+        console.print(f"{label}: cost {r['cost']:.3f} (breaths {100 * r['breath_fraction']:.0f} %, "
+                      f"wrong stops {100 * r['wrong_stop_rate']:.1f} % of pairs)")
+    text = json.dumps(result, indent=2) + "\n"
+    if args.out:
+        out = Path(args.out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = out.with_suffix(out.suffix + ".tmp")
+        tmp.write_text(text)
+        os.replace(tmp, out)
+        sys.stdout.write(f"{out}\n")
+    else:
+        sys.stdout.write(text)
+    return 0
+
+
+def add_tune_stopping_parser(subparsers: Any) -> argparse.ArgumentParser:
+    """Add ``tune-stopping`` to the ``hilbo`` subcommands; returns its parser."""
+    p = subparsers.add_parser(
+        "tune-stopping", help="tune the stopping rule's K or W offline with BO-RESAMPLE",
+        description="Replay the full-length breath trajectories of session logs and tune the "
+                    "σ-scaled stopping rule (constant K, or Algorithm 2's window W) with "
+                    "BO-RESAMPLE (seed 003 §4.2); compares with Algorithm 2's schedule.")
+    p.add_argument("logs", nargs="+", metavar="LOG.mcap", help="session logs")
+    p.add_argument("--family", choices=[f.value for f in StoppingFamily], default="k",
+                   help="tune a constant K (default) or the window W")
+    p.add_argument("--n-max", type=int, default=None,
+                   help="N, breaths of a full evaluation (default: from the logs, else 45)")
+    p.add_argument("--error-weight", type=float, default=2.0,
+                   help="λ: cost of a wrong early stop in evaluations' time (default 2)")
+    p.add_argument("--window", type=int, default=2, help="W of the Algorithm 2 reference (default 2)")
+    p.add_argument("--real", type=int, default=60, help="real episodes (default 60)")
+    p.add_argument("--resamples", type=int, default=3, help="resamples per real episode (default 3)")
+    p.add_argument("--max-reuse", type=int, default=5, help="resamples per trajectory (default 5)")
+    p.add_argument("--seed", type=int, default=0, help="seed (default 0)")
+    p.add_argument("--out", default=None, help="write the JSON result here (default: stdout)")
+    p.set_defaults(func=_cmd_tune_stopping)
+    return p

@@ -1,0 +1,115 @@
+"""bridge.bench.stopping: campaign planning, summary statistics, resumable runs."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bridge.bench.executors import LocalExecutor
+from bridge.bench.stopping import (
+    StoppingCampaign,
+    load_trials,
+    run_campaign,
+    stopping_table,
+    summarize_stopping,
+)
+from hilbo_core.benchmarks import StoppingProtocol
+from hilbo_core.errors import ConfigError
+
+TOY = StoppingProtocol(n_explore=3, max_breaths=4, window=1, budget=8, n_candidates=32, n_local=0)
+
+
+def fake(method: str, seed: int, y: list[float], evaluations: int = 2, early: int = 0,
+         function: str = "branin", noise: float = 1.0) -> dict:
+    return {"method": method, "function": function, "noise": noise, "seed": seed, "y": y,
+            "evaluations": evaluations, "early_stops": early, "wall_s": 0.5}
+
+
+def test_campaign_is_trial_major_with_shared_seeds_per_trial() -> None:
+    c = StoppingCampaign(functions=("branin", "levy"), noises=(1.0,), methods=("fixed", "adaptive"),
+                         trials=2, seed=10, protocol=TOY)
+    keys = [t.key() for t in c.tasks()]
+    assert len(keys) == 2 * 2 * 2 == len(set(keys))
+    assert keys[:4] == [("branin", 1.0, "fixed", 10), ("branin", 1.0, "adaptive", 10),
+                        ("levy", 1.0, "fixed", 10), ("levy", 1.0, "adaptive", 10)]
+    assert {k[3] for k in keys} == {10, 11}
+
+
+@pytest.mark.parametrize(("kwargs", "match"), [
+    ({"trials": 0}, "trials=0; expected an integer >= 1"),
+    ({"functions": ("branin", "sphere")}, "unknown function 'sphere'; choose one of"),
+    ({"methods": ("fixed", "oracle")}, "unknown method 'oracle'; choose one of"),
+    ({"noises": (1.0, -2.0)}, "noise=-2.0"),
+    ({"methods": ("fixed", "fixed")}, "listed twice"),
+])
+def test_campaign_rejects_bad_input_before_any_work(kwargs: dict, match: str) -> None:
+    with pytest.raises(ConfigError, match=match):
+        StoppingCampaign(**{"protocol": TOY, **kwargs})
+
+
+def test_summary_means_and_standard_errors_by_hand() -> None:
+    c = StoppingCampaign(functions=("branin",), noises=(1.0,), methods=("fixed", "adaptive"), trials=2,
+                         protocol=StoppingProtocol(max_breaths=2, budget=2))
+    results = [fake("fixed", 0, [1.0, 1.0, 0.5]), fake("fixed", 1, [1.0, 0.5, 0.25]),
+               fake("adaptive", 0, [1.0, 0.5, 0.25], 2, 1), fake("adaptive", 1, [1.0, 0.25, 0.25], 2, 2)]
+    s = summarize_stopping(results, c)
+    fixed, adaptive = s["settings"]
+    assert fixed["method"] == "fixed" and fixed["t"] == [0, 1, 2] and fixed["n_trials"] == 2
+    np.testing.assert_allclose(fixed["y_mean"], [1.0, 0.75, 0.375])
+    # SE of (1.0, 0.5) is std(ddof=1)/sqrt(2) = 0.353553/1.414214 = 0.25
+    np.testing.assert_allclose(fixed["y_se"], [0.0, 0.25, 0.125])
+    assert fixed["y_final_mean"] == 0.375 and fixed["y_final_se"] == 0.125
+    assert adaptive["early_stops_mean"] == 1.5 and adaptive["evaluations_mean"] == 2.0
+    (comp,) = s["comparisons"]
+    # paired final differences: 0.25 − 0.5 = −0.25 and 0.25 − 0.25 = 0
+    assert comp["y_final_diff_mean"] == -0.125 and comp["y_final_diff_se"] == 0.125
+    assert comp["frac_final_lower"] == 0.5 and comp["frac_final_tied"] == 0.5
+    table = stopping_table(s)
+    assert "| branin | 1 | fixed | 2 | 0.375 ± 0.125 |" in table
+    assert "adaptive − fixed" in table
+
+
+def test_summary_grid_keeps_the_last_measurement() -> None:
+    c = StoppingCampaign(functions=("branin",), noises=(1.0,), methods=("fixed",), trials=1,
+                         protocol=StoppingProtocol(max_breaths=2, budget=5))
+    (s,) = summarize_stopping([fake("fixed", 0, [1, 1, 0.5, 0.5, 0.2, 0.1])], c, grid_step=2)["settings"]
+    assert s["t"] == [0, 2, 4, 5] and s["y_mean"] == [1, 0.5, 0.2, 0.1]
+    assert s["y_final_se"] is None  # one trial: no standard error (null in JSON, not NaN)
+
+
+def test_toy_campaign_runs_resumes_and_respects_budgets(tmp_path: Path) -> None:
+    c = StoppingCampaign(functions=("branin",), noises=(1.0,), methods=("fixed", "adaptive"), trials=2,
+                         protocol=TOY)
+    ex = LocalExecutor(1, progress=False)
+    results, wall = run_campaign(c, ex, tmp_path)
+    assert wall > 0 and len(results) == 4
+    lines = (tmp_path / "trials.jsonl").read_text().splitlines()
+    assert len(lines) == 4
+    for r in results:
+        assert r["measurements"] == TOY.budget and len(r["y"]) == TOY.budget + 1 and r["y"][0] == 1.0
+        assert all(y >= 0 for y in r["y"])
+    by = {(r["method"], r["seed"]): r for r in results}
+    for seed in (0, 1):
+        assert by[("fixed", seed)]["x0"] == by[("adaptive", seed)]["x0"]
+        assert by[("fixed", seed)]["evaluations"] == TOY.budget // TOY.max_breaths
+    # Resume with one more trial: only the two new trials run; the old ones are reused.
+    more = StoppingCampaign(functions=("branin",), noises=(1.0,), methods=("fixed", "adaptive"),
+                            trials=3, protocol=TOY)
+    again, _ = run_campaign(more, ex, tmp_path, resume=True)
+    assert len((tmp_path / "trials.jsonl").read_text().splitlines()) == 6
+    np.testing.assert_allclose([r["y"] for r in again[:4]], [r["y"] for r in results], rtol=1e-9)
+    assert len(load_trials(tmp_path / "trials.jsonl", TOY)) == 6
+    assert load_trials(tmp_path / "trials.jsonl", StoppingProtocol()) == {}  # other protocol
+
+
+def test_load_trials_skips_a_truncated_last_line(tmp_path: Path) -> None:
+    path = tmp_path / "trials.jsonl"
+    rec = fake("fixed", 0, [1.0]) | {"protocol": TOY.to_json()}
+    path.write_text(json.dumps(rec) + "\n" + json.dumps(rec)[:20])
+    loaded = load_trials(path, TOY)
+    assert list(loaded) == [("branin", 1.0, "fixed", 0)]
+    assert math.isclose(loaded[("branin", 1.0, "fixed", 0)]["y"][0], 1.0)

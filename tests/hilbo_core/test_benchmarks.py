@@ -1,0 +1,207 @@
+"""hilbo_core.benchmarks: Table I functions, the measurement model, y_t and one trial."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from hilbo_core.benchmarks import (
+    FUNCTIONS,
+    METHODS,
+    StoppingMethod,
+    StoppingProtocol,
+    ackley,
+    branin,
+    hartmann6,
+    levy,
+    measure,
+    stopping_trial,
+    y_metric,
+)
+from hilbo_core.errors import ConfigError
+
+TOY = StoppingProtocol(n_explore=3, max_breaths=5, window=1, budget=20, n_candidates=64, n_local=0)
+
+
+# ------------------------------------------------------------------ functions at known points
+def test_hartmann6_at_its_literature_minimiser() -> None:
+    x_star = [0.20169, 0.150011, 0.476874, 0.275332, 0.311652, 0.6573]
+    assert float(hartmann6(x_star)) == pytest.approx(-3.32237, abs=1e-5)
+
+
+def test_branin_at_its_three_minimisers_and_the_origin() -> None:
+    for x in ([-math.pi, 12.275], [math.pi, 2.275], [9.42478, 2.475]):
+        assert float(branin(x)) == pytest.approx(0.397887, abs=1e-6)
+    # (0, 0): (−6)² + 10(1 − 1/(8π))·cos 0 + 10 = 56 − 10/(8π)
+    assert float(branin([0.0, 0.0])) == pytest.approx(56.0 - 10.0 / (8.0 * math.pi), rel=1e-12)
+
+
+def test_ackley_reference_values() -> None:
+    assert float(ackley(np.zeros(4))) == pytest.approx(0.0, abs=1e-15)  # −a − e + a + e
+    # At (1, 1, 1, 1): cos(2π) = 1, so f = 20(1 − e^{−0.2}).
+    assert float(ackley(np.ones(4))) == pytest.approx(20.0 * (1.0 - math.exp(-0.2)), rel=1e-12)
+
+
+def test_levy_reference_values() -> None:
+    assert float(levy(np.ones(4))) == pytest.approx(0.0, abs=1e-15)
+    # At the origin w = 3/4 in every coordinate.
+    w = 0.75
+    expected = (math.sin(math.pi * w) ** 2
+                + 3 * (w - 1) ** 2 * (1 + 10 * math.sin(math.pi * w + 1) ** 2)
+                + (w - 1) ** 2 * (1 + math.sin(2 * math.pi * w) ** 2))
+    assert float(levy(np.zeros(4))) == pytest.approx(expected, rel=1e-12)
+
+
+@pytest.mark.parametrize("name", sorted(FUNCTIONS))
+def test_every_function_reaches_f_min_at_its_minimisers_and_nowhere_lower(name: str) -> None:
+    fn = FUNCTIONS[name]
+    for m in fn.minimizers:
+        assert float(fn(np.array(m))) == pytest.approx(fn.f_min, abs=1e-5)
+    rng = np.random.default_rng(11)
+    lo, hi = np.array(fn.lower), np.array(fn.upper)
+    values = fn(lo + (hi - lo) * rng.uniform(size=(20_000, fn.dim)))
+    assert values.shape == (20_000,)
+    assert values.min() >= fn.f_min - 1e-12
+
+
+@pytest.mark.parametrize("name", sorted(FUNCTIONS))
+def test_table_one_priors_are_the_mean_and_sd_over_the_domain(name: str) -> None:
+    # Seed 000 Table I's (μ̃, σ̃) are the moments of f under a uniform x on the domain.
+    fn = FUNCTIONS[name]
+    rng = np.random.default_rng(5)
+    lo, hi = np.array(fn.lower), np.array(fn.upper)
+    values = fn(lo + (hi - lo) * rng.uniform(size=(200_000, fn.dim)))
+    assert abs(values.mean() - fn.prior_mean) < 0.02 * fn.prior_std
+    assert values.std() == pytest.approx(fn.prior_std, rel=0.02)
+
+
+def test_functions_reject_points_of_the_wrong_dimension() -> None:
+    with pytest.raises(ConfigError, match="dimension 6"):
+        hartmann6(np.zeros(4))
+    with pytest.raises(ConfigError, match="dimension 2"):
+        branin(np.zeros((3, 5)))
+
+
+def test_value_reads_a_parameter_dict_like_the_optimizer_reports_it() -> None:
+    fn = FUNCTIONS["branin"]
+    assert fn.value({"x1": math.pi, "x2": 2.275}) == pytest.approx(fn.f_min, abs=1e-12)
+    space = fn.space()
+    assert space.names == ("x1", "x2") and space.dim == 2
+    assert list(space.lower) == [-5.0, 0.0] and list(space.upper) == [10.0, 15.0]
+
+
+# ------------------------------------------------------------------ measurement model and metric
+def test_measure_adds_gaussian_noise_of_the_given_variance() -> None:
+    rng = np.random.default_rng(3)
+    z = np.array([measure(2.0, 9.0, rng) for _ in range(20_000)])
+    assert z.mean() == pytest.approx(2.0, abs=0.07)
+    assert z.var() == pytest.approx(9.0, rel=0.05)
+    assert measure(2.0, 9.0, np.random.default_rng(1)) == measure(2.0, 9.0, np.random.default_rng(1))
+
+
+def test_y_metric_reference_values() -> None:
+    assert y_metric(5.0, 5.0, 1.0) == 1.0
+    assert y_metric(1.0, 5.0, 1.0) == 0.0
+    assert y_metric(3.0, 5.0, 1.0) == 0.5
+    assert y_metric(9.0, 5.0, 1.0) == 2.0  # worse than x_0
+    np.testing.assert_allclose(y_metric([1.0, 3.0], 5.0, 1.0), [0.0, 0.5])
+    # x_0 already optimal: y is 0 at the optimum, inf elsewhere.
+    assert y_metric(1.0, 1.0, 1.0) == 0.0 and y_metric(2.0, 1.0, 1.0) == math.inf
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.floats(-1e3, 1e3), st.floats(1e-3, 1e3), st.floats(0, 1e3), st.floats(0, 1e3))
+def test_y_metric_is_non_negative_and_monotone(f_min: float, gap0: float, a: float, b: float) -> None:
+    ya, yb = y_metric(f_min + a, f_min + gap0, f_min), y_metric(f_min + b, f_min + gap0, f_min)
+    assert ya >= 0.0 and yb >= 0.0
+    assert (ya <= yb) == (a <= b) or math.isclose(ya, yb)
+
+
+# ------------------------------------------------------------------ one trial
+@pytest.fixture(scope="module")
+def toy_trials() -> dict[str, dict]:
+    return {m: stopping_trial("branin", 1.0, m, 7, TOY) for m in ("fixed", "adaptive")}
+
+
+def test_trial_respects_the_budget_and_starts_at_one(toy_trials: dict[str, dict]) -> None:
+    for r in toy_trials.values():
+        assert r["measurements"] == TOY.budget
+        assert len(r["y"]) == TOY.budget + 1
+        assert r["y"][0] == 1.0
+        assert all(np.isfinite(r["y"])) and min(r["y"]) >= 0.0  # f(x_0) > f* here
+        assert r["y"][-1] == pytest.approx(y_metric(r["f_final"], r["f_x0"], FUNCTIONS["branin"].f_min))
+
+
+def test_fixed_measures_every_evaluation_n_times_and_changes_y_only_at_their_ends(
+        toy_trials: dict[str, dict]) -> None:
+    r = toy_trials["fixed"]
+    assert r["evaluations"] == TOY.budget // TOY.max_breaths and r["early_stops"] == 0
+    y = r["y"]
+    for t in range(1, len(y)):
+        if t % TOY.max_breaths:
+            assert y[t] == y[t - 1]
+
+
+def test_methods_of_a_trial_share_exploration_and_x0(toy_trials: dict[str, dict]) -> None:
+    fixed, adaptive = toy_trials["fixed"], toy_trials["adaptive"]
+    assert fixed["x0"] == adaptive["x0"] and fixed["f_x0"] == adaptive["f_x0"]
+    assert adaptive["evaluations"] >= fixed["evaluations"]
+    assert adaptive["early_stops"] <= adaptive["evaluations"]
+
+
+def test_trial_is_deterministic_in_its_arguments(toy_trials: dict[str, dict]) -> None:
+    again = stopping_trial("branin", 1.0, "adaptive", 7, TOY)
+    assert again == toy_trials["adaptive"]
+    other = stopping_trial("branin", 1.0, "adaptive", 8, TOY)
+    assert other["x0"] != again["x0"]
+
+
+def test_trial_accepts_negative_objectives_and_custom_methods() -> None:
+    custom = StoppingMethod("fixed_ei_xi", "fixed stopping, ξ = 0.01", {"stopping": "fixed", "xi": 0.01})
+    proto = StoppingProtocol(n_explore=3, max_breaths=4, budget=8, n_candidates=32, n_local=0)
+    r = stopping_trial(FUNCTIONS["hartmann6"], 0.1, custom, 2, proto)  # Hartmann-6 is negative
+    assert r["method"] == "fixed_ei_xi" and r["f_x0"] < 0 and len(r["y"]) == 9
+
+
+@pytest.mark.parametrize(("kwargs", "match"), [
+    ({"function": "rosenbrock"}, "unknown function 'rosenbrock'; choose one of"),
+    ({"method": "bogus"}, r"unknown method 'bogus'; choose one of \['adaptive', 'fixed'\]"),
+    ({"noise": 0.0}, "noise=0.0"),
+    ({"noise": "loud"}, "noise='loud'"),
+    ({"seed": -1}, "seed=-1"),
+])
+def test_trial_rejects_bad_input_by_name(kwargs: dict, match: str) -> None:
+    args = {"function": "branin", "noise": 1.0, "method": "fixed", "seed": 0, **kwargs}
+    with pytest.raises(ConfigError, match=match):
+        stopping_trial(args["function"], args["noise"], args["method"], args["seed"], TOY)
+
+
+def test_noise_models_agree_at_the_prior_variance_and_differ_elsewhere() -> None:
+    # matched: measurement variance = σ_z²; assumed: σ̃² (σ_z² only in the estimator). At
+    # σ_z² = σ̃² the two readings of seed 000 §III.2 are the same experiment.
+    proto = {"n_explore": 3, "max_breaths": 4, "budget": 8, "n_candidates": 32, "n_local": 0}
+    matched = StoppingProtocol(**proto, noise_model="matched")  # type: ignore[arg-type]
+    assumed = StoppingProtocol(**proto, noise_model="assumed")  # type: ignore[arg-type]
+    same = [stopping_trial("branin", 1.0, "adaptive", 3, p) for p in (matched, assumed)]
+    assert same[0] == same[1]
+    # At 10σ̃² "assumed" measures with variance σ̃² only: different data, different stops.
+    high = [stopping_trial("branin", 10.0, "adaptive", 3, p) for p in (matched, assumed)]
+    assert high[0]["evaluations"] != high[1]["evaluations"]
+
+
+def test_protocol_rejects_a_budget_smaller_than_one_evaluation() -> None:
+    with pytest.raises(ConfigError, match="budget=10 measurements is smaller than one full evaluation"):
+        StoppingProtocol(max_breaths=45, budget=10)
+    with pytest.raises(ConfigError, match="noise_model='loud'"):
+        StoppingProtocol(noise_model="loud")  # type: ignore[arg-type]
+
+
+def test_methods_may_not_override_the_protocol() -> None:
+    bad = StoppingMethod("cheat", "bigger budget", {"budget_breaths": 10_000})
+    with pytest.raises(ConfigError, match="may not override protocol option"):
+        stopping_trial("branin", 1.0, bad, 0, TOY)
+    assert set(METHODS) == {"fixed", "adaptive"}
