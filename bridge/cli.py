@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import os
 import sys
@@ -30,13 +29,6 @@ def _speed(text: str) -> float | None:
     if not value > 0:
         raise argparse.ArgumentTypeError(f"speed must be 'max' or a positive number, got {text!r}")
     return value
-
-
-def write_json_atomic(path: Path, data: Any) -> None:
-    """Write JSON so a reader never sees half a file (write to a temporary, then rename)."""
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2, sort_keys=False) + "\n")
-    os.replace(tmp, path)
 
 
 def _cmd_sim(args: argparse.Namespace) -> int:
@@ -101,6 +93,7 @@ def _cmd_sim_core(args: argparse.Namespace) -> int:
     from rich.console import Console
 
     from bridge.insim import SimConfig, SimEvaluation, run_insim
+    from bridge.run import write_json_atomic
     from hilbo_core import HILOptimizer
 
     console = Console(stderr=True)
