@@ -447,8 +447,11 @@ class BridgeSession:
             if self._stop.is_set():
                 raise _Stopped
             # Breaths during a pause are drained and logged but count against nothing.
+            # asyncio.timeout, not wait_for: Python 3.11's wait_for swallows a cancellation
+            # that arrives as the inner get() completes, and the task then never ends.
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._breaths.queue.get(), timeout=0.05)
+                async with asyncio.timeout(0.05):
+                    await self._breaths.queue.get()
 
     # ------------------------------------------------------------------ safety
     async def _pause(self, reason: AssistanceOffReason, text: str) -> None:
@@ -513,7 +516,10 @@ class BridgeSession:
         with self.endpoint.subscribe(ForceFeedback, maxsize=8192) as sub:
             while True:
                 try:
-                    fb = await asyncio.wait_for(sub.get(), timeout=period)
+                    # Not wait_for: on Python 3.11 it swallows a cancellation that arrives as a
+                    # frame does (at 2 kHz, often), so the session hung on shutdown.
+                    async with asyncio.timeout(period):
+                        fb = await sub.get()
                     self.device.feedback_frames += 1
                     batch.setdefault(fb.actuator, []).append(
                         (fb.desired_force_n, fb.measured_force_n, fb.gait_phase_pct))

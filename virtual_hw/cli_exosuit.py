@@ -176,7 +176,8 @@ async def _serve(args: argparse.Namespace) -> int:
             status = 1
     finally:
         try:
-            error = await asyncio.wait_for(device.close(), STOP_TIMEOUT_S)
+            async with asyncio.timeout(STOP_TIMEOUT_S):
+                error = await device.close()
         except TimeoutError:
             error = TimeoutError(f"the device did not close within {STOP_TIMEOUT_S} s")
         for sig in (signal.SIGINT, signal.SIGTERM):

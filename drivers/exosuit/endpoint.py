@@ -774,7 +774,9 @@ class CanEndpoint:
             if remaining <= 0:
                 return None
             try:
-                ack = await asyncio.wait_for(acks.get(), remaining)
+                # asyncio.timeout: 3.11's wait_for can swallow a cancellation of the push.
+                async with asyncio.timeout(remaining):
+                    ack = await acks.get()
             except TimeoutError:
                 return None
             if ack.version == version:
