@@ -15,6 +15,21 @@ recursion guard read by tests/conftest.py), writes its output and exit status to
 directory, and powers the machine off through sysrq. The whole UML process group is killed if
 it outlives ``--timeout``.
 
+On a host CPU with AMX (Intel Sapphire Rapids and later) Debian's UML kernels (6.1 and 6.12)
+panic at the first guest process ("userspace - ptrace set fp regs failed, errno = 14": the
+host's XSAVE buffer is larger than UML's). There UML runs with ``scripts/uml_xstate_shim.c``
+preloaded (compiled with the system's cc on first use, cached next to the work directories),
+which pads UML's ptrace writes of the FPU state to the host's size.
+
+A second guest, opt-in with ``HILBO_GUEST=qemu``, runs the same init script in a QEMU virtual
+machine instead: QEMU boots the host's own Debian kernel (``linux-image-amd64``) with a tiny
+initramfs (static busybox + the 9p/virtio modules) that mounts the host's ``/`` over virtio-9p and
+switches to it, so the guest again shares the host's filesystem and virtualenv. It emulates the
+CPU (TCG) unless ``HILBO_QEMU_ACCEL=kvm``: under nested virtualisation, as on this project's CI
+VMs, ``/dev/kvm`` opens but a Linux guest hangs before printing anything.
+It is much slower than UML (minutes, not seconds, for the vcan tests) and is kept for hosts
+where UML cannot run at all. ``HILBO_GUEST=uml|qemu`` chooses (default uml).
+
 Usage::
 
     scripts/uml_run.py [--timeout S] [--mem SIZE] [--env K=V ...] [--keep] -- CMD [ARG ...]
@@ -27,8 +42,11 @@ runs with any Python 3.9+.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import glob
+import hashlib
 import logging
+import lzma
 import os
 import shlex
 import shutil
@@ -39,7 +57,8 @@ import tempfile
 import time
 from pathlib import Path
 
-__all__ = ["IN_UML_ENV", "UmlResult", "find_uml", "main", "run_in_uml"]
+__all__ = ["IN_UML_ENV", "UmlResult", "choose_backend", "find_qemu", "find_uml", "guest_problem", "main",
+           "run_in_uml", "xstate_shim"]
 
 log = logging.getLogger("uml_run")
 
@@ -116,9 +135,16 @@ def find_uml() -> tuple[str, str] | None:
     return kernel, ("missing: " + ", ".join(missing)) if missing else ""
 
 
-def _init_script(work: Path, cwd: Path, env: dict[str, str], command: list[str]) -> str:
+def _init_script(work: Path, cwd: Path, env: dict[str, str], command: list[str],
+                 *, backend: str = "uml") -> str:
     exports = "\n".join(f"export {k}={shlex.quote(v)}" for k, v in sorted(env.items()))
     modules = " ".join(_MODULES)
+    # UML's modules live in the package's own tree; the QEMU guest runs the host's Debian kernel,
+    # whose modules (possibly compressed) modprobe finds under /lib/modules.
+    load = (f'mods=/usr/lib/uml/modules/$(uname -r)/kernel\n'
+            f'for m in {modules}; do insmod "$mods/$m" || echo "insmod $m failed"; done'
+            if backend == "uml" else
+            'for m in can can-raw can-bcm can-dev vcan; do modprobe "$m" || echo "modprobe $m failed"; done')
     cmd = " ".join(shlex.quote(c) for c in command)
     w = shlex.quote(str(work))
     # Everything the guest writes goes to the work dir, which the host reads after power-off
@@ -132,8 +158,7 @@ mountpoint -q /dev || mount -t devtmpfs devtmpfs /dev
 mkdir -p /dev/pts /dev/shm
 mount -t devpts devpts /dev/pts
 mount -t tmpfs tmpfs /dev/shm
-mods=/usr/lib/uml/modules/$(uname -r)/kernel
-for m in {modules}; do insmod "$mods/$m" || echo "insmod $m failed"; done
+{load}
 ip link set lo up
 ip link add dev vcan0 type vcan && ip link set up vcan0
 ip -details link show vcan0
@@ -175,6 +200,245 @@ def _kill_group(proc: subprocess.Popen[bytes]) -> None:
     proc.wait()
 
 
+# --- the QEMU guest ------------------------------------------------------------------------------
+
+_QEMU_TAG = "hostroot"
+#: Modules the initramfs loads (with their dependencies) to mount the host's / over virtio-9p.
+_QEMU_BOOT_MODULES = ("virtio_pci", "9pnet_virtio", "9p")
+
+
+def _host_has_amx() -> bool:
+    try:
+        flags = Path("/proc/cpuinfo").read_text(errors="replace")
+    except OSError:
+        return False
+    return " amx_tile" in flags
+
+
+def _kvm_openable() -> str:
+    try:
+        fd = os.open("/dev/kvm", os.O_RDWR)
+    except OSError as err:
+        return f"/dev/kvm: {err.strerror}"
+    os.close(fd)
+    return ""
+
+
+def find_qemu() -> tuple[str, Path, str] | str:
+    """Locate what the QEMU guest needs.
+
+    Returns:
+        (qemu binary, kernel image, kernel release), or a message saying what is missing.
+    """
+    qemu = shutil.which("qemu-system-x86_64")
+    missing = [] if qemu else ["qemu-system-x86_64 (apt-get install qemu-system-x86)"]
+    if not (shutil.which("busybox") or os.path.exists("/bin/busybox")):
+        missing.append("busybox (apt-get install busybox-static)")
+    if os.environ.get("HILBO_QEMU_ACCEL", "tcg") == "kvm":
+        problem = _kvm_openable()
+        if problem:
+            missing.append(problem)
+    kernel: Path | None = None
+    release = ""
+    for image in sorted(glob.glob("/boot/vmlinuz-*"), reverse=True):
+        rel = image.removeprefix("/boot/vmlinuz-")
+        if glob.glob(f"/lib/modules/{rel}/kernel/drivers/net/can/vcan.ko*"):
+            kernel, release = Path(image), rel
+            break
+    if kernel is None:
+        missing.append("a kernel with vcan under /boot and /lib/modules (apt-get install linux-image-amd64)")
+    if missing or qemu is None or kernel is None:
+        return "missing: " + ", ".join(missing)
+    return qemu, kernel, release
+
+
+def choose_backend() -> str:
+    """``uml`` (default) or ``qemu``, as ``HILBO_GUEST`` says."""
+    return "qemu" if os.environ.get("HILBO_GUEST") == "qemu" else "uml"
+
+
+_SHIM_SOURCE = Path(__file__).resolve().parent / "uml_xstate_shim.c"
+
+
+def xstate_shim() -> Path | None:
+    """The compiled :file:`uml_xstate_shim.c` on an AMX host (None elsewhere: not needed).
+
+    Raises:
+        FileNotFoundError: the host needs it and there is no C compiler to build it.
+    """
+    if not _host_has_amx():
+        return None
+    source = _SHIM_SOURCE.read_bytes()
+    digest = hashlib.sha256(source).hexdigest()[:16]
+    out = Path(tempfile.gettempdir()) / f"hilbo-uml-xstate-shim-{digest}.so"
+    if out.exists():
+        return out
+    cc = shutil.which("cc") or shutil.which("gcc")
+    if cc is None:
+        raise FileNotFoundError("this CPU has AMX, so user-mode Linux needs scripts/uml_xstate_shim.c "
+                                "compiled, and there is no C compiler (apt-get install gcc)")
+    tmp = out.with_suffix(f".{os.getpid()}.tmp")
+    subprocess.run([cc, "-shared", "-fPIC", "-O2", "-o", str(tmp), str(_SHIM_SOURCE), "-ldl"],
+                   check=True, capture_output=True)
+    tmp.replace(out)  # atomic: parallel runs never load a half-written library
+    return out
+
+
+def guest_problem() -> str | None:
+    """Why no guest can run the vcan tests here, or None when the chosen one can."""
+    backend = choose_backend()
+    if backend == "qemu":
+        found = find_qemu()
+        return f"the QEMU guest is not usable ({found})" if isinstance(found, str) else None
+    uml = find_uml()
+    if uml is None:
+        return "linux.uml not installed (scripts/ensure-uml.sh installs it as root)"
+    if not uml[1] and _host_has_amx() and not (shutil.which("cc") or shutil.which("gcc")):
+        return "this CPU has AMX and user-mode Linux then needs a C compiler for its shim (gcc)"
+    return uml[1] or None
+
+
+def _module_deps(release: str) -> tuple[dict[str, list[str]], set[str]]:
+    """modules.dep as {name: [relative paths of it and its dependencies]} and the built-in names."""
+    base = Path(f"/lib/modules/{release}")
+    deps: dict[str, list[str]] = {}
+    for line in (base / "modules.dep").read_text().splitlines():
+        path, _, rest = line.partition(":")
+        name = Path(path).name.split(".ko")[0].replace("-", "_")
+        deps[name] = [path, *rest.split()]
+    builtin = set()
+    with contextlib.suppress(OSError):
+        for line in (base / "modules.builtin").read_text().splitlines():
+            builtin.add(Path(line).name.split(".ko")[0].replace("-", "_"))
+    return deps, builtin
+
+
+def _load_order(release: str, wanted: tuple[str, ...]) -> list[str]:
+    """Module files (relative to /lib/modules/RELEASE) in an order insmod accepts."""
+    deps, builtin = _module_deps(release)
+    order: list[str] = []
+
+    def visit(path: str) -> None:
+        name = Path(path).name.split(".ko")[0].replace("-", "_")
+        entry = deps.get(name, [path])
+        # modules.dep lists a module's dependencies deepest last: load them in reverse.
+        for dep in reversed(entry[1:]):
+            visit(dep)
+        if path not in order:
+            order.append(path)
+
+    for mod in wanted:
+        key = mod.replace("-", "_")
+        if key in builtin:
+            continue
+        if key not in deps:
+            raise FileNotFoundError(f"kernel {release} has no module {mod} (nor is it built in)")
+        visit(deps[key][0])
+    return order
+
+
+def _module_bytes(path: Path) -> bytes:
+    data = path.read_bytes()
+    if path.suffix == ".xz":
+        return lzma.decompress(data)
+    if path.suffix == ".zst":
+        zstd = shutil.which("zstd")
+        if zstd is None:
+            raise FileNotFoundError(f"{path} is zstd-compressed and there is no zstd to unpack it")
+        return subprocess.run([zstd, "-dc", str(path)], check=True, capture_output=True).stdout
+    return data
+
+
+def _cpio(entries: list[tuple[str, int, bytes]]) -> bytes:
+    """A newc cpio archive of (name, mode, data) entries: what the kernel unpacks as initramfs."""
+    out = bytearray()
+    for ino, (name, mode, data) in enumerate([*entries, ("TRAILER!!!", 0, b"")], start=1):
+        raw = name.encode() + b"\0"
+        fields = [ino, mode, 0, 0, 1, 0, len(data), 0, 0, 0, 0, len(raw), 0]
+        out += b"070701" + b"".join(f"{v:08x}".encode() for v in fields) + raw
+        out += b"\0" * (-len(out) % 4) + data
+        out += b"\0" * (-len(out) % 4)
+    return bytes(out)
+
+
+def _initramfs(release: str, work: Path, init: Path) -> Path:
+    busybox = Path(shutil.which("busybox") or "/bin/busybox")
+    files = _load_order(release, _QEMU_BOOT_MODULES)
+    names = [f"m{k}.ko" for k in range(len(files))]
+    script = f"""#!/bin/busybox sh
+/bin/busybox mkdir -p /proc /dev /newroot
+/bin/busybox mount -t proc proc /proc
+/bin/busybox mount -t devtmpfs devtmpfs /dev
+for m in {' '.join(names)}; do /bin/busybox insmod /lib/$m || echo "insmod $m failed"; done
+if ! /bin/busybox mount -t 9p -o trans=virtio,version=9p2000.L,msize=512000,cache=loose \\
+     {_QEMU_TAG} /newroot; then
+  echo "mounting the host's / over 9p failed"; /bin/busybox poweroff -f
+fi
+/bin/busybox umount /dev
+/bin/busybox umount /proc
+exec /bin/busybox switch_root /newroot {shlex.quote(str(init))}
+"""
+    entries: list[tuple[str, int, bytes]] = [
+        ("bin", 0o040755, b""), ("lib", 0o040755, b""), ("dev", 0o040755, b""),
+        ("proc", 0o040755, b""), ("newroot", 0o040755, b""),
+        ("bin/busybox", 0o100755, busybox.read_bytes()),
+        ("init", 0o100755, script.encode()),
+    ]
+    for name, rel in zip(names, files, strict=True):
+        entries.append((f"lib/{name}", 0o100644, _module_bytes(Path(f"/lib/modules/{release}") / rel)))
+    path = work / "initramfs.cpio"
+    path.write_bytes(_cpio(entries))
+    return path
+
+
+def _uncompressed_kernel(image: Path, work: Path) -> Path:
+    """The ELF ``vmlinux`` inside a bzImage, which QEMU boots through its PVH entry point.
+
+    Why: it boots a little faster under TCG (no decompression in an emulated CPU), and with KVM
+    under nested virtualisation the bzImage's decompressor stops QEMU with "KVM internal error
+    ... emulation failure" (shadow paging cannot emulate its BMI2 instructions).
+    """
+    data = image.read_bytes()
+    for magic, tool in ((b"\x28\xb5\x2f\xfd", ["zstd", "-dcq"]), (b"\xfd7zXZ\x00", ["xz", "-dcq"]),
+                        (b"\x1f\x8b\x08", ["gzip", "-dcq"])):
+        off = data.find(magic)
+        if off < 0 or shutil.which(tool[0]) is None:
+            continue
+        # The compressed payload is followed by the bzImage's trailer: the tool then complains
+        # about trailing data after writing the whole kernel, so its exit status is not used.
+        out = subprocess.run(tool, input=data[off:], capture_output=True, check=False).stdout
+        if out[:4] == b"\x7fELF":
+            path = work / "vmlinux"
+            path.write_bytes(out)
+            return path
+    raise FileNotFoundError(f"could not unpack the kernel in {image} (needs zstd, xz or gzip)")
+
+
+def _accel_args() -> list[str]:
+    # KVM where it really works (a lab PC); TCG by default, because under nested virtualisation
+    # (this project's CI VMs) /dev/kvm opens but a Linux guest hangs before its first message.
+    if os.environ.get("HILBO_QEMU_ACCEL", "tcg") == "kvm":
+        return ["-accel", "kvm", "-cpu", "host"]
+    return ["-accel", "tcg,thread=multi", "-cpu", "max"]
+
+
+def _qemu_argv(work: Path, init: Path, mem: str) -> list[str]:
+    found = find_qemu()
+    if isinstance(found, str):
+        raise FileNotFoundError(f"the QEMU guest is not usable here ({found})")
+    qemu, kernel, release = found
+    initrd = _initramfs(release, work, init)
+    return [
+        qemu, "-machine", "pc", *_accel_args(), "-smp", "2", "-m", mem,
+        "-nodefaults", "-no-user-config", "-display", "none", "-no-reboot", "-nic", "none",
+        "-serial", f"file:{work / 'serial.log'}",
+        "-kernel", str(_uncompressed_kernel(kernel, work)), "-initrd", str(initrd),
+        "-append", "console=ttyS0 quiet panic=-1 rdinit=/init",
+        "-fsdev", "local,id=hostroot,path=/,security_model=passthrough,multidevs=remap",
+        "-device", f"virtio-9p-pci,fsdev=hostroot,mount_tag={_QEMU_TAG}",
+    ]
+
+
 def run_in_uml(
     command: list[str],
     *,
@@ -183,47 +447,62 @@ def run_in_uml(
     env: dict[str, str] | None = None,
     cwd: Path | None = None,
     keep: bool = False,
+    backend: str | None = None,
 ) -> UmlResult:
-    """Boot UML once, run ``command`` in it with vcan0 up, and return what happened.
+    """Boot the guest once, run ``command`` in it with vcan0 up, and return what happened.
 
     Args:
         command: argv of the command to run inside the guest (absolute paths are safest).
         timeout_s: the whole boot (start to power-off) is killed after this many seconds.
-        mem: UML memory size (``mem=`` boot option).
+        mem: guest memory size (UML's ``mem=``, QEMU's ``-m``), e.g. ``1G``.
         env: extra environment for the command (``HILBO_IN_UML=1`` is always set).
         cwd: working directory of the command (default: the caller's).
         keep: keep the work directory (init script, console log, output) for inspection.
+        backend: ``uml`` or ``qemu``; None chooses (:func:`choose_backend`).
 
     Returns:
         An :class:`UmlResult`.
 
     Raises:
-        FileNotFoundError: user-mode Linux is not installed.
+        FileNotFoundError: the chosen guest is not installed or not usable.
     """
-    found = find_uml()
-    if found is None or found[1]:
-        raise FileNotFoundError(
-            "user-mode Linux is not usable here ("
-            + ("linux.uml not found" if found is None else found[1])
-            + "); install it with `apt-get install user-mode-linux kmod iproute2`"
-        )
-    kernel = found[0]
+    backend = backend or choose_backend()
+    if backend == "uml":
+        found = find_uml()
+        if found is None or found[1]:
+            raise FileNotFoundError(
+                "user-mode Linux is not usable here ("
+                + ("linux.uml not found" if found is None else found[1])
+                + "); install it with `apt-get install user-mode-linux kmod iproute2`"
+            )
     work = Path(tempfile.mkdtemp(prefix="hilbo-uml-"))
     (work / "uml").mkdir()
     init = work / "init"
-    init.write_text(_init_script(work, (cwd or Path.cwd()).resolve(), env or {}, command))
+    init.write_text(_init_script(work, (cwd or Path.cwd()).resolve(), env or {}, command,
+                                 backend=backend))
     init.chmod(0o755)
-    argv = [
-        kernel,
-        f"mem={mem}",
-        "rootfstype=hostfs",
-        "rootflags=/",
-        "rw",
-        "quiet",
-        f"init={init}",
-        "con=null",
-        f"uml_dir={work / 'uml'}",
-    ]
+    if backend == "uml":
+        argv = [
+            found[0],
+            f"mem={mem}",
+            "rootfstype=hostfs",
+            "rootflags=/",
+            "rw",
+            "quiet",
+            f"init={init}",
+            "con=null",
+            f"uml_dir={work / 'uml'}",
+        ]
+    else:
+        try:
+            argv = _qemu_argv(work, init, mem)
+        except BaseException:
+            shutil.rmtree(work, ignore_errors=True)
+            raise
+    boot_env = dict(os.environ)
+    shim = xstate_shim() if backend == "uml" else None
+    if shim is not None:
+        boot_env["LD_PRELOAD"] = str(shim)
     log.debug("booting %s", " ".join(argv))
     t0 = time.monotonic()
     timed_out = False
@@ -231,7 +510,7 @@ def run_in_uml(
         # A new session, so that a hung guest is killed with all its host helper processes.
         proc = subprocess.Popen(
             argv, stdin=subprocess.DEVNULL, stdout=console, stderr=subprocess.STDOUT,
-            start_new_session=True,
+            start_new_session=True, env=boot_env,
         )
         try:
             proc.wait(timeout=timeout_s)
@@ -246,7 +525,7 @@ def run_in_uml(
         status=status,
         timed_out=timed_out and status is None,
         output=_read(work / "output"),
-        console=_read(work / "console.log") + _read(work / "setup.log"),
+        console=_read(work / "console.log") + _read(work / "serial.log") + _read(work / "setup.log"),
         work_dir=work,
         elapsed_s=elapsed_s,
     )
@@ -289,7 +568,8 @@ def main(argv: list[str] | None = None) -> int:
             result.console[-4000:],
         )
         return EXIT_TIMEOUT if result.timed_out else EXIT_UML_FAILED
-    log.info("UML run finished with status %d in %.1f s", result.status, result.elapsed_s)
+    log.info("%s run finished with status %d in %.1f s", choose_backend().upper(), result.status,
+             result.elapsed_s)
     return result.status
 
 

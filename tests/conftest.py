@@ -70,13 +70,11 @@ def _uml_module() -> ModuleType:
 
 
 def uml_problem() -> str | None:
-    """Why user-mode Linux cannot run the vcan tests here, or None when it can."""
+    """Why no guest (user-mode Linux, or a KVM guest on hosts where UML fails) can run the vcan
+    tests here, or None when one can."""
     if IN_UML:
         return "already inside user-mode Linux"
-    found = _uml_module().find_uml()
-    if found is None:
-        return "linux.uml not installed (scripts/ensure-uml.sh installs it as root)"
-    return found[1] or None
+    return _uml_module().guest_problem()
 
 
 # --- inside the guest: one JSON line per test phase --------------------------------------------

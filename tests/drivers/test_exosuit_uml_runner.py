@@ -41,13 +41,44 @@ def test_init_script_loads_can_modules_sets_the_guard_and_quotes_the_command(
     assert text.index("status.tmp") < text.index("/status\n") < text.index("sysrq-trigger")
 
 
+def test_qemu_init_script_loads_the_can_modules_with_modprobe(tmp_path: Path) -> None:
+    text = uml_run._init_script(tmp_path, Path("/w"), {}, ["true"], backend="qemu")
+    assert "modprobe \"$m\"" in text and "for m in can can-raw can-bcm can-dev vcan" in text
+    assert "/usr/lib/uml/modules" not in text
+    assert "ip link add dev vcan0 type vcan" in text
+
+
+def test_initramfs_archive_is_newc_cpio_with_aligned_entries() -> None:
+    data = uml_run._cpio([("init", 0o100755, b"#!/bin/sh\n"), ("lib", 0o040755, b"")])
+    names, pos = [], 0
+    while True:
+        header = data[pos:pos + 110]
+        assert header[:6] == b"070701"
+        fields = [int(header[6 + 8 * k: 14 + 8 * k], 16) for k in range(13)]
+        size, namesize = fields[6], fields[11]
+        name = data[pos + 110: pos + 110 + namesize - 1].decode()
+        names.append(name)
+        pos += 110 + namesize
+        pos += -pos % 4
+        assert data[pos:pos + size] == (b"#!/bin/sh\n" if name == "init" else b"")
+        pos += size + (-size % 4)
+        if name == "TRAILER!!!":
+            break
+    assert names == ["init", "lib", "TRAILER!!!"]
+    assert pos == len(data) and len(data) % 4 == 0
+
+
+def test_guest_follows_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("HILBO_GUEST", "qemu")
+    assert uml_run.choose_backend() == "qemu"
+    monkeypatch.setenv("HILBO_GUEST", "uml")
+    assert uml_run.choose_backend() == "uml"
+
+
 def usable() -> str | None:
     if os.environ.get(uml_run.IN_UML_ENV) == "1":
         return "inside user-mode Linux"
-    found = uml_run.find_uml()
-    if found is None:
-        return "user-mode Linux not installed"
-    return found[1] or None
+    return uml_run.guest_problem()
 
 
 @pytest.mark.slow
