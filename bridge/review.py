@@ -1,0 +1,1104 @@
+"""``hilbo review``: plots, a report and CSV tables of a session, from its MCAP log(s).
+
+``hilbo review LOG.mcap [LOG2.mcap ...] [--out DIR]``
+    Reads one session: one log, or the files of a session resumed after a crash (the old log
+    and the one ``hilbo run --resume`` wrote; any order: the ``previous_log`` link orders them).
+    A log cut off by a crash is read up to its last intact record (:func:`bridge.logread.read_log`).
+    Writes into DIR (default ``<log dir>/<log stem>-review/``):
+
+    * ``timeline.png``: breath-by-breath metabolic power (W) with the UKF estimate of each
+      setting and its ±1 σ band on one continuous time axis, setting changes
+      marked (seed 000 Fig. 1), and the estimate's σ below;
+    * ``best_so_far.png``: best estimated cost so far (W) against minutes walked;
+    * ``parameters.png``: each parameter against evaluation number, early stops marked;
+    * ``thresholds.png``: Algorithm 2's threshold schedule A over breath index with the
+      standardised exploration traces X it is the envelope of (seed 000 Algorithm 2) and the
+      z of the optimisation evaluations (skipped when exploration did not complete);
+    * ``force_tracking.png``: desired vs measured force over the gait cycle while the
+      recommended setting was measured (seed 000 Fig. 4; skipped without ``/force_feedback``);
+    * ``report.md`` and ``report.html`` (self-contained, images inlined): configuration,
+      recommended setting, evaluations, events and faults, rejected records/frames by reason;
+    * ``evaluations.csv`` (one row per evaluation) and ``breaths.csv`` (one row per breath).
+
+``hilbo review --compare A.mcap B.mcap [--out DIR]``
+    Two sessions side by side: ``compare.png`` (best so far against minutes, evaluation counts)
+    and ``compare.md``/``compare.html`` (default DIR ``<A's dir>/compare-<A stem>-vs-<B stem>/``).
+
+Times. Every breath-tied time is the *session time*: seconds since the file's first breath on
+the cart's clock (what ``t_start``/``t_end`` of ``/observations`` and ``summary.json`` use). The
+files of a resumed session are laid end to end (the new process's cart clock does not continue
+the old one). Messages without a breath time (events, acks, device status) are placed at the
+last breath logged before them.
+
+The recommended setting is what the session itself recommends: ``HILOptimizer.best()`` (the
+GP's estimated minimum among the evaluated points, with that evaluation's estimate) of the last
+``/optimizer_state`` snapshot, or of the optimizer rebuilt by :func:`bridge.resume.rebuild_optimizer`
+when evaluations completed after that snapshot; failing both, the lowest estimated mean.
+
+Bad input (a missing file, not MCAP, empty, another program's MCAP, a hilbo log with nothing
+in it, files of different sessions) raises a :class:`~bridge.errors.BridgeError` whose one-line
+message names the file and what was expected; ``hilbo`` turns it into exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import logging
+import math
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bridge.errors import ReviewError
+from bridge.log import LogError, LogFormatError, Topic
+from bridge.logread import LogContents, read_log
+
+__all__ = [
+    "Breath",
+    "CompareResult",
+    "EstimateTrace",
+    "EvaluationRow",
+    "FeedbackData",
+    "LogFile",
+    "Recommendation",
+    "ReviewResult",
+    "Session",
+    "ThresholdData",
+    "TimelineEvent",
+    "ZTrace",
+    "add_review_parser",
+    "compare_sessions",
+    "default_compare_dir",
+    "default_review_dir",
+    "load_session",
+    "review_session",
+]
+
+logger = logging.getLogger(__name__)
+
+_LEVELS = {0: "unknown", 1: "debug", 2: "info", 3: "warning", 4: "error", 5: "fatal"}
+
+
+# ---------------------------------------------------------------------------------- data
+@dataclass(frozen=True)
+class LogFile:
+    """One file of the session.
+
+    Attributes:
+        path: The file as given.
+        session_id: Its session id.
+        previous_log: The log it resumes (as stored), or None.
+        complete: Closed normally (False: cut off by a crash).
+        size_bytes: File size.
+        unreadable_bytes: Bytes after the last intact record.
+        stop_reason: Why reading stopped early ("" when complete).
+        messages: Messages read.
+        offset_s: Where its first breath lies on the merged session-time axis, s.
+        duration_s: First to last breath, s.
+    """
+
+    path: str
+    session_id: str | None
+    previous_log: str | None
+    complete: bool
+    size_bytes: int
+    unreadable_bytes: int
+    stop_reason: str
+    messages: int
+    offset_s: float
+    duration_s: float
+
+    @property
+    def name(self) -> str:
+        """The file name."""
+        return Path(self.path).name
+
+
+@dataclass(frozen=True)
+class Breath:
+    """One ``/breaths`` record, joined with the estimate it produced (if it was fed to the optimizer).
+
+    Attributes:
+        file: Index of its file in :attr:`Session.files`.
+        t_s: Breath time on the cart's clock, s.
+        time_s: Session time, s.
+        vo2_ml_min, vco2_ml_min, ve_l_min, rer, hr_bpm: As the cart reported them (None if absent).
+        watts: Metabolic power by Brockway's equation, W.
+        evaluation: Index of the evaluation it was fed to, or None (warm-up, pause).
+        breath: 0-based breath index within that evaluation, or None.
+        mean_w: The estimate after it, W, or None.
+        sd_w: Its standard deviation, W, or None.
+    """
+
+    file: int
+    t_s: float
+    time_s: float
+    vo2_ml_min: float | None
+    vco2_ml_min: float | None
+    ve_l_min: float | None
+    rer: float | None
+    hr_bpm: float | None
+    watts: float | None
+    evaluation: int | None
+    breath: int | None
+    mean_w: float | None
+    sd_w: float | None
+
+
+@dataclass(frozen=True)
+class EstimateTrace:
+    """The estimator's output over one measured setting (one run of ``/estimator`` messages).
+
+    Attributes:
+        index: Evaluation index.
+        file: Its file.
+        phase: exploration or optimization.
+        t_start_s: Session time when the setting was applied, s.
+        time_s: Session time of each breath, s.
+        watts: Power fed to the optimizer per breath, W.
+        mean_w: Estimate after each breath, W.
+        sd_w: Its standard deviation, W.
+        completed: The run ended with a completed evaluation (False: abandoned or cut off).
+    """
+
+    index: int
+    file: int
+    phase: str
+    t_start_s: float
+    time_s: tuple[float, ...]
+    watts: tuple[float, ...]
+    mean_w: tuple[float, ...]
+    sd_w: tuple[float, ...]
+    completed: bool
+
+
+@dataclass(frozen=True)
+class EvaluationRow:
+    """A completed evaluation.
+
+    Attributes:
+        index: 0-based evaluation number.
+        params: The setting.
+        mean_w: Estimated steady-state cost, W.
+        var_w2: Its variance, W².
+        breaths: Breaths measured.
+        duration_s: Breath time from the setting's start to its last breath, s.
+        phase: exploration or optimization.
+        stopped_early: Stopped by the σ-scaled rule.
+        reason: threshold, max_measurements, budget or told.
+        t_start_s: Session time when the setting was applied, s (None if unknown).
+        t_end_s: Session time of its last breath, s (None if unknown).
+        file: Index of the file it completed in.
+        source: ``observation`` (logged on ``/observations``) or ``snapshot`` (only in an
+            ``/optimizer_state`` snapshot: completed by the resume's replay).
+    """
+
+    index: int
+    params: Mapping[str, float]
+    mean_w: float
+    var_w2: float
+    breaths: int
+    duration_s: float
+    phase: str
+    stopped_early: bool
+    reason: str
+    t_start_s: float | None
+    t_end_s: float | None
+    file: int
+    source: str = "observation"
+
+    @property
+    def sd_w(self) -> float:
+        """Standard deviation of the estimate, W."""
+        return math.sqrt(self.var_w2) if self.var_w2 >= 0 else math.nan
+
+
+@dataclass(frozen=True)
+class TimelineEvent:
+    """An event, fault, nack or log condition, placed on the session-time axis.
+
+    Attributes:
+        time_s: Session time, s.
+        file: Its file.
+        level: info, warning, error...
+        kind: Machine-readable kind (the ``/events`` kind, ``fault``, ``nack``, ``log_cut_off``...).
+        message: Human-readable text.
+    """
+
+    time_s: float
+    file: int
+    level: str
+    kind: str
+    message: str
+
+
+@dataclass(frozen=True)
+class Recommendation:
+    """The recommended setting.
+
+    Attributes:
+        params: The setting.
+        mean_w: Its estimated cost, W.
+        var_w2: The estimate's variance, W².
+        index: The evaluation it comes from, or None.
+        method: How it was obtained (for the report).
+    """
+
+    params: Mapping[str, float]
+    mean_w: float
+    var_w2: float
+    index: int | None
+    method: str
+
+    @property
+    def sd_w(self) -> float:
+        """Standard deviation, W."""
+        return math.sqrt(self.var_w2) if self.var_w2 >= 0 else math.nan
+
+
+@dataclass(frozen=True)
+class ZTrace:
+    """The stopping rule's standardised distance z over one optimisation evaluation.
+
+    Attributes:
+        index: Evaluation index.
+        breath: 0-based breath indices.
+        z: (μ − μ*)/σ after each breath.
+        stopped_early: The evaluation was stopped by the threshold.
+    """
+
+    index: int
+    breath: tuple[int, ...]
+    z: tuple[float, ...]
+    stopped_early: bool
+
+
+@dataclass(frozen=True)
+class ThresholdData:
+    """Algorithm 2's threshold schedule and what it was computed from.
+
+    Attributes:
+        thresholds: A over breath index (N,).
+        traces: Standardised exploration traces X (n_explore, N),
+            ``X_ij = (M_ij − M_iN)/sqrt(S_ij + S_iN)``.
+        source: Where they came from (for the report).
+        z_traces: The optimisation evaluations' z.
+    """
+
+    thresholds: np.ndarray
+    traces: np.ndarray
+    source: str
+    z_traces: tuple[ZTrace, ...]
+
+
+@dataclass(frozen=True)
+class FeedbackData:
+    """Force feedback recorded while one setting was measured.
+
+    Attributes:
+        index: The evaluation.
+        version: Profile version on the bus.
+        samples: ``{actuator: (gait_phase_pct, desired_n, measured_n)}`` arrays of the samples
+            with a known gait phase whose desired force is the table sent (N).
+        tables: ``{actuator: (joint, gait_pct, force_n)}``: the transmitted table per actuator.
+    """
+
+    index: int
+    version: int
+    samples: Mapping[int, tuple[np.ndarray, np.ndarray, np.ndarray]]
+    tables: Mapping[int, tuple[str, np.ndarray, np.ndarray]]
+
+    @property
+    def n_samples(self) -> int:
+        """Samples over all actuators."""
+        return sum(len(s[0]) for s in self.samples.values())
+
+
+@dataclass(frozen=True)
+class Session:
+    """Everything the review shows, read from the session's log file(s).
+
+    Attributes:
+        files: The files, in session order.
+        session_id: The session id.
+        config: The session config stored in ``/config`` of the first file.
+        param_names: The optimised parameters.
+        param_units: Their units.
+        param_bounds: Their (lower, upper) bounds.
+        breaths: Every breath.
+        traces: Every measured setting's estimate trace (abandoned ones included).
+        evaluations: Completed evaluations by index, each once.
+        events: Events, faults and nacks in time order.
+        rejects: ``{source: {reason: count}}`` summed over the files.
+        thresholds: The threshold schedule, or None.
+        recommended: The recommended setting, or None without evaluations.
+        feedback: Force feedback of the recommended setting, or None.
+        notes: Why something is missing or odd (for the report).
+    """
+
+    files: tuple[LogFile, ...]
+    session_id: str | None
+    config: Mapping[str, Any]
+    param_names: tuple[str, ...]
+    param_units: Mapping[str, str]
+    param_bounds: Mapping[str, tuple[float, float]]
+    breaths: tuple[Breath, ...]
+    traces: tuple[EstimateTrace, ...]
+    evaluations: tuple[EvaluationRow, ...]
+    events: tuple[TimelineEvent, ...]
+    rejects: Mapping[str, Mapping[str, int]]
+    thresholds: ThresholdData | None
+    recommended: Recommendation | None
+    feedback: FeedbackData | None
+    notes: tuple[str, ...]
+
+    @property
+    def minutes_walked(self) -> float:
+        """Session time of the last breath, min."""
+        return (self.breaths[-1].time_s / 60.0) if self.breaths else 0.0
+
+    @property
+    def n_early_stops(self) -> int:
+        """Evaluations stopped early."""
+        return sum(e.stopped_early for e in self.evaluations)
+
+    @property
+    def resume_times_s(self) -> tuple[float, ...]:
+        """Session times where a resumed file begins, s."""
+        return tuple(f.offset_s for f in self.files[1:])
+
+    @property
+    def label(self) -> str:
+        """A short name: the subject from the config and the first file's name."""
+        sess = self.config.get("session") if isinstance(self.config.get("session"), Mapping) else {}
+        subject = sess.get("subject") if isinstance(sess, Mapping) else None
+        name = self.files[0].name
+        return f"{subject} ({name})" if subject else name
+
+    def best_so_far(self) -> list[tuple[float, float]]:
+        """(minutes walked at the evaluation's end, best estimated mean so far in W) per evaluation."""
+        out: list[tuple[float, float]] = []
+        best = math.inf
+        for e in self.evaluations:
+            best = min(best, e.mean_w)
+            t = e.t_end_s if e.t_end_s is not None else (out[-1][0] * 60.0 if out else 0.0)
+            out.append((t / 60.0, best))
+        return out
+
+
+@dataclass(frozen=True)
+class ReviewResult:
+    """What :func:`review_session` wrote.
+
+    Attributes:
+        out_dir: The output directory.
+        files: Every file written, in order.
+        session: The data shown.
+        skipped: ``{plot name: why}`` for plots not drawn.
+    """
+
+    out_dir: Path
+    files: tuple[Path, ...]
+    session: Session
+    skipped: Mapping[str, str]
+
+
+@dataclass(frozen=True)
+class CompareResult:
+    """What :func:`compare_sessions` wrote.
+
+    Attributes:
+        out_dir: The output directory.
+        files: Every file written.
+        sessions: The two sessions.
+    """
+
+    out_dir: Path
+    files: tuple[Path, ...]
+    sessions: tuple[Session, Session]
+
+
+# ---------------------------------------------------------------------------------- loading
+def _read(path: str | os.PathLike[str]) -> LogContents:
+    p = Path(path)
+    if not p.exists():
+        raise ReviewError(f"{str(p)!r}: no such file; expected a hilbo session log (.mcap) such as "
+                          "runs/sim/session.mcap")
+    if p.is_dir():
+        raise ReviewError(f"{str(p)!r} is a directory; expected a hilbo session log (.mcap) file")
+    try:
+        return read_log(p)
+    except LogFormatError as err:
+        text = str(err)
+        if "expected" not in text:
+            text += "; expected a hilbo session log (written by hilbo run or hilbo sim)"
+        raise ReviewError(text) from err
+
+
+def _has_data(c: LogContents) -> bool:
+    if c.topic(Topic.BREATHS) or c.topic(Topic.ESTIMATOR) or c.topic(Topic.OBSERVATIONS):
+        return True
+    # A resumed session's file that crashed before its first breath still knows the old evaluations.
+    return any(isinstance(m.data.get("state"), Mapping) and m.data["state"].get("evaluations")
+               for m in c.topic(Topic.OPTIMIZER_STATE))
+
+
+def _same_file(a: str | Path, b: str | Path, base: Path) -> bool:
+    pa, pb = Path(a), Path(b)
+    if not pa.is_absolute() and not pa.exists():
+        pa = base / pa
+    try:
+        return pa.exists() and pb.exists() and os.path.samefile(pa, pb)
+    except OSError:
+        return False
+
+
+def _order(contents: list[LogContents]) -> list[LogContents]:
+    """The files of one session in session order (by their ``previous_log`` links)."""
+    ids = {c.session_id for c in contents if c.session_id}
+    if len(ids) > 1:
+        described = ", ".join(f"{c.path} is {c.session_id}" for c in contents)
+        raise ReviewError(f"these logs belong to different sessions ({described}); expected the files of one "
+                          "session (a log and its resumed continuation), or use --compare A.mcap B.mcap")
+    seen: set[tuple[int, int]] = set()
+    for c in contents:
+        st = os.stat(c.path)
+        key = (st.st_dev, st.st_ino)
+        if key in seen:
+            raise ReviewError(f"{c.path}: given twice; expected each file of the session once")
+        seen.add(key)
+    if len(contents) == 1:
+        return contents
+
+    def parent(c: LogContents) -> LogContents | None:
+        prev = c.previous_log
+        if not prev:
+            return None
+        return next((o for o in contents if o is not c and _same_file(prev, o.path, Path(c.path).parent)),
+                    None)
+
+    parents = {id(c): parent(c) for c in contents}
+    roots = [c for c in contents if parents[id(c)] is None]
+    if len(roots) != 1:
+        return contents  # links absent or ambiguous: keep the order given
+    ordered = [roots[0]]
+    while len(ordered) < len(contents):
+        nxt = [c for c in contents if parents[id(c)] is ordered[-1]]
+        if len(nxt) != 1:
+            return contents
+        ordered.append(nxt[0])
+    return ordered
+
+
+def _f(value: Any) -> float | None:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    v = float(value)
+    return v if math.isfinite(v) else None
+
+
+def _i(value: Any) -> int | None:
+    return value if isinstance(value, int) and not isinstance(value, bool) else None
+
+
+@dataclass
+class _Run:
+    index: int
+    phase: str
+    t_start_s: float
+    time_s: list[float]
+    watts: list[float]
+    mean_w: list[float]
+    sd_w: list[float]
+
+    def trace(self, file: int, completed: bool) -> EstimateTrace:
+        return EstimateTrace(self.index, file, self.phase, self.t_start_s, tuple(self.time_s),
+                             tuple(self.watts), tuple(self.mean_w), tuple(self.sd_w), completed)
+
+
+@dataclass
+class _FileScan:
+    """What one file contributes (filled by :func:`_scan_file`)."""
+
+    breaths: list[Breath]
+    traces: list[EstimateTrace]
+    orphan_runs: list[EstimateTrace]
+    observations: list[tuple[int, dict[str, Any], EstimateTrace | None]]  # (position, data, trace)
+    events: list[TimelineEvent]
+    rejects: dict[str, dict[str, int]]
+    z_runs: dict[int, list[tuple[int, float, bool, str]]]
+    profiles: list[tuple[int, dict[str, Any]]]
+    feedback: list[tuple[int, dict[str, Any]]]
+    snapshots: list[dict[str, Any]]
+    end_s: float
+
+
+def _scan_file(c: LogContents, fi: int, offset: float) -> _FileScan:
+    msgs = c.messages
+    first_t = next((_f(m.data.get("t_s")) for m in msgs if m.topic == Topic.BREATHS
+                    and _f(m.data.get("t_s")) is not None), None)
+    if first_t is None:
+        first_t = next((_f(m.data.get("t_s")) for m in msgs if m.topic == Topic.ESTIMATOR
+                        and _f(m.data.get("t_s")) is not None), 0.0)
+    t0 = float(first_t if first_t is not None else 0.0)
+
+    def session_time(t_s: Any, default: float) -> float:
+        t = _f(t_s)
+        return default if t is None else offset + t - t0
+
+    estimates_by_t: dict[float, dict[str, Any]] = {}
+    for m in msgs:
+        if m.topic == Topic.ESTIMATOR and _f(m.data.get("t_s")) is not None:
+            estimates_by_t[float(m.data["t_s"])] = m.data
+    scan = _FileScan([], [], [], [], [], {}, {}, [], [], [], offset)
+    runs: dict[int, _Run] = {}
+    last = offset
+    fault_state: dict[int, int] = {}
+    z_open: dict[int, list[tuple[int, float, bool, str]]] = {}
+    for pos, m in enumerate(msgs):
+        d = m.data
+        topic = m.topic
+        if topic == Topic.BREATHS:
+            t = _f(d.get("t_s"))
+            if t is None:
+                continue
+            last = session_time(t, last)
+            est = estimates_by_t.get(t)
+            scan.breaths.append(Breath(
+                fi, t, last, _f(d.get("vo2_ml_min")), _f(d.get("vco2_ml_min")), _f(d.get("ve_l_min")),
+                _f(d.get("rer")), _f(d.get("hr_bpm")), _f(d.get("watts")),
+                None if est is None else _i(est.get("index")), None if est is None else _i(est.get("breath")),
+                None if est is None else _f(est.get("mean_w")), None if est is None else _sd(est)))
+        elif topic == Topic.ESTIMATOR:
+            k, b = _i(d.get("index")), _i(d.get("breath"))
+            mean = _f(d.get("mean_w"))
+            if k is None or b is None or mean is None:
+                continue
+            t = session_time(d.get("t_s"), last)
+            run = runs.get(k)
+            if run is not None and (b == 0 or b != len(run.time_s)):
+                # A new run of the same index: the old one was abandoned (pause, cancel, crash).
+                scan.orphan_runs.append(run.trace(fi, completed=False))
+                run = None
+            if run is None:
+                t_set = _f(d.get("t_setting_s")) or 0.0
+                run = runs[k] = _Run(k, str(d.get("phase", "")), t - t_set, [], [], [], [])
+            run.time_s.append(t)
+            run.watts.append(_f(d.get("watts")) or math.nan)
+            run.mean_w.append(mean)
+            run.sd_w.append(_sd(d) or math.nan)
+        elif topic == Topic.STOPPING:
+            k, b, z = _i(d.get("index")), _i(d.get("breath")), _f(d.get("z"))
+            if k is None or b is None or z is None:
+                continue
+            zr = z_open.get(k)
+            if zr is None or b == 0 or (zr and b != zr[-1][0] + 1):
+                zr = z_open[k] = []
+            zr.append((b, z, bool(d.get("stop")), str(d.get("reason", ""))))
+        elif topic == Topic.OBSERVATIONS:
+            k = _i(d.get("index"))
+            if k is None:
+                continue
+            run = runs.pop(k, None)
+            trace = run.trace(fi, completed=True) if run is not None else None
+            if trace is not None:
+                scan.traces.append(trace)
+            if k in z_open:
+                scan.z_runs[k] = z_open.pop(k)
+            obs = dict(d)
+            if trace is not None and trace.time_s:
+                obs["_t_start"], obs["_t_end"] = trace.t_start_s, trace.time_s[-1]
+            else:
+                # Only the logged times: session times of this file.
+                ts, te = _f(d.get("t_start")), _f(d.get("t_end"))
+                obs["_t_start"] = None if ts is None else offset + ts
+                obs["_t_end"] = None if te is None else offset + te
+            scan.observations.append((pos, obs, trace))
+        elif topic == Topic.PROPOSALS:
+            k = _i(d.get("index"))
+            if k is not None and k in runs:
+                scan.orphan_runs.append(runs.pop(k).trace(fi, completed=False))
+        elif topic == Topic.EVENTS:
+            level = _LEVELS.get(_i(d.get("level")) or 0, "unknown")
+            scan.events.append(TimelineEvent(session_time(d.get("t_s"), last), fi, level,
+                                             str(d.get("kind", "event")), str(d.get("message", ""))))
+        elif topic == Topic.ACKS:
+            if d.get("accepted") is False:
+                why = d.get("error") or d.get("reason") or "nack"
+                scan.events.append(TimelineEvent(last, fi, "warning", "nack",
+                                                 f"profile version {d.get('version')} not accepted: {why}"))
+        elif topic == Topic.DEVICE_STATUS:
+            act, faults = _i(d.get("actuator")), _i(d.get("faults"))
+            if act is None or faults is None:
+                continue
+            if faults != fault_state.get(act, 0):
+                names = d.get("fault_names") or []
+                what = ", ".join(map(str, names)) or hex(faults)
+                text = (f"actuator {act}: faults {what} (mode {d.get('mode')})" if faults
+                        else f"actuator {act}: faults cleared")
+                scan.events.append(TimelineEvent(last, fi, "error" if faults else "info",
+                                                 "fault" if faults else "fault_cleared", text))
+            fault_state[act] = faults
+        elif topic == Topic.REJECTS:
+            counts = d.get("counts")
+            if isinstance(counts, Mapping):
+                scan.rejects[str(d.get("source", "?"))] = {
+                    str(r): int(n) for r, n in counts.items() if _i(n) is not None}
+        elif topic == Topic.OPTIMIZER_STATE:
+            scan.snapshots.append(d)
+        elif topic == Topic.PROFILES_SENT:
+            scan.profiles.append((pos, d))
+        elif topic == Topic.FORCE_FEEDBACK:
+            scan.feedback.append((pos, d))
+    scan.orphan_runs.extend(r.trace(fi, completed=False) for r in runs.values())
+    scan.end_s = max(last, max((b.time_s for b in scan.breaths), default=offset))
+    return scan
+
+
+def _sd(d: Mapping[str, Any]) -> float | None:
+    sd = _f(d.get("sd_w"))
+    if sd is None:
+        var = _f(d.get("var_w2"))
+        sd = math.sqrt(var) if var is not None and var >= 0 else None
+    return sd
+
+
+def _space_info(snapshot: Mapping[str, Any] | None, contents: LogContents
+                ) -> tuple[tuple[str, ...], dict[str, str], dict[str, tuple[float, float]]]:
+    space: Any = None
+    if snapshot is not None and isinstance(snapshot.get("state"), Mapping):
+        space = snapshot["state"].get("space")
+    if not isinstance(space, Mapping):
+        cfg_space = (contents.config or {}).get("space")
+        space = cfg_space.get("definition") if isinstance(cfg_space, Mapping) else None
+    names: list[str] = []
+    units: dict[str, str] = {}
+    bounds: dict[str, tuple[float, float]] = {}
+    if isinstance(space, Mapping):
+        for p in space.get("parameters") or []:
+            if isinstance(p, Mapping) and "name" in p:
+                n = str(p["name"])
+                names.append(n)
+                units[n] = str(p.get("unit", ""))
+                lo, hi = _f(p.get("lower")), _f(p.get("upper"))
+                if lo is not None and hi is not None:
+                    bounds[n] = (lo, hi)
+    if not names:
+        names = [str(n) for n in contents.session.get("param_names") or []]
+    return tuple(names), units, bounds
+
+
+def load_session(paths: Sequence[str | os.PathLike[str]]) -> Session:
+    """Read the log file(s) of one session and gather what the review shows.
+
+    Args:
+        paths: One log, or the files of a session resumed after a crash (any order).
+
+    Returns:
+        The merged session: evaluations of the old file then the new, each once.
+
+    Raises:
+        ReviewError: A missing file, not an MCAP file, an empty file, another program's MCAP, a
+            log without breaths or evaluations, or files of different sessions.
+        LogError: A file that cannot be read.
+    """
+    if not paths:
+        raise ReviewError("no log given; expected at least one hilbo session log (.mcap)")
+    contents = _order([_read(p) for p in paths])
+    if not any(_has_data(c) for c in contents):
+        c = contents[0]
+        raise ReviewError(f"{c.path}: a hilbo session log without breaths or evaluations ({len(c.messages)} "
+                          "messages); expected a session that walked at least one breath")
+    notes: list[str] = []
+    files: list[LogFile] = []
+    scans: list[_FileScan] = []
+    offset = 0.0
+    for fi, c in enumerate(contents):
+        scan = _scan_file(c, fi, offset)
+        first = scan.breaths[0].time_s if scan.breaths else offset
+        files.append(LogFile(c.path, c.session_id, c.previous_log, c.complete, c.size_bytes,
+                             c.unreadable_bytes, c.stop_reason, len(c.messages), offset, scan.end_s - first))
+        scans.append(scan)
+        if not c.complete:
+            scan.events.append(TimelineEvent(
+                scan.end_s, fi, "error", "log_cut_off",
+                f"{Path(c.path).name} ends here: cut off, {c.unreadable_bytes:,} bytes unreadable "
+                f"({c.stop_reason})"))
+        if fi > 0:
+            scan.events.insert(0, TimelineEvent(offset, fi, "info", "resumed",
+                                                f"session resumed in {Path(c.path).name}"))
+        if c.undecodable:
+            notes.append(f"{c.path}: {c.undecodable} messages could not be decoded and were skipped")
+        offset = scan.end_s
+    if contents[0].previous_log:
+        notes.append(f"{contents[0].path} resumes {contents[0].previous_log}, which was not given: its "
+                     "evaluations are counted (from the optimizer snapshot) but its breaths are not shown; "
+                     "pass both files to review the whole session")
+
+    # Evaluations: the old file's, then the new file's, each index once.
+    evals: dict[int, EvaluationRow] = {}
+    obs_pos: dict[int, tuple[int, int]] = {}
+    for fi, scan in enumerate(scans):
+        for pos, d, _trace in scan.observations:
+            k = int(d["index"])
+            row = _eval_row(d, fi, d.get("_t_start"), d.get("_t_end"), "observation")
+            if row is None:
+                notes.append(f"{files[fi].path}: the /observations message of evaluation {k} is malformed; "
+                             "skipped")
+                continue
+            if k in evals:
+                if not math.isclose(evals[k].mean_w, row.mean_w, rel_tol=1e-9):
+                    notes.append(f"evaluation {k} is logged twice with different estimates "
+                                 f"({evals[k].mean_w:.1f} W and {row.mean_w:.1f} W); the first is shown")
+                continue
+            evals[k] = row
+            obs_pos[k] = (fi, pos)
+    snapshot, snap_file = None, None
+    for fi in reversed(range(len(scans))):
+        if scans[fi].snapshots:
+            snapshot, snap_file = scans[fi].snapshots[-1], fi
+            break
+    # Evaluations only the optimizer knows (completed by a resume's replay, /observations lost).
+    orphans = [t for s in scans for t in s.orphan_runs]
+    if snapshot is not None and isinstance(snapshot.get("state"), Mapping):
+        for d in snapshot["state"].get("evaluations") or []:
+            k = _i(d.get("index")) if isinstance(d, Mapping) else None
+            if k is None or k in evals:
+                continue
+            n = _i(d.get("breaths"))
+            match = next((t for t in reversed(orphans) if t.index == k and len(t.time_s) == n), None)
+            fi = match.file if match is not None else (snap_file or 0)
+            row = _eval_row(d, fi, match.t_start_s if match else None, match.time_s[-1] if match else None,
+                            "snapshot")
+            if row is not None:
+                evals[k] = row
+                if match is not None:
+                    orphans.remove(match)
+                    scans[match.file].traces.append(dataclasses.replace(match, completed=True))
+    evaluations = tuple(evals[k] for k in sorted(evals))
+    if [e.index for e in evaluations] != list(range(len(evaluations))):
+        missing = sorted(set(range(max(evals) + 1)) - set(evals)) if evals else []
+        notes.append(f"evaluations {missing} are not in the log(s) (cut off, or in a file not given)")
+    traces = sorted([t for s in scans for t in s.traces] + orphans, key=lambda t: t.t_start_s)
+    n_abandoned = len(orphans)
+    if n_abandoned:
+        notes.append(f"{n_abandoned} measured setting(s) did not complete (paused, rejected or cut off by a "
+                     "crash); their breaths are shown in grey and they are not in the evaluations")
+
+    first = contents[0]
+    names, units, bounds = _space_info(snapshot, first)
+    config = first.config or {}
+    breaths = tuple(b for s in scans for b in s.breaths)
+    events = tuple(sorted((e for s in scans for e in s.events), key=lambda e: (e.time_s, e.file)))
+    rejects: dict[str, dict[str, int]] = {}
+    for s in scans:  # cumulative counters per process: the last message of each file, summed
+        for source, counts in s.rejects.items():
+            acc = rejects.setdefault(source, {})
+            for reason, n in counts.items():
+                acc[reason] = acc.get(reason, 0) + n
+    z_traces = {k: v for s in scans for k, v in s.z_runs.items()}
+    thresholds = _thresholds(scans, traces, evaluations, config, snapshot, z_traces, notes)
+    recommended = _recommend(contents, snapshot, evaluations, notes)
+    feedback = None
+    if recommended is not None and recommended.index is not None and recommended.index in obs_pos:
+        fi, pos = obs_pos[recommended.index]
+        feedback = _feedback(scans[fi], recommended.index, pos, notes)
+    elif recommended is not None:
+        notes.append("no force feedback plot: the recommended setting's evaluation is not on /observations")
+    return Session(
+        files=tuple(files), session_id=first.session_id, config=config, param_names=names,
+        param_units=units, param_bounds=bounds, breaths=breaths, traces=tuple(traces),
+        evaluations=evaluations, events=events, rejects=rejects, thresholds=thresholds,
+        recommended=recommended, feedback=feedback, notes=tuple(notes),
+    )
+
+
+def _eval_row(d: Mapping[str, Any], fi: int, t_start: Any, t_end: Any, source: str) -> EvaluationRow | None:
+    try:
+        params = {str(k): float(v) for k, v in d["params"].items()}
+        return EvaluationRow(
+            index=int(d["index"]), params=params, mean_w=float(d["mean"]), var_w2=float(d["var"]),
+            breaths=int(d["breaths"]), duration_s=float(d.get("duration_s", math.nan)),
+            phase=str(d.get("phase", "")), stopped_early=bool(d.get("stopped_early", False)),
+            reason=str(d.get("reason", "")), t_start_s=_f(t_start), t_end_s=_f(t_end), file=fi, source=source)
+    except (KeyError, TypeError, ValueError, AttributeError):
+        return None
+
+
+def _standardise(m: np.ndarray, s: np.ndarray) -> np.ndarray:
+    return (m - m[:, -1:]) / np.sqrt(s + s[:, -1:])
+
+
+def _thresholds(scans: list[_FileScan], traces: Sequence[EstimateTrace],
+                evaluations: Sequence[EvaluationRow], config: Mapping[str, Any],
+                snapshot: Mapping[str, Any] | None, z_runs: Mapping[int, list[tuple[int, float, bool, str]]],
+                notes: list[str]) -> ThresholdData | None:
+    by_index = {e.index: e for e in evaluations}
+    z_traces = tuple(
+        ZTrace(k, tuple(r[0] for r in rows), tuple(r[1] for r in rows),
+               by_index[k].stopped_early if k in by_index
+               else any(r[2] and r[3] == "threshold" for r in rows))
+        for k, rows in sorted(z_runs.items()) if rows)
+    snaps = [s for scan in scans for s in scan.snapshots]
+    for snap in snaps:
+        a = snap.get("thresholds")
+        state = snap.get("state") if isinstance(snap.get("state"), Mapping) else {}
+        if isinstance(a, list) and a:
+            try:
+                thr = np.asarray(a, dtype=float)
+                m = np.asarray(state.get("traces_m"), dtype=float)
+                s = np.asarray(state.get("traces_s"), dtype=float)
+                x = _standardise(m, s) if m.ndim == 2 and m.shape == s.shape and m.shape[1] == thr.size \
+                    else np.empty((0, thr.size))
+            except (TypeError, ValueError):
+                continue
+            return ThresholdData(thr, x, "logged in /optimizer_state (thresholds, traces_m, traces_s)",
+                                 z_traces)
+    # No snapshot after exploration: compute Algorithm 2 from the exploration evaluations' estimates.
+    from hilbo_core.errors import HilboError
+    from hilbo_core.stopping import threshold_schedule
+
+    state = snapshot.get("state") if snapshot is not None else None
+    state_cfg = state.get("config") if isinstance(state, Mapping) else None
+    state_cfg = state_cfg if isinstance(state_cfg, Mapping) else {}
+    proto = config.get("protocol") if isinstance(config.get("protocol"), Mapping) else {}
+    n = _i(state_cfg.get("max_breaths")) or _i(proto.get("max_breaths"))
+    n_explore = _i(state_cfg.get("n_explore")) or _i(proto.get("n_explore"))
+    window = _i(state_cfg.get("window"))
+    window = window if window is not None else _i(proto.get("window"))
+    rows = [t for t in traces if t.completed and t.phase == "exploration" and n and len(t.mean_w) == n]
+    if not n or not n_explore or window is None or len(rows) < n_explore:
+        notes.append(f"no threshold plot: the log holds no threshold schedule and {len(rows)} of "
+                     f"{n_explore or '?'} complete exploration traces")
+        return None
+    m = np.array([t.mean_w for t in rows[:n_explore]], dtype=float)
+    s = np.array([t.sd_w for t in rows[:n_explore]], dtype=float) ** 2
+    try:
+        thr = threshold_schedule(m, s, window)
+    except HilboError as err:
+        notes.append(f"no threshold plot: the exploration traces give no schedule ({err})")
+        return None
+    return ThresholdData(thr, _standardise(m, s),
+                         f"computed (Algorithm 2, W = {window}) from the /estimator messages of the "
+                         "exploration evaluations", z_traces)
+
+
+def _recommend(contents: Sequence[LogContents], snapshot: Mapping[str, Any] | None,
+               evaluations: Sequence[EvaluationRow], notes: list[str]) -> Recommendation | None:
+    if not evaluations:
+        return None
+    from hilbo_core.errors import HilboError
+    from hilbo_core.optimizer import HILOptimizer
+
+    opt = None
+    method = ""
+    snap_evals = (snapshot.get("state") or {}).get("evaluations") if snapshot is not None else None
+    if snapshot is not None and len(snap_evals or []) == len(evaluations):
+        try:
+            opt = HILOptimizer.from_json(snapshot["state"])
+            method = "HILOptimizer.best() of the last optimizer snapshot (the GP's estimated minimum among " \
+                     "the evaluated settings, with that evaluation's own estimate)"
+        except (HilboError, KeyError, TypeError, ValueError) as err:
+            notes.append(f"the last optimizer snapshot cannot be loaded ({err})")
+    if opt is None:
+        from bridge.resume import rebuild_optimizer
+
+        try:
+            opt, _ = rebuild_optimizer(contents[-1])
+            method = ("HILOptimizer.best() of the optimizer rebuilt from the log (the GP's estimated "
+                      "minimum among the evaluated settings)")
+        except (LogError, HilboError) as err:
+            logger.info("rebuilding the optimizer for the recommendation failed: %s", err)
+            opt = None
+    params: Mapping[str, float]
+    if opt is not None and len(opt.evaluations) == len(evaluations):
+        try:
+            params, mean, var = opt.best()
+        except (HilboError, ValueError, np.linalg.LinAlgError) as err:
+            notes.append(f"the optimizer's recommendation failed ({err}); showing the lowest estimate")
+            opt = None
+    else:
+        opt = None
+    if opt is None:
+        ev = min(evaluations, key=lambda e: e.mean_w)
+        params, mean, var = ev.params, ev.mean_w, ev.var_w2
+        method = "the lowest estimated mean (no optimizer state holds every evaluation)"
+    index = next((e.index for e in evaluations if _same_params(e.params, params)), None)
+    return Recommendation(dict(params), float(mean), float(var), index, method)
+
+
+def _same_params(a: Mapping[str, float], b: Mapping[str, float]) -> bool:
+    return set(a) == set(b) and all(math.isclose(a[k], b[k], rel_tol=1e-9, abs_tol=1e-9) for k in a)
+
+
+def _feedback(scan: _FileScan, index: int, obs_pos: int, notes: list[str]) -> FeedbackData | None:
+    sent = [(pos, d) for pos, d in scan.profiles if _i(d.get("index")) == index and pos < obs_pos]
+    if not sent:
+        notes.append(f"no force feedback plot: no /profiles_sent message for evaluation {index}")
+        return None
+    pos0, prof = sent[-1]
+    version = _i(prof.get("version"))
+    samples: dict[int, tuple[list[float], list[float], list[float]]] = {}
+    for pos, d in scan.feedback:
+        if not pos0 < pos < obs_pos or _i(d.get("profile_version")) != version:
+            continue
+        act = _i(d.get("actuator"))
+        des, mea, gait = d.get("desired_n"), d.get("measured_n"), d.get("gait_phase_pct")
+        if act is None or not (isinstance(des, list) and isinstance(mea, list) and isinstance(gait, list)) \
+                or not len(des) == len(mea) == len(gait):
+            continue
+        acc = samples.setdefault(act, ([], [], []))
+        for g, de, me in zip(gait, des, mea, strict=True):
+            if _f(g) is not None and g >= 0 and _f(de) is not None and _f(me) is not None:
+                acc[0].append(float(g))
+                acc[1].append(float(de))
+                acc[2].append(float(me))
+    tables: dict[int, tuple[str, np.ndarray, np.ndarray]] = {}
+    profiles = [p for p in prof.get("profiles") or [] if isinstance(p, Mapping)]
+    for act in samples:
+        # One table per actuator, or one table every actuator executes (the hip suit's two legs).
+        p = profiles[act] if len(profiles) > max(act, 1) else (profiles[0] if profiles else None)
+        if p is not None:
+            try:
+                tables[act] = (str(p.get("actuator", "")), np.asarray(p["gait_pct"], dtype=float),
+                               np.asarray(p["force_n"], dtype=float))
+            except (KeyError, TypeError, ValueError):
+                pass
+    arrays: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+    excluded = 0
+    for act, (g_list, d_list, m_list) in sorted(samples.items()):
+        g, des, mea = (np.asarray(v, dtype=float) for v in (g_list, d_list, m_list))
+        if act in tables and tables[act][1].size == tables[act][2].size > 1:
+            # A batch is stamped with the version active when it was logged: its first samples
+            # may still be the old profile's (the device switches at a gait-cycle boundary).
+            # Keep the samples whose desired force is this table's.
+            _, gp, fp = tables[act]
+            keep = np.abs(des - np.interp(g, gp, fp)) <= max(2.0, 0.05 * float(np.max(np.abs(fp))))
+            excluded += int(np.count_nonzero(~keep))
+            g, des, mea = g[keep], des[keep], mea[keep]
+        if g.size:
+            arrays[act] = (g, des, mea)
+    if not arrays:
+        notes.append(f"no force feedback plot: the log has no /force_feedback samples for profile version "
+                     f"{version} while evaluation {index} (the recommended setting) was measured")
+        return None
+    if excluded:
+        notes.append(f"force tracking: {excluded} feedback samples of the recommended setting's batches "
+                     "were left out: their desired force is not the table sent (the old profile, before "
+                     "the switch at the gait-cycle boundary)")
+    return FeedbackData(index, int(version or 0), arrays, tables)
+
+
+# ---------------------------------------------------------------------------------- outputs
+def default_review_dir(first_log: str | os.PathLike[str]) -> Path:
+    """``dir/name.mcap`` → ``dir/name-review/``."""
+    p = Path(first_log)
+    stem = p.stem if p.suffix == ".mcap" else p.name
+    return p.with_name(stem + "-review")
+
+
+def default_compare_dir(log_a: str | os.PathLike[str], log_b: str | os.PathLike[str]) -> Path:
+    """``dirA/a.mcap``, ``dirB/b.mcap`` → ``dirA/compare-a-vs-b/``."""
+    a, b = Path(log_a), Path(log_b)
+    return a.with_name(f"compare-{a.stem}-vs-{b.stem}")
+
+
+def _out_dir(out: str | os.PathLike[str]) -> Path:
+    p = Path(out)
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except FileExistsError as err:
+        raise ReviewError(f"--out {str(p)!r} exists and is not a directory; expected a directory") from err
+    except OSError as err:
+        raise ReviewError(f"--out {str(p)!r}: cannot create the output directory: {err.strerror}") from err
+    if not os.access(p, os.W_OK):
+        raise ReviewError(f"--out {str(p)!r}: the output directory is not writable")
+    return p
+
+
+def review_session(paths: Sequence[str | os.PathLike[str]],
+                   out_dir: str | os.PathLike[str] | None = None) -> ReviewResult:
+    """Review one session: plots, ``report.md``/``report.html``, ``evaluations.csv``, ``breaths.csv``.
+
+    Args:
+        paths: The session's log file(s) (a resumed session: the old file and the new one).
+        out_dir: Output directory (default :func:`default_review_dir` of the first log).
+
+    Returns:
+        The files written (in order) and the data shown.
+
+    Raises:
+        ReviewError: Bad input or an unwritable output directory (the message names it).
+    """
+    from bridge import review_plots, review_report
+
+    session = load_session(paths)
+    out = _out_dir(out_dir if out_dir is not None else default_review_dir(paths[0]))
+    written: list[Path] = []
+    plots, skipped = review_plots.session_plots(session, out)
+    written.extend(plots.values())
+    written.extend(review_report.write_report(session, out, plots, skipped))
+    written.append(review_report.write_evaluations_csv(session, out / "evaluations.csv"))
+    written.append(review_report.write_breaths_csv(session, out / "breaths.csv"))
+    return ReviewResult(out, tuple(written), session, skipped)
+
+
+def compare_sessions(log_a: str | os.PathLike[str], log_b: str | os.PathLike[str],
+                     out_dir: str | os.PathLike[str] | None = None) -> CompareResult:
+    """Two sessions side by side: ``compare.png``, ``compare.md`` and ``compare.html``.
+
+    Args:
+        log_a: The first session's log.
+        log_b: The second session's log.
+        out_dir: Output directory (default :func:`default_compare_dir`).
+
+    Raises:
+        ReviewError: Bad input or an unwritable output directory.
+    """
+    from bridge import review_plots, review_report
+
+    a, b = load_session([log_a]), load_session([log_b])
+    out = _out_dir(out_dir if out_dir is not None else default_compare_dir(log_a, log_b))
+    png = review_plots.compare_plot((a, b), out / "compare.png")
+    written = [png, *review_report.write_compare_report((a, b), out, png)]
+    return CompareResult(out, tuple(written), (a, b))
+
+
+# ---------------------------------------------------------------------------------- CLI
+def add_review_parser(subparsers: Any) -> argparse.ArgumentParser:
+    """Register ``hilbo review`` on the top-level ``add_subparsers()`` object (sets ``func``)."""
+    p = subparsers.add_parser(
+        "review", help="plots, a report and CSV tables of a session from its log",
+        description="Review a session from its MCAP log: PNG plots (breath-by-breath power with the UKF "
+                    "estimate, best so far against minutes walked, parameters per evaluation, threshold "
+                    "schedule, desired vs measured force of the recommended setting), report.md and "
+                    "report.html (self-contained), evaluations.csv and breaths.csv. Give both files of a "
+                    "session resumed after a crash to review it as one; a log cut off by a crash is read "
+                    "up to its last intact record. With --compare, two sessions side by side. Prints the "
+                    "path of every file written.")
+    p.add_argument("logs", nargs="+", metavar="LOG.mcap",
+                   help="the session log(s); with --compare exactly two, one per session")
+    p.add_argument("--compare", action="store_true",
+                   help="compare two sessions: compare.png, compare.md, compare.html")
+    p.add_argument("--out", metavar="DIR", default=None,
+                   help="output directory (default: LOG-review/ next to the first log, e.g. "
+                        "runs/sim/session-review/; with --compare: compare-A-vs-B/ next to A)")
+    p.set_defaults(func=_cmd_review)
+    return p
+
+
+def _cmd_review(args: argparse.Namespace) -> int:
+    if args.compare:
+        if len(args.logs) != 2:
+            raise ReviewError(f"--compare takes exactly two logs (A.mcap B.mcap), got {len(args.logs)}")
+        files = compare_sessions(args.logs[0], args.logs[1], args.out).files
+    else:
+        files = review_session(args.logs, args.out).files
+    for path in files:
+        print(path)  # noqa: T201 (CLI output: one line per file written)
+    return 0
