@@ -31,7 +31,24 @@ def _speed(text: str) -> float | None:
     return value
 
 
+def _seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(f"expected seconds >= 0, got {text!r}") from err
+    if not 0 <= value < float("inf"):
+        raise argparse.ArgumentTypeError(f"expected seconds >= 0, got {text!r}")
+    return value
+
+
 def _cmd_sim(args: argparse.Namespace) -> int:
+    from bridge.errors import BridgeConfigError
+
+    if args.processes and args.engine == "core":
+        raise BridgeConfigError("--processes runs the virtual devices as processes; --engine core has none")
+    if args.bus is not None and not args.processes:
+        raise BridgeConfigError("--bus goes with --processes (in one process the devices share "
+                                "python-can's virtual bus)")
     if args.engine == "core":
         return _cmd_sim_core(args)
     import asyncio
@@ -45,10 +62,18 @@ def _cmd_sim(args: argparse.Namespace) -> int:
                            preset=args.preset, stopping=args.stopping)
     out = Path(args.out)
     speed = cfg.speed or MAX_SPEED
-    console.print(f"hilbo sim: {cfg.minutes:g}-minute {cfg.preset} session on the virtual exosuit and "
-                  f"cart, seed {cfg.seed}, {speed:g}x real time "
-                  f"(about {cfg.minutes * 60 / speed:.0f} s)")
-    summary = asyncio.run(run_virtual_sim(cfg, out, operator_view=console.is_terminal))
+    where = "the virtual exosuit and cart"
+    if args.processes:
+        from bridge.sim_processes import resolve_bus, run_process_sim
+
+        bus = resolve_bus(args.bus or "auto")
+        where += f" as processes ({'SocketCAN vcan0' if bus == 'vcan' else 'python-can-remote'})"
+    console.print(f"hilbo sim: {cfg.minutes:g}-minute {cfg.preset} session on {where}, seed {cfg.seed}, "
+                  f"{speed:g}x real time (about {cfg.minutes * 60 / speed:.0f} s)")
+    if args.processes:
+        summary = asyncio.run(run_process_sim(cfg, out, bus=bus, operator_view=console.is_terminal))
+    else:
+        summary = asyncio.run(run_virtual_sim(cfg, out, operator_view=console.is_terminal))
     _print_done(console, summary)
     print(out / "summary.json")
     print(out / "session.mcap")
@@ -78,8 +103,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
     resume = Path(args.resume) if args.resume else None
     console.print(f"hilbo run: {cfg.source} (subject {cfg.session.subject})"
                   + (f", resuming {resume}" if resume else ""))
+    if (cfg.protocol.pause_between_bouts and args.auto_resume is None
+            and (args.no_view or not sys.stdin.isatty())):
+        console.print("hilbo run: note: no keyboard (--no-view, or stdin is not a terminal): the pause "
+                      "between the bouts lasts until SIGTERM/Ctrl-C; give --auto-resume S, or set "
+                      "[protocol] pause_between_bouts = false")
     result = asyncio.run(run_session(cfg, resume=resume, out_dir=Path(args.out) if args.out else None,
-                                     operator_view=not args.no_view))
+                                     operator_view=not args.no_view, auto_resume_s=args.auto_resume))
     s = result.summary
     console.print(f"session ended: {s['n_evaluations']} evaluations ({s['n_early_stops']} early stops); "
                   f"best {s['best_mean']} W" if s.get("best_mean") is not None else
@@ -145,7 +175,9 @@ def build_parser() -> argparse.ArgumentParser:
                          description="Run a whole HIL session: the bridge drives the virtual exosuit "
                                      "(python-can virtual bus) and the virtual cart (TCP on loopback) "
                                      "with a simulated wearer; writes DIR/session.mcap and "
-                                     "DIR/summary.json. --engine core runs the optimizer against the "
+                                     "DIR/summary.json. --processes runs the two devices as processes "
+                                     "of their own (SocketCAN vcan0 or python-can-remote, see --bus). "
+                                     "--engine core runs the optimizer against the "
                                      "wearer directly, without devices or log (fastest).")
     sim.add_argument("--minutes", type=float, default=60.0, help="session length in minutes (default 60)")
     sim.add_argument("--speed", type=_speed, default=None,
@@ -160,6 +192,13 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--engine", default="bridge", choices=["bridge", "core"],
                      help="bridge (default): the whole system over real transports; core: the "
                           "optimizer and the wearer only")
+    sim.add_argument("--processes", action="store_true",
+                     help="run the virtual exosuit and cart as processes of their own (children of "
+                          "hilbo, always stopped at the end), on a CAN bus shared between processes")
+    sim.add_argument("--bus", choices=["auto", "vcan", "remote"], default=None,
+                     help="with --processes: vcan = SocketCAN vcan0; remote = a python-can-remote "
+                          "server started on 127.0.0.1; auto (default) = vcan0 where it exists, "
+                          "else remote")
     sim.set_defaults(func=_cmd_sim)
 
     run = sub.add_parser("run", help="run a lab session from a config file",
@@ -172,6 +211,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="continue the session of this log (also one cut off by a crash) in a new log")
     run.add_argument("--out", default=None, help="output directory (default: [session] out_dir)")
     run.add_argument("--no-view", action="store_true", help="no live terminal view")
+    run.add_argument("--auto-resume", type=_seconds, default=None, metavar="S",
+                     help="end the pause between the bouts by itself after S seconds (for a run "
+                          "without keyboard, e.g. --no-view; default: wait for the operator's r)")
     run.set_defaults(func=_cmd_run)
 
     from bridge.config import add_config_parser
@@ -187,6 +229,10 @@ def build_parser() -> argparse.ArgumentParser:
     add_tune_stopping_parser(sub)
 
     add_log_parser(sub)
+
+    from bridge.review import add_review_parser
+
+    add_review_parser(sub)
 
     from virtual_hw.cli_cart import add_virtual_cart_parser
     from virtual_hw.cli_exosuit import add_virtual_exosuit_parser

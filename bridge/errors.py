@@ -6,7 +6,7 @@ matching built-in, so callers that catch ``ValueError`` keep working.
 
 from __future__ import annotations
 
-__all__ = ["BridgeConfigError", "BridgeError", "UnsafeProfileError"]
+__all__ = ["BridgeConfigError", "BridgeError", "DeviceProcessError", "ReviewError", "UnsafeProfileError"]
 
 
 class BridgeError(Exception):
@@ -15,6 +15,15 @@ class BridgeError(Exception):
 
 class BridgeConfigError(BridgeError, ValueError):
     """The session config is invalid: the message names the key, the value and what is allowed."""
+
+
+class DeviceProcessError(BridgeError, RuntimeError):
+    """A virtual device started as a process (``hilbo sim --processes``) could not be started, or
+    died: the message names the process, its exit status and the end of its stderr."""
+
+
+class ReviewError(BridgeError, ValueError):
+    """``hilbo review`` cannot review these files: the message names the file and what was expected."""
 
 
 class UnsafeProfileError(BridgeError, ValueError):

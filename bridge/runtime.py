@@ -34,7 +34,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from bridge.errors import UnsafeProfileError
-from bridge.log import SessionLog
+from bridge.log import LogError, SessionLog
 from drivers.errors import DriverError, ProfilePushError
 from drivers.exosuit import (
     AssistanceOffReason,
@@ -91,7 +91,8 @@ class RuntimeSettings:
     Attributes:
         warmup_s: Walking without assistance at the start of each bout (breath time, s).
         pause_between_bouts: Pause after exploration until the operator resumes.
-        auto_resume_s: In simulation, resume a bout pause by itself after this long (wall s).
+        auto_resume_s: End the pause between the bouts by itself after this long (wall s):
+            simulations, and headless runs (``hilbo run --auto-resume S``).
         device_timeout_s: Device status silence that triggers assistance-off (wall s).
         cart_timeout_s: Breath silence after which estimation pauses (wall s).
         apply_timeout_s: How long to wait for the device to report a pushed profile active.
@@ -123,7 +124,12 @@ class DeviceView:
 
     last_status_wall: dict[int, float] = field(default_factory=dict)
     status: dict[int, DeviceStatus] = field(default_factory=dict)
+    #: ForceFeedback frames received by the feedback task.
     feedback_frames: int = 0
+    #: ForceFeedback frames missing from the received sequence: the gaps in each actuator's
+    #: 8-bit frame counter (lost on the bus, in a queue, or dropped by a full subscription).
+    feedback_lost: int = 0
+    feedback_counter: dict[int, int] = field(default_factory=dict)
 
     def active_version(self, n_actuators: int) -> int | None:
         """The profile version every actuator runs, or None when they disagree or are unknown."""
@@ -224,7 +230,12 @@ class BridgeSession:
         self._pause_reason = ""
         self._version = 0
         self._assist_on = False
-        self.latencies_s: list[float] = []  # stop decision -> profile acknowledged
+        # Wall time from the decision to change the setting to the device's ack of the commit:
+        # every push (the first of a bout counts from the end of its warm-up) and the pushes that
+        # follow a stop decision (issue 6: stop decision -> new profile committed on the bus).
+        self.latencies_s: list[float] = []
+        self.stop_latencies_s: list[float] = []
+        self._t_stop: float | None = None  # wall time of the last stop decision not yet pushed
         self.records: list[dict[str, Any]] = []  # completed evaluations with session times
         self._t_session0: float | None = None
 
@@ -279,6 +290,7 @@ class BridgeSession:
             "evaluations": self.records,
             "best_params": None, "best_mean": None, "best_var": None,
             "push_latency_ms": _quantiles_ms(self.latencies_s),
+            "stop_to_ack_ms": _quantiles_ms(self.stop_latencies_s),
         }
         if self.opt.evaluations:
             params, mean, var = self.opt.best()
@@ -313,7 +325,8 @@ class BridgeSession:
         self._event("budget_spent", "optimisation budget spent")
 
     async def _evaluate_one(self) -> None:
-        t_decided = self._clock()
+        t_stop, self._t_stop = self._t_stop, None
+        t_decided = t_stop if t_stop is not None else self._clock()
         loop = asyncio.get_running_loop()
         # The GP fit and EI maximisation take tens of ms: off the loop, so heartbeats and CAN
         # traffic keep flowing. Only this task touches the optimizer.
@@ -329,6 +342,7 @@ class BridgeSession:
             # is sent, the device keeps its last acknowledged profile, the setting is dropped
             # and the optimizer asked again; after too many in a row, assistance-off and pause.
             self.opt.cancel_current()
+            self._t_stop = t_stop  # the next proposal still answers that stop decision
             self.log.log_optimizer_state(self.opt, reason="cancel")
             self.log.log_event("unsafe_proposal", str(err), verdict=err.verdict.to_json(), params=params)
             self.status.event(f"proposal rejected by the limits: {err}")
@@ -343,7 +357,10 @@ class BridgeSession:
         # assistance-off switches it to "paused".
         self.endpoint.bridge_state = BridgeState.RUNNING
         await self._push(table, self._version, admitted, index)
-        self.latencies_s.append(self._clock() - t_decided)
+        latency = self._clock() - t_decided
+        self.latencies_s.append(latency)
+        if t_stop is not None:
+            self.stop_latencies_s.append(latency)
         await self._wait_applied(self._version)
         t0 = self._breaths.last_t if self._breaths.last_t is not None else 0.0
         t0_session = self._session_time(t0)
@@ -356,6 +373,8 @@ class BridgeSession:
                 continue  # a breath that arrived before the switch: it belongs to the old setting
             watts = brockway_watts(rec.vo2_ml_min, rec.vco2_ml_min)
             step = self.opt.observe_breath(t, watts)
+            if step.stop:
+                self._t_stop = self._clock()
             self.status.breaths_in_setting = step.index + 1
             self.status.mean_w, self.status.sd_w = step.mean, math.sqrt(step.var)
             self.log.log_step(step, index=index, t_setting_s=t, watts=watts, t_s=rec.t_s,
@@ -419,6 +438,7 @@ class BridgeSession:
 
     async def _warm_up(self, bout: str) -> None:
         """Walk without assistance for warmup_s of breath time; breaths are logged, not used."""
+        self._t_stop = None  # the next push answers the warm-up's end, not a stop decision
         self.status.bout = f"warm-up ({bout})"
         await self._safe_off(AssistanceOffReason.SESSION_END, "warm-up")
         start: float | None = None
@@ -512,30 +532,48 @@ class BridgeSession:
     async def _feedback_task(self) -> None:
         period = self.settings.feedback_log_period_s
         batch: dict[int, list[tuple[float, float, float | None]]] = {}
+        dev = self.device
+
+        def flush() -> None:
+            # Batched: 2 actuators at 1 kHz would be 2000 log messages a second.
+            version = dev.active_version(self.settings.n_actuators)
+            for act, rows in batch.items():
+                if rows:
+                    d, m, g = zip(*rows, strict=True)
+                    self.log.log_force_feedback(actuator=act, desired_n=d, measured_n=m,
+                                                gait_phase_pct=g, profile_version=version)
+            batch.clear()
+
         t_flush = self._clock() + period
-        with self.endpoint.subscribe(ForceFeedback, maxsize=8192) as sub:
-            while True:
+        try:
+            with self.endpoint.subscribe(ForceFeedback, maxsize=8192) as sub:
+                while True:
+                    try:
+                        # Not wait_for: on Python 3.11 it swallows a cancellation that arrives as
+                        # a frame does (at 2 kHz, often), so the session hung on shutdown.
+                        async with asyncio.timeout(period):
+                            fb = await sub.get()
+                        dev.feedback_frames += 1
+                        last = dev.feedback_counter.get(fb.actuator)
+                        if last is not None:
+                            dev.feedback_lost += (fb.counter - last - 1) % 256
+                        dev.feedback_counter[fb.actuator] = fb.counter
+                        batch.setdefault(fb.actuator, []).append(
+                            (fb.desired_force_n, fb.measured_force_n, fb.gait_phase_pct))
+                    except TimeoutError:
+                        pass
+                    now = self._clock()
+                    if now >= t_flush:
+                        flush()
+                        t_flush = now + period
+        finally:
+            # The last batch too, so every received frame is logged; a failing log must not turn
+            # the session's shutdown into an error (the next log call reports it anyway).
+            if not self.log.closed:
                 try:
-                    # Not wait_for: on Python 3.11 it swallows a cancellation that arrives as a
-                    # frame does (at 2 kHz, often), so the session hung on shutdown.
-                    async with asyncio.timeout(period):
-                        fb = await sub.get()
-                    self.device.feedback_frames += 1
-                    batch.setdefault(fb.actuator, []).append(
-                        (fb.desired_force_n, fb.measured_force_n, fb.gait_phase_pct))
-                except TimeoutError:
-                    pass
-                now = self._clock()
-                if now >= t_flush:
-                    # Batched: 2 actuators at 1 kHz would be 2000 log messages a second.
-                    version = self.device.active_version(self.settings.n_actuators)
-                    for act, rows in batch.items():
-                        if rows:
-                            d, m, g = zip(*rows, strict=True)
-                            self.log.log_force_feedback(actuator=act, desired_n=d, measured_n=m,
-                                                        gait_phase_pct=g, profile_version=version)
-                    batch = {}
-                    t_flush = now + period
+                    flush()
+                except LogError as err:
+                    logger.warning("the last force-feedback batch was not logged: %s", err)
 
     async def _watchdog_task(self) -> None:
         s = self.settings

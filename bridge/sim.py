@@ -36,7 +36,7 @@ from virtual_hw.clock import ScaledClock
 from virtual_hw.exosuit import SUIT_JOINTS, VirtualExosuit
 from virtual_hw.wearer import SimulatedWearer
 
-__all__ = ["MAX_SPEED", "VirtualSimConfig", "run_virtual_sim", "sim_config_text"]
+__all__ = ["MAX_SPEED", "VirtualSimConfig", "add_simulation_truth", "run_virtual_sim", "sim_config_text"]
 
 logger = logging.getLogger(__name__)
 
@@ -96,8 +96,14 @@ class VirtualSimConfig:
         return left_s / 60.0
 
 
-def sim_config_text(cfg: VirtualSimConfig, out_dir: Path) -> str:
-    """The session config the simulated lab runs (cart and CAN are filled in at start)."""
+def sim_config_text(cfg: VirtualSimConfig, out_dir: Path, *, device_timeout_ms: float = 250.0) -> str:
+    """The session config the simulated lab runs (cart and CAN are filled in at start).
+
+    Args:
+        cfg: The simulated session.
+        out_dir: Output directory.
+        device_timeout_ms: The bridge's device-heartbeat watchdog.
+    """
     return f"""
 [session]
 subject = "sim{cfg.seed}"
@@ -131,13 +137,14 @@ interface = "virtual"
 channel = "hilbo-sim"
 
 [watchdog]
-device_heartbeat_timeout_ms = 250.0
+device_heartbeat_timeout_ms = {device_timeout_ms}
 cart_data_timeout_s = 15.0
 """
 
 
 async def run_virtual_sim(cfg: VirtualSimConfig, out: Path, *, operator_view: bool = False,
-                          on_session: Callable[[BridgeSession], None] | None = None) -> dict[str, Any]:
+                          on_session: Callable[[BridgeSession], None] | None = None,
+                          on_exosuit: Callable[[VirtualExosuit], None] | None = None) -> dict[str, Any]:
     """Run a whole session over the virtual devices; writes OUT/session.mcap and OUT/summary.json.
 
     Args:
@@ -145,6 +152,8 @@ async def run_virtual_sim(cfg: VirtualSimConfig, out: Path, *, operator_view: bo
         out: Output directory.
         operator_view: Show the live terminal view.
         on_session: Called with the bridge session before it runs (tests drive the operator).
+        on_exosuit: Called with the open virtual exosuit before the bridge starts (its ``stats``
+            count what it sent, for ``hilbo bench perf --bridge-minutes``).
 
     Returns:
         The summary, with the simulation's truth (true optimum, true cost of the recommendation).
@@ -171,11 +180,29 @@ async def run_virtual_sim(cfg: VirtualSimConfig, out: Path, *, operator_view: bo
         async with VirtualExosuit(CanBusConfig("virtual", channel), clock,
                                   joints=SUIT_JOINTS[cfg.preset], seed=cfg.seed,
                                   on_applied=cart.on_profile_applied,
-                                  feedback_hz=cfg.feedback_hz, faults=cfg.exosuit_faults):
+                                  feedback_hz=cfg.feedback_hz, faults=cfg.exosuit_faults) as exo:
+            if on_exosuit is not None:
+                on_exosuit(exo)
             result: RunResult = await run_session(
                 hcfg, log_path=log_path, auto_resume_s=0.0, operator_view=operator_view,
                 n_actuators=len(SUIT_JOINTS[cfg.preset]), on_session=on_session)
-    summary = dict(result.summary)
+    summary = add_simulation_truth(result.summary, wearer)
+    summary["sim"] = {**dataclasses.asdict(cfg), "speed": speed}
+    summary["wall_time_s"] = time.perf_counter() - wall0
+    write_json_atomic(out / "summary.json", summary)
+    result.summary_path.unlink(missing_ok=True)  # summary.json is the simulation's summary
+    return summary
+
+
+def add_simulation_truth(summary: dict[str, Any], wearer: SimulatedWearer) -> dict[str, Any]:
+    """A copy of a session summary with what only a simulation knows: the true optimum, the
+    unassisted cost, the true cost of the recommended setting and its regret, the subject.
+
+    Args:
+        summary: The bridge's summary (``BridgeSession.summary``).
+        wearer: The simulated subject (the cart's wearer, or one built with the same seed).
+    """
+    summary = dict(summary)
     opt_params, opt_cost = wearer.true_optimum
     summary["true_optimum"] = {"params": opt_params, "cost_w": opt_cost}
     summary["baseline_cost_w"] = wearer.baseline_cost_w
@@ -186,8 +213,4 @@ async def run_virtual_sim(cfg: VirtualSimConfig, out: Path, *, operator_view: bo
         summary["regret_pct_of_reduction"] = 100.0 * (true_best - opt_cost) / max(
             wearer.baseline_cost_w - opt_cost, 1e-9)
     summary["subject"] = wearer.subject
-    summary["sim"] = {**dataclasses.asdict(cfg), "speed": speed}
-    summary["wall_time_s"] = time.perf_counter() - wall0
-    write_json_atomic(out / "summary.json", summary)
-    result.summary_path.unlink(missing_ok=True)  # summary.json is the simulation's summary
     return summary

@@ -25,7 +25,6 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import importlib.util
 import json
 import shutil
-import socket
 import subprocess
 import sys
 import tempfile
@@ -44,18 +43,9 @@ _ROOT = Path(__file__).resolve().parents[1]
 
 def native_vcan_problem(channel: str = VCAN_CHANNEL) -> str | None:
     """Why SocketCAN ``channel`` is not usable natively, or None when it is."""
-    if not hasattr(socket, "AF_CAN"):
-        return "this Python has no AF_CAN"
-    try:
-        sock = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
-    except OSError as err:
-        return f"the kernel has no SocketCAN ({err.strerror})"
-    with sock:
-        try:
-            sock.bind((channel,))
-        except OSError as err:
-            return f"no {channel} interface ({err.strerror}); see scripts/vcan-setup.sh"
-    return None
+    from drivers.exosuit.vcan_setup import vcan_problem
+
+    return vcan_problem(channel)
 
 
 def _uml_module() -> ModuleType:

@@ -110,6 +110,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> argparse.ArgumentParser
     parser.add_argument("--preset", choices=sorted(PRESETS), default="hip_6d",
                         help="parameter space of the wearer's assistance (default hip_6d)")
     parser.add_argument("--seed", type=int, default=1, help="wearer (subject) seed (default 1)")
+    parser.add_argument("--body-mass-kg", type=float, default=75.0,
+                        help="the wearer's body mass, 20-250 kg (default 75; match [session] "
+                             "body_mass_kg)")
     parser.add_argument("--speed", type=_speed_arg, default=1.0,
                         help="'max' or a real-time factor such as 1 (default) or 10")
     parser.add_argument("--epoch", type=float, default=None,
@@ -122,8 +125,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> argparse.ArgumentParser
                         help="stop after this many simulated minutes (default: run until stopped)")
     can = parser.add_argument_group(
         "applied assistance",
-        "listen for the virtual exosuit's applied-profile status on CAN (not implemented yet: "
-        "without it the wearer walks unassisted)",
+        "follow the profile the virtual exosuit applies, from its CAN bus (without these options "
+        "the wearer walks unassisted)",
     )
     can.add_argument("--can-interface", default=None, help="python-can interface (e.g. socketcan, virtual)")
     can.add_argument("--can-channel", default=None, help="python-can channel (e.g. vcan0)")
@@ -206,7 +209,7 @@ async def serve(
 
 async def _run(args: argparse.Namespace, out: TextIO) -> None:
     feed = profile_feed_from_args(args)
-    wearer = SimulatedWearer(preset(args.preset), seed=args.seed)
+    wearer = SimulatedWearer(preset(args.preset), seed=args.seed, body_mass_kg=args.body_mass_kg)
     clock = make_clock(args.speed, args.epoch)
     link = CartLink(kind=LinkKind(args.transport), host=args.host, port=args.port)
     cart = VirtualCart(

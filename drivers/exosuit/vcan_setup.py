@@ -11,6 +11,7 @@ pipes them to ``sudo sh``. The standalone ``scripts/vcan-setup.sh`` does the sam
 from __future__ import annotations
 
 import re
+import socket
 from collections.abc import Mapping
 
 from drivers.errors import DriverConfigError
@@ -19,8 +20,25 @@ __all__ = [
     "can_setup_commands",
     "persistent_vcan_files",
     "setup_script",
+    "vcan_problem",
     "vcan_setup_commands",
 ]
+
+def vcan_problem(channel: str = "vcan0") -> str | None:
+    """Why SocketCAN ``channel`` cannot be used here, or None when a raw CAN socket binds it."""
+    if not hasattr(socket, "AF_CAN"):
+        return "this Python has no AF_CAN (SocketCAN is Linux only)"
+    try:
+        sock = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
+    except OSError as err:
+        return f"the kernel has no SocketCAN ({err.strerror})"
+    with sock:
+        try:
+            sock.bind((channel,))
+        except OSError as err:
+            return f"no {channel} interface ({err.strerror}; create it with: hilbo vcan-setup | sudo sh)"
+    return None
+
 
 # Linux interface names: at most 15 bytes; these characters keep them shell- and file-safe.
 _IFNAME = re.compile(r"[A-Za-z0-9_.-]{1,15}")

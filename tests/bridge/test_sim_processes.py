@@ -1,0 +1,320 @@
+"""The bridge, the virtual exosuit and the virtual cart as separate processes.
+
+* ``hilbo sim --processes`` (bridge/sim_processes.py): the bridge in this process, the two
+  devices as children, over SocketCAN vcan0 (marked ``vcan``: natively, or inside user-mode
+  Linux, tests/conftest.py) and over python-can-remote on this host.
+* ``hilbo run`` with the example config (``hilbo config example``) as a process of its own, the
+  devices started with the commands the README gives.
+
+Did the cart's wearer feel the profile the exosuit applied? The simulated wearer is
+deterministic from its seed, and its breath times and noise do not depend on the assistance, so
+an unassisted wearer of the same seed yields, breath for breath, what the cart would have
+reported without the exosuit: the ratio of the two is the assistance's effect on the metabolic
+rate, free of noise.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import re
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from bridge.cli import main
+from bridge.config import example_config_text
+from bridge.errors import DeviceProcessError
+from bridge.logread import LogContents, read_log
+from bridge.sim import VirtualSimConfig
+from bridge.sim_processes import ChildProcess, device_processes, run_process_sim, vcan_problem
+from hilbo_core.presets import hip_6d
+from virtual_hw.wearer import SimulatedWearer
+
+pytestmark = pytest.mark.timeout(240)
+
+ROOT = Path(__file__).resolve().parents[2]
+# Slower than in one process: four processes share two cores (one inside user-mode Linux), and a
+# proposal's computing time is walking time at the new speed.
+SPEED = 30.0
+BUSES = [pytest.param("vcan", marks=pytest.mark.vcan), "remote"]
+
+
+def small(**kw: Any) -> VirtualSimConfig:
+    opts: dict[str, Any] = {"minutes": 5.0, "seed": 2, "n_explore": 3, "max_breaths": 10,
+                            "warmup_s": 20.0, "speed": SPEED, "feedback_hz": 50.0}
+    opts.update(kw)
+    return VirtualSimConfig(**opts)
+
+
+def needs(bus: str) -> None:
+    if bus == "remote":
+        pytest.importorskip("can_remote", reason="python-can-remote (a dev extra) is not installed")
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return False
+    return state != "Z"
+
+
+def _children(pid: int) -> list[int]:
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        with contextlib.suppress(OSError, IndexError, ValueError):
+            if int(stat.read_text().rsplit(")", 1)[1].split()[1]) == pid:
+                found.append(int(stat.parent.name))
+    return found
+
+
+def assert_the_wearer_felt_the_applied_profiles(log: LogContents, seed: int) -> None:
+    """Unassisted until the first push; then, within every evaluation, the metabolic rate relaxes
+    towards the cost of that setting (first order, seed 000 §II.C) and away from unassisted."""
+    breaths = log.data("/breaths")
+    reference = SimulatedWearer(hip_6d(), seed)
+    unassisted = {b.t_s: b.watts for b in reference.breaths_until(breaths[-1]["t_s"])}
+    # Same subject, breath for breath (the cart skipped those before it started).
+    assert all(b["t_s"] in unassisted for b in breaths)
+    ratio = [(b["t_s"], b["watts"] / unassisted[b["t_s"]]) for b in breaths]
+    first_push = log.data("/profiles_sent")[0]["t_s"]  # the last breath before it
+    warm_up = [r for t, r in ratio if t <= first_push]
+    assert warm_up and all(abs(r - 1.0) < 1e-9 for r in warm_up)
+    t0 = breaths[0]["t_s"]  # evaluation times are seconds since the first breath
+    checked = 0
+    for obs in log.data("/observations"):
+        inside = [r for t, r in ratio if t0 + obs["t_start"] < t <= t0 + obs["t_end"] + 1e-9]
+        if len(inside) < 6:
+            continue  # stopped early: the switch may not be behind its first breaths yet
+        target = reference.true_cost_w(obs["params"]) / reference.baseline_cost_w
+        mid, last = inside[len(inside) // 2], inside[-1]
+        assert abs(last - target) <= abs(mid - target) + 1e-3, (obs["index"], mid, last, target)
+        checked += 1
+    assert checked >= 2
+    assert min(r for _, r in ratio) < 0.97  # assisted breaths, not a cart that ignored the suit
+
+
+def assert_log_and_summary_agree(log: LogContents, s: dict[str, Any]) -> None:
+    assert log.complete
+    assert [o["params"] for o in log.data("/observations")] == [e["params"] for e in s["evaluations"]]
+    assert len(log.data("/breaths")) == s["n_breaths"]
+    acks = log.data("/acks")
+    assert len(acks) >= s["n_evaluations"] and all(a["accepted"] for a in acks)
+    kinds = [e["kind"] for e in log.data("/events")]
+    assert kinds[0] == "session_start" and "session_end" in kinds and "bus_error" not in kinds
+
+
+def assert_the_device_acked_every_push(log: LogContents, device_stats: dict[str, int]) -> None:
+    # A retried push (its ack came after the bridge's timeout) is acked once per transfer.
+    acks = log.data("/acks")
+    assert len(acks) <= device_stats["acks"] <= sum(a["attempts"] for a in acks)
+
+
+# --- hilbo sim --processes ------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("bus", BUSES)
+def test_three_processes_log_summary_and_wearer_agree(tmp_path: Path, bus: str) -> None:
+    needs(bus)
+    s = asyncio.run(run_process_sim(small(), tmp_path, bus=bus))
+    on_disk = json.loads((tmp_path / "summary.json").read_text())
+    assert on_disk == json.loads(json.dumps(s))
+    assert s["n_evaluations"] > 3
+    log = read_log(tmp_path / "session.mcap")
+    assert_log_and_summary_agree(log, s)
+    # The simulation's truth, from the same subject the cart process simulated.
+    assert s["true_cost_of_best"] >= s["true_optimum"]["cost_w"] - 1e-9
+    assert s["regret_w"] == pytest.approx(s["true_cost_of_best"] - s["true_optimum"]["cost_w"])
+    assert s["subject"]["seed"] == 2
+    procs = s["sim"]["processes"]
+    assert procs["bus"] == bus
+    assert procs["can"]["interface"] == {"vcan": "socketcan", "remote": "remote"}[bus]
+    children = procs["children"]
+    assert sorted(children) == sorted(["virtual-exosuit", "virtual-cart"]
+                                      + (["can-remote"] if bus == "remote" else []))
+    assert children["virtual-exosuit"]["exit_status"] == 0 == children["virtual-cart"]["exit_status"]
+    assert not any(_alive(c["pid"]) for c in children.values())
+    assert_the_device_acked_every_push(log, procs["exosuit"]["stats"])
+    assert_the_wearer_felt_the_applied_profiles(log, seed=2)
+
+
+@pytest.mark.slow
+def test_a_device_that_dies_at_start_is_reported_with_its_stderr(tmp_path: Path) -> None:
+    needs("remote")
+    with pytest.raises(DeviceProcessError, match="virtual-exosuit exited before it was ready") as err:
+        asyncio.run(run_process_sim(small(exosuit_faults=("sparks@1",)), tmp_path, bus="remote"))
+    assert "exit status 2" in str(err.value) and "no fault 'sparks'" in str(err.value)
+    assert not (tmp_path / "summary.json").exists()
+
+
+@pytest.mark.slow
+async def test_every_child_is_stopped_when_the_block_fails(tmp_path: Path) -> None:
+    needs("remote")
+    pids: list[int] = []
+    with pytest.raises(RuntimeError, match="boom"):
+        async with device_processes(small(), bus="remote", log_dir=tmp_path) as devices:
+            pids = [c.pid for c in devices.children if c.pid is not None]
+            assert devices.exited() is None
+            raise RuntimeError("boom")
+    assert len(pids) == 3
+    assert not any(_alive(pid) for pid in pids)
+    assert [c.returncode for c in devices.children][1:] == [0, 0]  # the devices stop cleanly
+
+
+@pytest.mark.slow
+def test_ctrl_c_ends_the_session_and_stops_the_devices(tmp_path: Path) -> None:
+    needs("remote")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "bridge.cli", "sim", "--processes", "--bus", "remote", "--minutes", "60",
+         "--speed", "1", "--out", str(tmp_path)],
+        cwd=ROOT, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        deadline = time.monotonic() + 90.0
+        while not ((tmp_path / "session.mcap").exists() and len(_children(proc.pid)) >= 3):
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline, "the session did not start"
+            time.sleep(0.1)
+        children = _children(proc.pid)
+        proc.send_signal(signal.SIGINT)  # what Ctrl-C sends hilbo (the children are not in its group)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, err
+    assert out.splitlines() == [str(tmp_path / "summary.json"), str(tmp_path / "session.mcap")]
+    assert not any(_alive(pid) for pid in children)
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["sim"]["processes"]["bus"] == "remote"
+    kinds = [e["kind"] for e in read_log(tmp_path / "session.mcap").data("/events")]
+    assert "session_end" in kinds
+
+
+def test_bus_options_are_checked_before_anything_starts(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["sim", "--bus", "remote"]) == 2
+    assert "--bus goes with --processes" in capsys.readouterr().err
+    assert main(["sim", "--processes", "--engine", "core"]) == 2
+    assert "--engine core" in capsys.readouterr().err
+    if vcan_problem() is not None:
+        assert main(["sim", "--processes", "--bus", "vcan"]) == 2
+        assert "--bus vcan: " in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["run", "unused.toml", "--auto-resume", "-1"])
+    assert "expected seconds >= 0" in capsys.readouterr().err
+
+
+# --- hilbo run with the example config --------------------------------------------------------------
+
+
+def example_for_a_test(tmp_path: Path, *, cart_port: int, can_url: str | None) -> Path:
+    """The example config with a short protocol (and, for python-can-remote, that [can])."""
+    text = example_config_text()
+    changes = {"out_dir": f'"{tmp_path / "sessions"}"', "warmup_s": "20.0", "n_explore": "2",
+               "max_breaths": "8", "budget_min": "1.0", "port": str(cart_port),
+               # watchdog and heartbeats cross processes on a loaded 2-core host (or inside UML)
+               "device_heartbeat_timeout_ms": "1000.0"}
+    if can_url is not None:
+        changes.update(interface='"remote"', channel=f'"{can_url}"')
+    for key, value in changes.items():
+        text, n = re.subn(rf"(?m)^{key}\s*=\s*[^#\n]*", f"{key} = {value} ", text)
+        assert n == 1, key
+    path = tmp_path / "my_session.toml"
+    path.write_text(text)
+    return path
+
+
+def events_so_far(directory: Path) -> list[str]:
+    """The events of the newest session log in ``directory`` (for a session that hung)."""
+    logs = sorted(directory.glob("*.mcap"), key=lambda p: p.stat().st_mtime)
+    return [f"{e['kind']}: {e['message']}" for e in read_log(logs[-1]).data("/events")] if logs else []
+
+
+def _free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+@contextlib.asynccontextmanager
+async def started(*children: ChildProcess) -> AsyncIterator[None]:
+    try:
+        for child in children:
+            await child.start()
+        yield
+    finally:
+        for child in reversed(children):
+            await child.stop()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("bus", BUSES)
+async def test_hilbo_run_with_the_example_config_drives_the_device_processes(
+    tmp_path: Path, bus: str,
+) -> None:
+    needs(bus)
+    hilbo = [sys.executable, "-m", "bridge.cli"]  # = the hilbo console script
+    cart_port = _free_port()
+    servers: list[ChildProcess] = []
+    if bus == "remote":
+        can_port = _free_port()
+        url = f"ws://127.0.0.1:{can_port}/"
+        servers.append(ChildProcess("can-remote", [
+            sys.executable, "-m", "can_remote", "--interface", "virtual", "--channel", "demo",
+            "--host", "127.0.0.1", "--port", str(can_port)], tmp_path / "can-remote.log"))
+        can = ["--interface", "remote", "--channel", url]
+    else:
+        url = None
+        can = ["--interface", "socketcan", "--channel", "vcan0"]
+    config = example_for_a_test(tmp_path, cart_port=cart_port, can_url=url)
+    assert main(["config", "check", str(config)]) == 0
+    clock = ["--speed", "20", "--epoch", repr(time.time())]
+    exosuit = ChildProcess("virtual-exosuit", [*hilbo, "virtual-exosuit", *can, *clock, "--seed", "1",
+                                               "--feedback-hz", "50", "--heartbeat-timeout", "0.5"],
+                           tmp_path / "exosuit.log")
+    cart = ChildProcess("virtual-cart", [
+        *hilbo, "virtual-cart", "--transport", "tcp", "--host", "127.0.0.1", "--port", str(cart_port),
+        *clock, "--seed", "1", "--can-interface", can[1], "--can-channel", can[3]], tmp_path / "cart.log")
+    async with started(*servers):
+        if servers:
+            await servers[0].wait_listening("127.0.0.1", can_port)
+        async with started(exosuit, cart):
+            assert json.loads(await exosuit.first_line())["event"] == "ready"
+            assert await cart.first_line() == f"tcp 127.0.0.1 {cart_port}"
+            run = await asyncio.create_subprocess_exec(
+                *hilbo, "run", str(config), "--no-view", "--auto-resume", "0", cwd=ROOT,
+                stdin=asyncio.subprocess.DEVNULL, stdout=asyncio.subprocess.PIPE,
+                stderr=asyncio.subprocess.PIPE)
+            try:
+                async with asyncio.timeout(150):
+                    out, err = await run.communicate()
+            except TimeoutError:
+                pytest.fail(f"hilbo run did not end within 150 s: {events_so_far(tmp_path / 'sessions')}")
+            finally:
+                if run.returncode is None:
+                    run.kill()
+                    await run.wait()
+            assert (exosuit.returncode, cart.returncode) == (None, None)
+    assert run.returncode == 0, err.decode()
+    log_path, summary_path = (Path(line) for line in out.decode().split())
+    assert log_path.parent == tmp_path / "sessions"
+    s = json.loads(summary_path.read_text())
+    assert s["n_evaluations"] > 2
+    log = read_log(log_path)
+    assert_log_and_summary_agree(log, s)
+    kinds = [e["kind"] for e in log.data("/events")]
+    assert kinds.index("bout_pause") < kinds.index("resume")  # --auto-resume ended the pause
+    stopped = exosuit.json_record("stopped")
+    assert exosuit.returncode == 0 and stopped is not None
+    assert_the_device_acked_every_push(log, stopped["stats"])
+    assert_the_wearer_felt_the_applied_profiles(log, seed=1)
