@@ -15,7 +15,9 @@ dataclass. The loader refuses unknown tables and keys (a typo must never fall ba
 default; the error names ``table.key``, suggests the closest allowed key and lists them all),
 checks every type and range, and names the key, the value and what is allowed in every error
 (:class:`~bridge.errors.BridgeConfigError`). A TOML syntax error is reported with its line and
-column. Paths (``session.out_dir``, ``cart.options.path``) are relative to the working directory.
+column. Paths (``session.out_dir``, ``cart.options.path``, ``prior.logs``, ``prior.table``) are
+relative to the working directory. ``[prior]`` (:class:`PriorConfig`) reads its logs and table
+on load, so a bad prior is refused before the session starts.
 
 Cross-checks after the tables: the space's force-profile builder must build the centre of the
 space, per-actuator limits must name actuators the builder produces, and the limits must admit
@@ -26,6 +28,7 @@ that centre (a config whose limits refuse the middle of its own space would stal
 from __future__ import annotations
 
 import argparse
+import csv
 import dataclasses
 import difflib
 import enum
@@ -56,8 +59,16 @@ from drivers.errors import DriverConfigError
 from drivers.exosuit.endpoint import INTERFACE_OPTIONS, CanBusConfig
 from hilbo_core.errors import ConfigError, InfeasibleError
 from hilbo_core.gp import KernelKind
-from hilbo_core.optimizer import OptimizerConfig, StoppingKind
+from hilbo_core.optimizer import OptimizerConfig, PriorObservation, StoppingKind
 from hilbo_core.presets import PRESETS
+from hilbo_core.priors import (
+    DEFAULT_PRIOR_NOISE,
+    PriorNoise,
+    PriorSource,
+    inflate_variance,
+    priors_from_evaluations,
+    priors_from_rows,
+)
 from hilbo_core.profiles import PROFILE_BUILDERS, build_profile
 from hilbo_core.space import DerivedParameter, LinearConstraint, Parameter, ParameterSpace
 
@@ -624,28 +635,219 @@ def _parse_watchdog(data: object) -> WatchdogConfig:
 
 @dataclass(frozen=True)
 class PriorConfig:
-    """``[prior]``: fast-prior observations (seed 003 §3.3) — a placeholder.
+    """``[prior]``: fast-prior observations (seed 003 §3.3), read and validated on load.
 
-    Reserved for the fast-prior issue (issue 8): ``observations`` (inline points with their
-    value and inflated noise variance) and ``logs`` (previous sessions' MCAP logs of the same
-    wearer). Until that lands both must be empty lists; anything else is refused rather than
-    silently ignored.
+    Three sources, all optional, all entering the GP with inflated noise
+    (:func:`hilbo_core.priors.inflate_variance`: ``var = factor · var_source + extra_var_w2``, per
+    source, defaults :data:`hilbo_core.priors.DEFAULT_PRIOR_NOISE`, overridable in
+    ``[prior.inflation.<source>]``):
+
+    * ``observations`` — inline points: ``{params = {name = value, ...}, mean_w = W,
+      var_w2 = W² (or sd_w = W), source = "short_bout" | "previous_session" | "population"}``
+      (source defaults to ``short_bout``);
+    * ``logs`` — previous sessions' MCAP logs of this wearer: their completed evaluations
+      (``/observations``) become ``previous_session`` priors
+      (:func:`hilbo_core.priors.priors_from_evaluations`);
+    * ``table`` — a CSV population table (:func:`hilbo_core.priors.priors_from_rows`): a header
+      row, one column per parameter of the space (by name; derived parameters may be present),
+      ``mean`` (W) and ``var`` (W²) or ``sd`` (W) per row; ``subject``, ``source`` and ``note``
+      columns are allowed and ignored. With ``table_baseline_w`` the table is relative: means are
+      fractions of the unassisted cost (and var/sd of that fraction), scaled by it.
+
+    Attributes:
+        observations: The inline observations, validated and inflated.
+        logs: The log paths, as given (relative to the working directory).
+        table: The CSV path, or None.
+        table_baseline_w: This wearer's unassisted cost for a relative table (W), or None.
+        inflation: The inflation in effect per source (``PriorSource`` value → ``PriorNoise``).
+        from_logs: The priors read from ``logs``, in log order.
+        log_counts: How many priors each log gave (aligned with ``logs``).
+        from_table: The priors read from ``table``.
     """
 
-    observations: tuple[Any, ...] = ()
-    logs: tuple[str, ...] = ()
+    observations: tuple[PriorObservation, ...] = ()
+    logs: tuple[Path, ...] = ()
+    table: Path | None = None
+    table_baseline_w: float | None = None
+    inflation: Mapping[str, PriorNoise] = field(
+        default_factory=lambda: MappingProxyType({s.value: n for s, n in DEFAULT_PRIOR_NOISE.items()}))
+    from_logs: tuple[PriorObservation, ...] = ()
+    log_counts: tuple[int, ...] = ()
+    from_table: tuple[PriorObservation, ...] = ()
+
+    @property
+    def priors(self) -> tuple[PriorObservation, ...]:
+        """Every prior observation (inline, then logs, then table), for ``HILOptimizer``."""
+        return (*self.observations, *self.from_logs, *self.from_table)
+
+    @property
+    def sources_used(self) -> tuple[str, ...]:
+        """The :class:`~hilbo_core.priors.PriorSource` values of the priors present, sorted."""
+        used = {p.source.split(":", 1)[0] for p in self.observations}
+        if self.from_logs:
+            used.add(PriorSource.PREVIOUS_SESSION.value)
+        if self.from_table:
+            used.add(PriorSource.POPULATION.value)
+        return tuple(sorted(used))
+
+    def event_details(self) -> dict[str, Any]:
+        """What the session log's ``prior`` event records: counts by source, logs, table."""
+        by_source = dict.fromkeys(self.sources_used, 0)
+        for p in self.observations:
+            by_source[p.source.split(":", 1)[0]] += 1
+        if self.from_logs:
+            by_source[PriorSource.PREVIOUS_SESSION.value] += len(self.from_logs)
+        if self.from_table:
+            by_source[PriorSource.POPULATION.value] += len(self.from_table)
+        return {"n_priors": len(self.priors), "by_source": by_source, "n_inline": len(self.observations),
+                "logs": {str(p): n for p, n in zip(self.logs, self.log_counts, strict=True)},
+                "table": None if self.table is None else str(self.table), "n_table": len(self.from_table)}
+
+    def describe(self) -> str:
+        """One line: how many priors from which sources (empty config: ``none``)."""
+        parts = []
+        if self.observations:
+            kinds = sorted({p.source.split(":", 1)[0] for p in self.observations})
+            parts.append(f"{len(self.observations)} inline ({', '.join(kinds)})")
+        for path, n in zip(self.logs, self.log_counts, strict=True):
+            parts.append(f"{n} from log {path}")
+        if self.table is not None:
+            rel = f", relative to {self.table_baseline_w:g} W" if self.table_baseline_w is not None else ""
+            parts.append(f"{len(self.from_table)} from table {self.table}{rel}")
+        if not parts:
+            return "none"
+        n = len(self.priors)
+        return f"{n} prior observation{'' if n == 1 else 's'}: " + "; ".join(parts)
 
 
-def _parse_prior(data: object) -> PriorConfig:
+def _prior_noise(t: _Table) -> dict[str, PriorNoise]:
+    noise = {s.value: n for s, n in DEFAULT_PRIOR_NOISE.items()}
+    table = _Table(t.table("inflation", {}), "prior.inflation", noise)
+    for source in table.data:
+        where = f"prior.inflation.{source}"
+        o = _Table(table.table(source), where, ("factor", "extra_var_w2"))
+        base = noise[source]
+        noise[source] = PriorNoise(
+            factor=o.number("factor", base.factor, lo=1.0, hi=1e6),
+            extra_var_w2=o.number("extra_var_w2", base.extra_var_w2, lo=0.0, hi=1e8),
+        )
+    return noise
+
+
+def _prior_params(space: ParameterSpace, entry: _Table, where: str) -> dict[str, float]:
+    known = (*space.names, *(d.name for d in space.derived))
+    params = _Table(entry.table("params"), f"{where}.params", known)
+    values = {name: params.number(name) for name in params.data}
+    missing = [n for n in space.names if n not in values]
+    if missing:
+        raise BridgeConfigError(
+            f"{where}.params = {dict(params.data)!r:.100}: missing parameter(s) {missing}; "
+            f"expected every parameter of the space: {', '.join(space.names)}"
+        )
+    try:
+        return space.to_dict(space.check(values))
+    except (ConfigError, InfeasibleError) as err:
+        raise BridgeConfigError(
+            f"{where}.params = {values}: outside the space ({err}); a prior must be a feasible setting"
+        ) from err
+
+
+def _parse_inline_prior(space: ParameterSpace, entry: object, i: int,
+                        noise: Mapping[str, PriorNoise]) -> PriorObservation:
+    where = f"prior.observations[{i}]"
+    e = _Table(entry, where, ("params", "mean_w", "var_w2", "sd_w", "source", "note"))
+    params = _prior_params(space, e, where)
+    mean = e.number("mean_w", lo=0.0, hi=1e5)
+    if e.has("var_w2") == e.has("sd_w"):
+        raise BridgeConfigError(
+            f"{where}: give the uncertainty as var_w2 (W²) or sd_w (W), "
+            + ("not both" if e.has("var_w2") else "found neither")
+        )
+    var = e.number("var_w2", lo=0.0, hi=1e10, lo_open=True) if e.has("var_w2") else \
+        e.number("sd_w", lo=0.0, hi=1e5, lo_open=True) ** 2
+    source = e.string("source", PriorSource.SHORT_BOUT.value, choices=[s.value for s in PriorSource])
+    e.string("note", "", non_empty=False)
+    return PriorObservation(params, mean, inflate_variance(var, noise[source]), f"{source}:inline {i}")
+
+
+def _read_prior_log(space: ParameterSpace, path: Path, i: int,
+                    noise: PriorNoise) -> list[PriorObservation]:
+    from bridge.log import LogError
+    from bridge.logread import read_log
+
+    where = f"prior.logs[{i}] = {str(path)!r}"
+    if not path.is_file():
+        raise BridgeConfigError(f"{where}: no such file (a previous session's .mcap log of this wearer; "
+                                "paths are relative to the working directory)")
+    try:
+        evaluations = read_log(path, topics=["/observations"]).data("/observations")
+    except (LogError, OSError) as err:
+        raise BridgeConfigError(f"{where}: cannot read it as a session log: {err}") from err
+    if not evaluations:
+        raise BridgeConfigError(f"{where}: the log holds no completed evaluation (/observations); "
+                                "remove it from prior.logs")
+    try:
+        return priors_from_evaluations(space, evaluations, noise=noise, label=path.name)
+    except ConfigError as err:
+        raise BridgeConfigError(f"{where}: {err}") from err
+
+
+def _read_prior_table(space: ParameterSpace, path: Path, baseline_w: float | None,
+                      noise: PriorNoise) -> list[PriorObservation]:
+    where = f"prior.table = {str(path)!r}"
+    try:
+        with path.open(newline="", encoding="utf-8-sig") as fh:
+            rows = list(csv.DictReader(fh))
+    except FileNotFoundError as err:
+        raise BridgeConfigError(f"{where}: no such file (a CSV population table; paths are relative "
+                                "to the working directory)") from err
+    except (OSError, UnicodeDecodeError, csv.Error) as err:
+        raise BridgeConfigError(f"{where}: cannot read it as CSV: {err}") from err
+    if not rows:
+        raise BridgeConfigError(f"{where}: no data rows (expected a header row, then one row per setting)")
+    for i, row in enumerate(rows):
+        if None in row:
+            raise BridgeConfigError(f"{where}: prior row {i} (line {i + 2}) has more fields than the header")
+    try:
+        return priors_from_rows(space, rows, noise=noise, baseline_w=baseline_w)
+    except ConfigError as err:
+        raise BridgeConfigError(f"{where}: {err} (rows count from 0 after the header line)") from err
+
+
+def _parse_prior(data: object, space: ParameterSpace) -> PriorConfig:
     t = _Table(data, "prior", ALLOWED_KEYS["prior"])
-    for key in ("observations", "logs"):
-        value = t.raw(key, [], "an empty list")
-        if not isinstance(value, list) or value:
-            raise BridgeConfigError(
-                f"prior.{key} = {value!r:.60}: fast-prior observations are not supported yet "
-                "(issue 8); expected an empty list []"
-            )
-    return PriorConfig()
+    noise = _prior_noise(t)
+    entries = t.raw("observations", [], "a list of tables")
+    if not isinstance(entries, list):
+        raise BridgeConfigError(f"prior.observations = {entries!r:.60}: expected a list of inline tables "
+                                "{params = {...}, mean_w = ..., var_w2 = ...}")
+    observations = [_parse_inline_prior(space, e, i, noise) for i, e in enumerate(entries)]
+    logs = tuple(Path(p) for p in t.strings("logs", []))
+    for i, path in enumerate(logs):
+        first = next(j for j, q in enumerate(logs) if q.resolve() == path.resolve())
+        if first != i:
+            raise BridgeConfigError(f"prior.logs[{i}] = {str(path)!r}: the same log as prior.logs[{first}]; "
+                                    "each evaluation would be counted twice")
+    from_logs: list[PriorObservation] = []
+    counts = []
+    prev = noise[PriorSource.PREVIOUS_SESSION.value]
+    for i, path in enumerate(logs):
+        got = _read_prior_log(space, path, i, prev)
+        from_logs += got
+        counts.append(len(got))
+    table = Path(t.string("table")) if t.has("table") else None
+    baseline = (t.number("table_baseline_w", lo=0.0, hi=1e5, lo_open=True)
+                if t.has("table_baseline_w") else None)
+    if baseline is not None and table is None:
+        raise BridgeConfigError(f"prior.table_baseline_w = {baseline:g}: only with prior.table (a relative "
+                                "population table)")
+    from_table = [] if table is None else _read_prior_table(
+        space, table, baseline, noise[PriorSource.POPULATION.value])
+    return PriorConfig(
+        observations=tuple(observations), logs=logs, table=table, table_baseline_w=baseline,
+        inflation=MappingProxyType(noise), from_logs=tuple(from_logs), log_counts=tuple(counts),
+        from_table=tuple(from_table),
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -794,15 +996,17 @@ def parse_config(text: str, source: str = "<string>") -> HilboConfig:
             f"{source}: missing table(s) {', '.join(f'[{t}]' for t in missing)}; "
             "`hilbo config example` prints a complete config"
         )
+    session = _parse_session(data["session"])
+    space = _parse_space(data["space"])
     cfg = HilboConfig(
-        session=_parse_session(data["session"]),
-        space=_parse_space(data["space"]),
+        session=session,
+        space=space,
         protocol=_parse_protocol(data.get("protocol", {})),
         cart=_parse_cart(data["cart"]),
         can=_parse_can(data["can"]),
         limits=_parse_limits(data.get("limits", {})),
         watchdog=_parse_watchdog(data.get("watchdog", {})),
-        prior=_parse_prior(data.get("prior", {})),
+        prior=_parse_prior(data.get("prior", {}), space.space),
         source=source,
         text=text,
     )
@@ -870,6 +1074,11 @@ def summarize(cfg: HilboConfig) -> str:
                  "rejected proposals in a row")
     lines.append(f"watchdog  device heartbeat {wd.device_heartbeat_timeout_ms:g} ms, cart data "
                  f"{wd.cart_data_timeout_s:g} s, bus error -> assistance-off and {wd.bus_error.value}")
+    lines.append(f"prior     {cfg.prior.describe()}")
+    if cfg.prior.priors:
+        lines.append("          inflation (var x factor + extra): " + "; ".join(
+            f"{k} x {cfg.prior.inflation[k].factor:g} + {cfg.prior.inflation[k].extra_var_w2:g} W²"
+            for k in cfg.prior.sources_used))
     return "\n".join(lines)
 
 
@@ -946,5 +1155,5 @@ ALLOWED_KEYS: Mapping[str, tuple[str, ...]] = MappingProxyType({
             "push_retries", "segment_pace_ms"),
     "limits": (*ACTUATOR_LIMIT_RANGES, "n_points", "max_consecutive_rejections", "actuators"),
     "watchdog": tuple(f.name for f in dataclasses.fields(WatchdogConfig)),
-    "prior": ("observations", "logs"),
+    "prior": ("observations", "logs", "table", "table_baseline_w", "inflation"),
 })

@@ -98,7 +98,8 @@ async def run_session(
         resume: A previous session's log (possibly cut off by a crash) to continue.
         out_dir: Overrides ``[session] out_dir``.
         log_path: Exact log path (else ``OUT_DIR/<subject>_<time>.mcap``).
-        auto_resume_s: Resume a bout pause by itself after this long (simulation only).
+        auto_resume_s: End the pause between the bouts by itself after this long (wall s;
+            simulations, and ``hilbo run --auto-resume`` without a keyboard).
         operator_view: Show the live terminal view (when stderr is a terminal).
         n_actuators: Actuators whose heartbeat the watchdog requires.
         on_session: Called with the session before it runs (tests, simulation wiring).
@@ -112,8 +113,12 @@ async def run_session(
         opt, info = rebuild_optimizer(resume)
         session_id, previous = info.session_id, str(resume)
         logger.info("resuming %s: %d evaluations recovered", resume, info.n_evaluations)
+        if cfg.prior.priors:
+            logger.info("[prior] not re-applied on resume: the rebuilt optimizer holds its own priors")
     else:
-        opt = HILOptimizer(space, config=cfg.protocol.optimizer_config())
+        # Fast prior (seed 003 §3.3): validated and inflated when the config was loaded.
+        opt = HILOptimizer(space, config=cfg.protocol.optimizer_config(),
+                           prior_observations=cfg.prior.priors)
         session_id = new_session_id()
     path = Path(log_path) if log_path is not None else _log_path(cfg, out_dir)
     summary_path = path.with_suffix(".summary.json")
@@ -125,6 +130,8 @@ async def run_session(
                         previous_log=previous, param_names=space.names) as log:
             if resume is not None:
                 log.log_optimizer_state(opt, reason="resume")
+            elif cfg.prior.priors:
+                log.log_event("prior", cfg.prior.describe(), **cfg.prior.event_details())
             session = BridgeSession(opt, cfg.make_gate(), endpoint, stream, log, settings)
             session.status.budget_s = opt.config.budget_s
             if on_session is not None:

@@ -15,11 +15,9 @@ minutes of walking:
 3. **Tuned stopping** (issue 8, item 5): a constant-K σ-scaled rule with K tuned offline by
    ``tune_stopping`` on *other* wearers' full-length trajectories vs Algorithm 2's schedule.
 
-The optimizer does not (yet) take a feature map or a constant-K rule, so this module uses a
-small subclass that overrides three private methods of :class:`HILOptimizer` (``_fit_gp``,
-``_propose``, ``_rule``) — measurement scaffolding, to be replaced by optimizer options. The
-simulated wearer has no "new day" option either; the breath stream of session 2 is reseeded by
-replacing its private generator. Both are marked where they happen.
+The sessions themselves (the optimizer scaffolding for feature maps and constant-K stopping,
+the "new day" of a wearer) are :mod:`bridge.thesis_session`, shared with the ``adaptive-*``
+methods of ``hilbo bench hil``.
 
 The simulated wearer's landscape does not change between sessions, so the prior experiment is a
 best case for priors from a previous session (a real wearer adapts and drifts between days).
@@ -30,179 +28,29 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import math
 import os
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from bridge.bench.hil import regret_at
+from bridge.thesis_session import Arm, StudyOptimizer, run_session
 from bridge.tune_stopping import TuneStoppingConfig, tune_stopping
-from hilbo_core import HILOptimizer, brockway_watts, presets
-from hilbo_core.acquisition import maximize_ei
-from hilbo_core.features import ProfileFeatureMap, with_raw
-from hilbo_core.gp import GaussianProcess
+from hilbo_core import presets
 from hilbo_core.optimizer import PriorObservation
 from hilbo_core.priors import priors_from_evaluations
-from hilbo_core.stopping import FixedIntervalRule, SigmaScaledRule, StoppingRule
-from virtual_hw.wearer import SimulatedWearer
 
 __all__ = ["Arm", "StudyOptimizer", "main", "run_session", "run_study"]
 
 logger = logging.getLogger(__name__)
 
 _MINUTE_GRID = (20.0, 30.0, 40.0, 50.0, 60.0)
-
-
-class StudyOptimizer(HILOptimizer):
-    """HILOptimizer with a feature map and/or a constant-K stopping rule (study scaffolding).
-
-    Overrides private methods of the parent; the wiring the optimizer needs instead:
-    ``GaussianProcess(kernel, feature_map=fm)`` in ``_fit_gp`` and
-    ``predict_grad=None if fm else gp.predict_with_grad`` in ``_propose``;
-    ``SigmaScaledRule.constant(k, N)`` in ``_rule``.
-    """
-
-    def __init__(self, *args: Any, feature_map: Callable[[np.ndarray], np.ndarray] | None = None,
-                 stopping_k: float | None = None, **kwargs: Any) -> None:
-        self._feature_map = feature_map
-        self._stopping_k = stopping_k
-        super().__init__(*args, **kwargs)
-
-    def _fit_gp(self, rng: np.random.Generator, *, store: bool) -> GaussianProcess:
-        if self._feature_map is None:
-            return super()._fit_gp(rng, store=store)
-        U, y, v = self._training_set()
-        gp = GaussianProcess(self.config.kernel, feature_map=self._feature_map)
-        gp.fit(U, y, v, rng=rng, init=self._hyp)
-        if store:
-            self._hyp = gp.hyperparameters
-        return gp
-
-    def _propose(self) -> np.ndarray:
-        if self._feature_map is None:
-            return super()._propose()
-        # The parent's proposal with finite-difference EI refinement (φ has no Jacobian).
-        gp = self._fit_gp(self._rng, store=True)
-        self._incumbent = self._gp_best(gp)
-        best_observed = min(e.mean for e in self._evaluations)
-        A_u, b_u = self.space.unit_constraints()
-        cand = self.space.sample_unit(self.config.n_candidates, self._rng)
-        u, _ = maximize_ei(gp.predict, best_observed, candidates=cand, A_ub=A_u, b_ub=b_u,
-                           rng=self._rng, xi=self.config.xi, n_local=self.config.n_local,
-                           predict_grad=None)
-        x = self.space.from_unit(np.clip(u, 0.0, 1.0))
-        return x if self.space.is_feasible(x) else self.space.from_unit(cand[0])
-
-    def _rule(self) -> StoppingRule:
-        if self._stopping_k is None or self._thresholds is None:
-            return super()._rule()
-        if self.config.stopping.value == "fixed":
-            return FixedIntervalRule(self.config.max_breaths)
-        return SigmaScaledRule.constant(self._stopping_k, self.config.max_breaths)
-
-
-@dataclass(frozen=True)
-class Arm:
-    """One way of running a session.
-
-    Attributes:
-        name: Label.
-        n_explore: Exploration points E.
-        feature: None (raw parameters), ``"profile"`` or ``"profile+raw"``.
-        stopping_k: Constant K of the σ-scaled rule, or None for Algorithm 2's schedule.
-        window: Algorithm 2's window W (when ``stopping_k`` is None).
-        prior: Use the first session's evaluations as a fast prior.
-        day: 1 for the first session (default breath stream), 2 for the second "day".
-    """
-
-    name: str
-    n_explore: int = 6
-    feature: str | None = None
-    stopping_k: float | None = None
-    window: int = 2
-    prior: bool = False
-    day: int = 1
-
-
-def run_session(seed: int, arm: Arm, *, minutes: float = 60.0, preset: str = "hip_6d",
-                priors: Sequence[PriorObservation] = (), max_breaths: int = 45,
-                warmup_s: float = 180.0) -> dict[str, Any]:
-    """One simulated session (the protocol of :func:`bridge.insim.run_insim`).
-
-    Returns:
-        ``regret_trace`` ([t_end_s, regret_w] after every evaluation), ``evaluations``,
-        ``trajectories`` (breaths (t_s, W) of every evaluation that ran N breaths), the wearer's
-        optimum and baseline, and timing.
-    """
-    wall0 = time.perf_counter()
-    space = presets.preset(preset)
-    wearer = SimulatedWearer(space, seed=seed)
-    opt_seed = seed if arm.day == 1 else seed + 100_000
-    if arm.day != 1:
-        # Scaffolding: a "new day" of the same subject = a fresh breath-noise stream (the wearer
-        # has no option for it; its subject and landscape stay those of ``seed``).
-        wearer._breath_rng = np.random.default_rng([seed, arm.day])
-    fm = None
-    if arm.feature is not None:
-        prof = ProfileFeatureMap(space, n_reference=256, seed=0)
-        fm = prof if arm.feature == "profile" else with_raw(prof, space.dim)
-    opt = StudyOptimizer(space, n_explore=arm.n_explore, max_breaths=max_breaths, window=arm.window,
-                         seed=opt_seed, prior_observations=list(priors), feature_map=fm,
-                         stopping_k=arm.stopping_k)
-    _, opt_cost = wearer.true_optimum
-    session_s = minutes * 60.0
-    trace: list[list[float]] = []
-    trajectories: list[list[list[float]]] = []
-
-    def warm_up(until_s: float) -> None:
-        wearer.apply_profiles((), wearer.t_s)
-        while wearer.t_s < until_s:
-            wearer.next_breath()
-
-    warm_up(warmup_s)
-    started = False
-    while not opt.done:
-        if not started and len(opt.evaluations) == arm.n_explore:
-            warm_up(wearer.t_s + warmup_s)
-            opt.set_budget(budget_s=session_s - wearer.t_s, budget_breaths=None)
-            started = True
-        params = opt.ask()
-        t0 = wearer.t_s
-        wearer.apply_params(params, t0)
-        breaths: list[list[float]] = []
-        while True:
-            b = wearer.next_breath()
-            w = float(brockway_watts(b.vo2_ml_min, b.vco2_ml_min))
-            breaths.append([b.t_s - t0, w])
-            step = opt.observe_breath(b.t_s - t0, w)
-            if step.stop:
-                break
-        if len(breaths) == max_breaths:
-            trajectories.append(breaths)
-        best_params, _, _ = opt.best()
-        trace.append([b.t_s, wearer.true_cost_w(best_params) - opt_cost])
-    return {
-        "seed": seed, "arm": asdict(arm), "regret_trace": trace,
-        "evaluations": [e.to_json() for e in opt.evaluations],
-        "trajectories": trajectories,
-        "optimum_w": opt_cost, "baseline_w": wearer.baseline_cost_w,
-        "n_early_stops": sum(e.stopped_early for e in opt.evaluations),
-        "wall_s": time.perf_counter() - wall0,
-    }
-
-
-def _regret_at(trace: Sequence[Sequence[float]], t_s: float) -> float:
-    value = math.nan
-    for t, r in trace:
-        if t <= t_s:
-            value = r
-    return value
 
 
 @dataclass(frozen=True)
@@ -285,7 +133,7 @@ def run_study(test_seeds: Sequence[int], train_seeds: Sequence[int], *, minutes:
         for m in _MINUTE_GRID:
             if m > minutes:
                 continue
-            vals = np.array([_regret_at(r["regret_trace"], m * 60.0) for r in rows])
+            vals = np.array([regret_at(r["regret_trace"], m * 60.0) for r in rows])
             span = np.array([r["baseline_w"] - r["optimum_w"] for r in rows])
             pct = 100.0 * vals / span
             grid[f"{m:g}"] = {"regret_w_mean": float(np.nanmean(vals)),

@@ -22,6 +22,29 @@ bout until the session ends. The methods:
 * ``random`` — uniform random feasible settings (rejection sampling), 2-minute conditions, the
   same UKF estimate; recommendation: the lowest estimate so far. Bout 1 is its first 8 conditions.
 
+The seed-003 methods (:data:`THESIS_METHODS`, not run by default) are BO sessions of
+:func:`bridge.thesis_session.run_session` — the same protocol and recommendation as
+``adaptive``, with one thing changed:
+
+* ``adaptive-day2`` — a second "day" of the same wearer (a fresh breath-noise stream and
+  optimizer seed) without a prior: the control of the two prior methods.
+* ``adaptive-prior`` — day 2 with the day-1 session's evaluations (the ``adaptive`` session of
+  the same subject, run again inside the task) as fast-prior observations
+  (:func:`hilbo_core.priors.priors_from_evaluations`, ``previous_session`` inflation:
+  var = 2·σ² + (10 W)²), seed 003 §3.3. ``adaptive-prior-e3``: the same with an exploration bout
+  of 3 points instead of E.
+* ``adaptive-features`` — the GP's kernel over [raw parameters, profile features]
+  (:class:`hilbo_core.features.ProfileFeatureMap` via :func:`~hilbo_core.features.with_raw`),
+  seed 003 §3.4.2; ``adaptive-features-only`` over the profile features alone. 15–30× slower
+  per session (finite-difference EI refinement).
+* ``adaptive-tuned-k`` — the σ-scaled rule with a constant threshold K (A_i = K) instead of
+  Algorithm 2's schedule; K is given (:attr:`HilTask.stopping_k`), e.g. tuned offline by
+  BO-RESAMPLE on other wearers' full-length trajectories (:func:`tune_constant_k`, what
+  ``hilbo bench hil --tuned-k bo`` does before the sessions).
+
+The simulated wearer's landscape is the same on both days, so the prior methods measure a best
+case for a previous session's prior.
+
 The metric is the *true* (noiseless) steady-state cost of the recommended setting minus the
 subject's true optimum (W, and % of the optimum's reduction from unassisted walking), on a grid
 of minutes walked (session clock, warm-ups included, so every method walks the same time). A
@@ -44,15 +67,20 @@ from scipy.optimize import minimize
 
 from bridge.bench.common import blas_threads, markdown_table, round_sig
 from bridge.insim import SimConfig, SimEvaluation, run_insim
+from bridge.thesis_session import Arm, run_session
 from hilbo_core.errors import ConfigError, InfeasibleError
 from hilbo_core.metabolic import MetabolicUKF
 from hilbo_core.optimizer import HILOptimizer
 from hilbo_core.presets import PRESETS, preset
+from hilbo_core.priors import priors_from_evaluations
 from hilbo_core.space import ParameterSpace
 from virtual_hw.wearer import SimulatedWearer, WearerConfig
 
 __all__ = [
+    "DEFAULT_HIL_METHODS",
     "HIL_METHODS",
+    "PRIOR_METHODS",
+    "THESIS_METHODS",
     "HilProtocol",
     "HilTask",
     "hil_comparisons",
@@ -60,10 +88,19 @@ __all__ = [
     "load_sessions",
     "project_feasible",
     "run_hil_task",
+    "run_training_session",
     "summarize_hil",
+    "tune_constant_k",
 ]
 
-HIL_METHODS: tuple[str, ...] = ("adaptive", "fixed", "cmaes", "random")
+DEFAULT_HIL_METHODS: tuple[str, ...] = ("adaptive", "fixed", "cmaes", "random")
+"""What ``hilbo bench hil`` runs without ``--methods``."""
+PRIOR_METHODS: tuple[str, ...] = ("adaptive-prior", "adaptive-prior-e3")
+THESIS_METHODS: tuple[str, ...] = ("adaptive-day2", *PRIOR_METHODS, "adaptive-features",
+                                   "adaptive-features-only", "adaptive-tuned-k")
+"""The seed-003 methods (module docstring)."""
+HIL_METHODS: tuple[str, ...] = (*DEFAULT_HIL_METHODS, *THESIS_METHODS)
+_PRIOR_E3 = 3  # exploration points of adaptive-prior-e3 (docs/results_thesis.md §2)
 _BO_METHODS = ("adaptive", "fixed")
 _CMA_STREAM = 0xC3A
 _RANDOM_STREAM = 0x5A3D
@@ -138,12 +175,21 @@ class HilProtocol:
 
 @dataclass(frozen=True)
 class HilTask:
-    """One session: a method on one subject in one space (picklable)."""
+    """One session: a method on one subject in one space (picklable).
+
+    Attributes:
+        method: One of :data:`HIL_METHODS`.
+        space: A preset name.
+        seed: The subject (simulated wearer) seed.
+        protocol: The session protocol.
+        stopping_k: The constant K (in σ, >= 0) of ``adaptive-tuned-k``; None for every other method.
+    """
 
     method: str
     space: str
     seed: int
     protocol: HilProtocol = field(default_factory=HilProtocol)
+    stopping_k: float | None = None
 
     def key(self) -> tuple[str, str, int]:
         """Identity of the session within a run."""
@@ -156,6 +202,13 @@ class HilTask:
             raise ConfigError(f"unknown space {self.space!r}; choose from {sorted(PRESETS)}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise ConfigError(f"seed={self.seed!r}; expected an integer >= 0")
+        if self.method == "adaptive-tuned-k":
+            k = self.stopping_k
+            if isinstance(k, bool) or not isinstance(k, int | float) or not (math.isfinite(k) and k >= 0):
+                raise ConfigError(f"adaptive-tuned-k needs stopping_k = a constant K >= 0 (in σ), got {k!r}")
+        elif self.stopping_k is not None:
+            raise ConfigError(f"stopping_k={self.stopping_k!r} is only for adaptive-tuned-k, "
+                              f"not {self.method!r}")
 
 
 # --------------------------------------------------------------------------------------------
@@ -328,6 +381,115 @@ def _run_random(task: HilTask) -> dict[str, Any]:
     return _fixed_condition_result(session, trace)
 
 
+def _thesis_arm(task: HilTask) -> Arm:
+    proto, m = task.protocol, task.method
+    base = {"n_explore": proto.n_explore, "window": proto.window}
+    return {
+        "adaptive-day2": lambda: Arm(m, day=2, **base),
+        "adaptive-prior": lambda: Arm(m, day=2, prior=True, **base),
+        "adaptive-prior-e3": lambda: Arm(m, day=2, prior=True, **(base | {"n_explore": _PRIOR_E3})),
+        "adaptive-features": lambda: Arm(m, feature="profile+raw", **base),
+        "adaptive-features-only": lambda: Arm(m, feature="profile", **base),
+        "adaptive-tuned-k": lambda: Arm(m, stopping_k=task.stopping_k, **base),
+    }[m]()
+
+
+def _session_kwargs(task: HilTask) -> dict[str, Any]:
+    proto = task.protocol
+    return {"minutes": proto.minutes, "preset": task.space, "max_breaths": proto.max_breaths,
+            "warmup_s": proto.warmup_s}
+
+
+def _run_thesis(task: HilTask) -> dict[str, Any]:
+    arm = _thesis_arm(task)
+    kwargs = _session_kwargs(task)
+    extra: dict[str, Any] = {}
+    priors: list[Any] = []
+    if arm.prior:
+        # Day 1: the `adaptive` session of this subject (same protocol, seed, breath stream).
+        day1 = run_session(task.seed, Arm("day1", n_explore=task.protocol.n_explore,
+                                          window=task.protocol.window), **kwargs)
+        priors = priors_from_evaluations(preset(task.space), day1["evaluations"],
+                                         label=f"day1 seed {task.seed}")
+        extra = {"day1_wall_s": day1["wall_s"], "day1_final_regret_w": day1["regret_trace"][-1][1],
+                 "day1_n_evaluations": len(day1["evaluations"])}
+    r = run_session(task.seed, arm, priors=priors, **kwargs)
+    return {
+        "trace": [(t, params) for t, params in r["recommendations"]],
+        "n_evaluations": len(r["evaluations"]),
+        "n_evaluations_bout2": r["n_evaluations_bout2"],
+        "early_stops": r["n_early_stops"],
+        "assisted_s": r["assisted_s"],
+        "bout2_s": r["bout2_s"],
+        "session_s": r["session_s"],
+        "n_explore": arm.n_explore,
+        "n_priors": r["n_priors"],
+        "stopping_k": task.stopping_k,
+        **extra,
+    }
+
+
+def run_training_session(task: HilTask) -> list[list[list[float]]]:
+    """An ``adaptive`` session of a training wearer; returns its full-length breath trajectories.
+
+    Each trajectory is the ``[t_s since the setting began, W]`` of every breath of an evaluation
+    that ran all N breaths (the exploration bout and optimisation evaluations that were not
+    stopped early): what :func:`tune_constant_k` replays. Picklable, for an executor.
+    """
+    blas_threads(1)
+    proto = task.protocol
+    r = run_session(task.seed, Arm("train", n_explore=proto.n_explore, window=proto.window),
+                    **_session_kwargs(task))
+    return r["trajectories"]
+
+
+def tune_constant_k(trajectories: Sequence[Sequence[Sequence[float]]], protocol: HilProtocol, *,
+                    pick: str = "bo", error_weight: float = 2.0, n_real: int = 60,
+                    seed: int = 0) -> dict[str, Any]:
+    """Tune the constant K of the σ-scaled rule offline (:func:`bridge.tune_stopping.tune_stopping`).
+
+    BO-RESAMPLE (seed 003 §4.2) over K on the trajectories' replays, as ``hilbo tune-stopping``
+    does on logs; the cost of a rule is the breaths it uses plus ``error_weight`` evaluations for
+    every wrong early stop (docs/results_thesis.md §4).
+
+    Args:
+        trajectories: Full-length breath trajectories ``[[t_s, W], ...]`` of training wearers.
+        protocol: Gives N (``max_breaths``), E and Algorithm 2's W for the reference.
+        pick: ``"bo"`` — BO-RESAMPLE's recommendation; ``"grid"`` — the best K of the exhaustive
+            41-point grid on all trajectory pairs.
+        error_weight: λ, in evaluations' time.
+        n_real: BO-RESAMPLE's real episodes.
+        seed: Seeds the episodes and BO.
+
+    Returns:
+        JSON-able: ``k`` (the K to use), ``pick``, ``n_trajectories``, ``recommended`` (BO's K),
+        ``recommended_exhaustive``, ``grid_best``, ``algorithm2`` and ``never_stop`` (offline
+        costs), ``bo_resample_counts``.
+
+    Raises:
+        ConfigError: Unknown ``pick``, or fewer than 3 full-length trajectories.
+    """
+    from bridge.tune_stopping import TuneStoppingConfig, tune_stopping
+
+    if pick not in ("bo", "grid"):
+        raise ConfigError(f"pick={pick!r}; expected 'bo' (BO-RESAMPLE) or 'grid' (exhaustive grid)")
+    N = protocol.max_breaths
+    cfg = TuneStoppingConfig(family="k", n_max=N, error_weight=error_weight,
+                             reference_window=min(protocol.window, N - 1), n_explore=protocol.n_explore,
+                             n_real=n_real, seed=seed)
+    tuned = tune_stopping([np.asarray(t, dtype=float) for t in trajectories], cfg)
+    k = tuned["recommended"]["k"] if pick == "bo" else tuned["grid_best"]["k"]
+    bo = tuned["bo_resample"]
+    return {
+        "k": float(k), "pick": pick, "error_weight": error_weight, "n_real": n_real,
+        "n_trajectories": tuned["n_trajectories"], "recommended": tuned["recommended"],
+        "recommended_exhaustive": tuned["recommended_exhaustive"], "grid_best": tuned["grid_best"],
+        "algorithm2": tuned["algorithm2"], "never_stop": tuned["never_stop"],
+        "bo_resample_counts": {"n_real": bo["n_real"], "n_simulated": bo["n_simulated"],
+                               "max_trajectory_uses": bo["max_trajectory_uses"]},
+    }
+
+
 def _fixed_condition_result(session: _Session, trace: list[tuple[float, dict[str, float]]]) -> dict[str, Any]:
     return {
         "trace": trace,
@@ -349,11 +511,14 @@ def run_hil_task(task: HilTask) -> dict[str, Any]:
         ``final_regret_pct`` (% of the optimum's reduction from unassisted walking);
         ``n_evaluations``, ``n_evaluations_bout2``, ``early_stops``; ``assisted_s`` (time on
         conditions), ``bout2_s``; ``evaluations_per_hour`` (conditions per hour of assisted
-        walking, warm-ups excluded); ``wall_s``.
+        walking, warm-ups excluded); ``wall_s``. The seed-003 methods add ``n_explore``,
+        ``n_priors``, ``stopping_k``, and for the prior methods ``day1_wall_s`` (included in
+        ``wall_s``), ``day1_final_regret_w`` and ``day1_n_evaluations``.
     """
     blas_threads(1)  # wherever it runs: see bridge.bench.common.blas_threads
     t0 = time.perf_counter()
-    runner = {"adaptive": _run_bo, "fixed": _run_bo, "cmaes": _run_cmaes, "random": _run_random}[task.method]
+    runner = {"adaptive": _run_bo, "fixed": _run_bo, "cmaes": _run_cmaes, "random": _run_random,
+              **dict.fromkeys(THESIS_METHODS, _run_thesis)}[task.method]
     out = runner(task)
     # The true landscape of the same subject (same seed); the optimum is found numerically.
     judge = SimulatedWearer(preset(task.space), seed=task.seed)
@@ -452,30 +617,66 @@ def summarize_hil(results: Iterable[Mapping[str, Any]], spaces: Sequence[str], m
     return out
 
 
-def hil_comparisons(results: Iterable[Mapping[str, Any]], spaces: Sequence[str],
-                    methods: Sequence[str]) -> list[dict[str, Any]]:
-    """Paired per-subject differences of the final regret against the first method.
+def _comparison_pairs(methods: Sequence[str]) -> list[tuple[str, str]]:
+    """(method, baseline) pairs: every method against the first; against ``adaptive`` too when it
+    is not first; the prior methods against ``adaptive-day2`` (their control) when it ran."""
+    pairs: list[tuple[str, str]] = []
+    baselines = [methods[0]]
+    if "adaptive" in methods and methods[0] != "adaptive":
+        baselines.append("adaptive")
+    for base in baselines:
+        pairs += [(m, base) for m in methods if m != base and (m, base) not in pairs]
+    if "adaptive-day2" in methods:
+        pairs += [(m, "adaptive-day2") for m in PRIOR_METHODS
+                  if m in methods and (m, "adaptive-day2") not in pairs]
+    return pairs
 
-    For every space and every method after the first: over the subjects both ran, the median
-    and mean of ``final_regret_w(method) − final_regret_w(first)`` and the fraction of subjects
-    where the method ended with the lower regret.
+
+def hil_comparisons(results: Iterable[Mapping[str, Any]], spaces: Sequence[str],
+                    methods: Sequence[str], *,
+                    at_minutes: Sequence[float] = (20.0, 30.0, 40.0)) -> list[dict[str, Any]]:
+    """Paired per-subject differences of regret, method − baseline, at the end and at equal minutes.
+
+    The pairs: every method after the first against the first; every method against
+    ``adaptive`` as well when it ran but is not first; ``adaptive-prior``/``-e3`` against
+    ``adaptive-day2`` (the same day without the prior) when it ran. For each pair and space, over
+    the subjects both ran: the median, mean and standard error of ``final_regret_w(method) −
+    final_regret_w(baseline)`` and the fraction of subjects where the method ended lower; and
+    the same mean, SE and fraction of the regret at each of ``at_minutes`` of the session clock
+    (``regret_diff_w_mean_at`` etc., aligned with ``at_minutes``; None where a session has no
+    recommendation yet).
     """
-    by = {(r["method"], r["space"], r["seed"]): r["final_regret_w"] for r in results}
+    results = list(results)
+    final = {(r["method"], r["space"], r["seed"]): r["final_regret_w"] for r in results}
+    traces = {(r["method"], r["space"], r["seed"]): r.get("trace") for r in results}
     out = []
-    base = methods[0]
     for space in spaces:
-        for method in methods[1:]:
-            seeds = sorted(k[2] for k in by if k[0] == method and k[1] == space
-                           and (base, space, k[2]) in by)
+        for method, base in _comparison_pairs(methods):
+            seeds = sorted(k[2] for k in final if k[0] == method and k[1] == space
+                           and (base, space, k[2]) in final)
             if not seeds:
                 continue
-            d = np.array([by[(method, space, s)] - by[(base, space, s)] for s in seeds])
+            d = np.array([final[(method, space, s)] - final[(base, space, s)] for s in seeds])
+            mean_at, se_at, lower_at = [], [], []
+            for m in at_minutes:
+                if any(traces[(x, space, s)] is None for x in (method, base) for s in seeds):
+                    dm = np.array([np.nan])
+                else:
+                    dm = np.array([regret_at(traces[(method, space, s)], m * 60.0)
+                                   - regret_at(traces[(base, space, s)], m * 60.0) for s in seeds])
+                ok = dm[np.isfinite(dm)]
+                complete = len(ok) == len(seeds)
+                mean_at.append(float(ok.mean()) if complete else None)
+                se_at.append(float(ok.std(ddof=1) / math.sqrt(len(ok))) if complete and len(ok) > 1 else None)
+                lower_at.append(float(np.mean(ok < 0)) if complete else None)
             out.append(round_sig({
                 "space": space, "method": method, "baseline": base, "n_subjects": len(seeds),
                 "final_regret_diff_w_median": float(np.median(d)),
                 "final_regret_diff_w_mean": float(d.mean()),
                 "final_regret_diff_w_se": float(d.std(ddof=1) / math.sqrt(len(d))) if len(d) > 1 else None,
                 "frac_lower": float(np.mean(d < 0)),
+                "at_minutes": [float(m) for m in at_minutes],
+                "regret_diff_w_mean_at": mean_at, "regret_diff_w_se_at": se_at, "frac_lower_at": lower_at,
             }))
     return out
 
@@ -502,13 +703,25 @@ def hil_table(entries: Sequence[Mapping[str, Any]],
                      f"{e['evaluations_bout2_mean']:.1f}", f"{e['early_stops_mean']:.1f}"])
     out = markdown_table(header, rows)
     if comparisons:
-        crow = [[c["space"], f"{c['method']} − {c['baseline']}", c["n_subjects"],
-                 f"{c['final_regret_diff_w_median']:.1f}",
-                 f"{c['final_regret_diff_w_mean']:.1f}"
-                 + ("" if c["final_regret_diff_w_se"] is None else f" ± {c['final_regret_diff_w_se']:.1f}"),
-                 f"{100 * c['frac_lower']:.0f} %"]
-                for c in comparisons]
+        at = list(comparisons[0].get("at_minutes") or [])
+
+        def mean_se(mean: float | None, se: float | None) -> str:
+            return "–" if mean is None else f"{mean:.1f}" + ("" if se is None else f" ± {se:.1f}")
+
+        crow = []
+        for c in comparisons:
+            cells = []
+            for i in range(len(at)):
+                mean = c.get("regret_diff_w_mean_at", [None] * len(at))[i]
+                se = c.get("regret_diff_w_se_at", [None] * len(at))[i]
+                lower = c.get("frac_lower_at", [None] * len(at))[i]
+                cells.append(mean_se(mean, se) + ("" if lower is None else f" ({100 * lower:.0f} %)"))
+            crow.append([c["space"], f"{c['method']} − {c['baseline']}", c["n_subjects"], *cells,
+                         f"{c['final_regret_diff_w_median']:.1f}",
+                         mean_se(c["final_regret_diff_w_mean"], c["final_regret_diff_w_se"]),
+                         f"{100 * c['frac_lower']:.0f} %"])
         out += "\n" + markdown_table(
-            ["space", "paired difference of final regret", "subjects", "median (W)", "mean ± SE (W)",
-             "subjects where the method ended lower"], crow)
+            ["space", "paired difference of regret", "subjects",
+             *[f"@{m:g} min: mean ± SE (W) (% lower)" for m in at],
+             "final: median (W)", "final: mean ± SE (W)", "subjects where the method ended lower"], crow)
     return out

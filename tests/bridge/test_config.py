@@ -286,7 +286,8 @@ def test_unknown_and_missing_tables():
                                                                      "'pause', 'stop'"]),
     ("watchdog", "cart_data_timeout_s = 30", "cart_data_timeout_s = 1", ["watchdog.cart_data_timeout_s = 1",
                                                                          "[2, 300]"]),
-    ("prior", "observations = []", "observations = [{x = 1}]", ["prior.observations", "not supported yet"]),
+    ("prior", "observations = []", "observations = [{x = 1}]",
+     ["unknown key prior.observations[0].x = 1", "mean_w, note, params, sd_w, source, var_w2"]),
 ])
 def test_bad_values_name_the_key_the_value_and_what_is_allowed(table, old, new, needles):
     assert GOLDEN.count(old) == 1, old
