@@ -23,6 +23,7 @@ import asyncio
 import collections
 import contextlib
 import logging
+import math
 import types
 from collections.abc import AsyncIterator, Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -731,13 +732,20 @@ class CanEndpoint:
             last: ProfileAck | None = None
             with self.subscribe(ProfileAck) as acks:
                 for attempt in range(1, retries + 2):
-                    for k, frame in enumerate(segments):
+                    # Paced against deadlines (frame k at start + k·pace_s), not by sleeping pace_s
+                    # after each send: on a busy event loop every sleep overshoots (measured: a
+                    # 2 ms sleep took 2.65 ms beside 2 kHz of feedback), which summed to +20 ms
+                    # per push. A late frame never sends the next closer than pace_s / 2.
+                    start = loop.time()
+                    sent_at = -math.inf
+                    for k, frame in enumerate([*segments, commit]):
                         if k and pace_s > 0:
-                            await asyncio.sleep(pace_s)
+                            due = max(start + k * pace_s, sent_at + 0.5 * pace_s)
+                            delay = due - loop.time()
+                            if delay > 0:
+                                await asyncio.sleep(delay)
                         await self.send(frame)
-                    if pace_s > 0:
-                        await asyncio.sleep(pace_s)
-                    await self.send(commit)
+                        sent_at = loop.time()
                     ack = await self._await_ack(acks, version, loop.time() + timeout_s)
                     if ack is None:
                         timeouts += 1
