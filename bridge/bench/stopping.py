@@ -9,6 +9,11 @@ Every finished trial is appended to ``OUT/trials.jsonl`` as it completes, so an 
 campaign continues with ``--resume`` and a campaign can be grown by re-running with more
 trials. The summary (``results.json``), the Markdown table and one PNG per function (the layout
 of the seed's Fig. 2) are written from all trials of the campaign at the end.
+
+``refit_growth`` (``--refit-growth``) is :class:`~hilbo_core.optimizer.OptimizerConfig`'s option
+of the same name, applied identically to every method of the campaign; it is part of a trial's
+identity (a trial of one growth factor is never resumed or merged into a campaign of another), and
+trials recorded before the option existed count as 1.0 (they refitted at every proposal).
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ from hilbo_core.benchmarks import (
     FUNCTIONS,
     METHODS,
     NOISE_LEVELS,
+    StoppingMethod,
     StoppingProtocol,
     check_noise,
     resolve_function,
@@ -36,6 +42,7 @@ from hilbo_core.benchmarks import (
     stopping_trial,
 )
 from hilbo_core.errors import ConfigError
+from hilbo_core.optimizer import OptimizerConfig
 
 __all__ = [
     "StoppingCampaign",
@@ -58,19 +65,29 @@ class StoppingTask:
     method: str
     seed: int
     protocol: StoppingProtocol = field(default_factory=StoppingProtocol)
+    refit_growth: float = 1.0
 
     def key(self) -> tuple[str, float, str, int]:
         """Identity of the trial within a campaign."""
         return (self.function, self.noise, self.method, self.seed)
 
 
+def _with_refit_growth(method: str, refit_growth: float) -> StoppingMethod:
+    """The registered method with ``refit_growth`` added to its optimizer options."""
+    base = resolve_method(method)
+    return StoppingMethod(base.name, base.description, {**base.options, "refit_growth": refit_growth})
+
+
 def run_stopping_task(task: StoppingTask) -> dict[str, Any]:
-    """Run one trial (in a worker); the result of :func:`stopping_trial` plus ``wall_s``."""
+    """Run one trial (in a worker); the result of :func:`stopping_trial` plus ``wall_s``,
+    ``protocol`` and ``refit_growth``."""
     blas_threads(1)  # wherever it runs: see bridge.bench.common.blas_threads
     t0 = time.perf_counter()
-    result = stopping_trial(task.function, task.noise, task.method, task.seed, task.protocol)
+    result = stopping_trial(task.function, task.noise, _with_refit_growth(task.method, task.refit_growth),
+                            task.seed, task.protocol)
     result["wall_s"] = time.perf_counter() - t0
     result["protocol"] = task.protocol.to_json()
+    result["refit_growth"] = task.refit_growth
     return result
 
 
@@ -85,6 +102,8 @@ class StoppingCampaign:
         trials: Trials per function × noise (>= 1); trial k uses seed ``seed + k``.
         seed: Seed of the first trial (>= 0).
         protocol: The study's protocol.
+        refit_growth: ``OptimizerConfig.refit_growth`` of every method (finite, >= 1; 1.0 refits
+            the GP hyperparameters at every proposal).
     """
 
     functions: tuple[str, ...] = tuple(FUNCTIONS)
@@ -93,6 +112,7 @@ class StoppingCampaign:
     trials: int = 100
     seed: int = 0
     protocol: StoppingProtocol = field(default_factory=StoppingProtocol)
+    refit_growth: float = 1.0
 
     def __post_init__(self) -> None:
         for name in ("trials", "seed"):
@@ -111,10 +131,12 @@ class StoppingCampaign:
                              ("noise level", self.noises)):
             if len(set(values)) != len(values):
                 raise ConfigError(f"a {what} is listed twice in {list(values)}")
+        # The optimizer's own validation, so the message is the same as everywhere else.
+        object.__setattr__(self, "refit_growth", OptimizerConfig(refit_growth=self.refit_growth).refit_growth)
 
     def tasks(self) -> list[StoppingTask]:
         """All trials, trial-major: an interrupted campaign has covered every setting evenly."""
-        return [StoppingTask(f, n, m, self.seed + k, self.protocol)
+        return [StoppingTask(f, n, m, self.seed + k, self.protocol, self.refit_growth)
                 for k in range(self.trials) for f in self.functions for n in self.noises
                 for m in self.methods]
 
@@ -122,13 +144,17 @@ class StoppingCampaign:
         """JSON-able form."""
         return {"functions": list(self.functions), "noises": list(self.noises),
                 "methods": list(self.methods), "trials": self.trials, "seed": self.seed,
-                "protocol": self.protocol.to_json()}
+                "protocol": self.protocol.to_json(), "refit_growth": self.refit_growth}
 
 
-def load_trials(path: Path, protocol: StoppingProtocol) -> dict[tuple[str, float, str, int], dict[str, Any]]:
-    """Finished trials of ``trials.jsonl`` run under ``protocol``, by :meth:`StoppingTask.key`.
+def load_trials(path: Path, protocol: StoppingProtocol, refit_growth: float = 1.0,
+                ) -> dict[tuple[str, float, str, int], dict[str, Any]]:
+    """Finished trials of ``trials.jsonl`` run under ``protocol`` and ``refit_growth``, by
+    :meth:`StoppingTask.key`.
 
-    Lines of other protocols are skipped; a truncated last line (a killed run) is ignored.
+    Lines of other protocols or growth factors are skipped (a line without ``refit_growth`` was
+    written before the option existed and refitted at every proposal: 1.0); a truncated last line
+    (a killed run) is ignored.
     """
     out: dict[tuple[str, float, str, int], dict[str, Any]] = {}
     if not path.exists():
@@ -142,7 +168,7 @@ def load_trials(path: Path, protocol: StoppingProtocol) -> dict[tuple[str, float
         except json.JSONDecodeError:
             logger.warning("%s:%d: unreadable line skipped (interrupted write?)", path, n)
             continue
-        if rec.get("protocol") != want:
+        if rec.get("protocol") != want or float(rec.get("refit_growth", 1.0)) != refit_growth:
             continue
         out[(rec["function"], float(rec["noise"]), rec["method"], int(rec["seed"]))] = rec
     return out
@@ -168,13 +194,13 @@ def summarize_stopping(results: Iterable[Mapping[str, Any]], campaign: StoppingC
 
     Returns:
         ``{"settings": [...], "comparisons": [...]}``. A setting holds ``method``,
-        ``function``, ``noise``, ``n_trials``, ``t`` (measurement counts), ``y_mean``,
-        ``y_se`` (on ``t``), ``y_final_mean``/``_se`` (t = budget), ``y_avg_mean``/``_se`` (y
-        averaged over all t: the anytime performance), ``evaluations_mean``,
-        ``early_stops_mean``, ``trial_wall_s_mean``. A comparison holds, per function × noise
-        and method other than the first, the paired difference of y_final and of y_avg
-        (method − first method) over the shared seeds, with its SE and the fraction of trials
-        where the method ended lower.
+        ``function``, ``noise``, ``refit_growth`` (the campaign's), ``n_trials``, ``t``
+        (measurement counts), ``y_mean``, ``y_se`` (on ``t``), ``y_final_mean``/``_se``
+        (t = budget), ``y_avg_mean``/``_se`` (y averaged over all t: the anytime performance),
+        ``evaluations_mean``, ``early_stops_mean``, ``trial_wall_s_mean``. A comparison holds,
+        per function × noise and method other than the first, the paired difference of y_final
+        and of y_avg (method − first method) over the shared seeds, with its SE and the
+        fraction of trials where the method ended lower.
     """
     if isinstance(grid_step, bool) or not isinstance(grid_step, int) or grid_step < 1:
         raise ConfigError(f"grid_step={grid_step!r}; expected an integer >= 1")
@@ -203,7 +229,8 @@ def summarize_stopping(results: Iterable[Mapping[str, Any]], campaign: StoppingC
                 fin_m, fin_se = _mean_se(Y[:, -1])
                 avg_m, avg_se = _mean_se(Y.mean(axis=1))
                 settings.append({
-                    "method": method, "function": f, "noise": noise, "n_trials": len(trials),
+                    "method": method, "function": f, "noise": noise, "refit_growth": campaign.refit_growth,
+                    "n_trials": len(trials),
                     "n_trials_run": len(ran),
                     "t": t_grid, "y_mean": y_mean, "y_se": y_se,
                     "y_final_mean": fin_m, "y_final_se": fin_se,
@@ -282,7 +309,7 @@ def run_campaign(campaign: StoppingCampaign, executor: Any, out_dir: Path, *, re
     tasks = campaign.tasks()
     path = out_dir / "trials.jsonl"
     out_dir.mkdir(parents=True, exist_ok=True)
-    done = load_trials(path, campaign.protocol) if resume else {}
+    done = load_trials(path, campaign.protocol, campaign.refit_growth) if resume else {}
     if not resume and path.exists():
         path.unlink()  # a fresh campaign; --resume keeps what is there
     todo = [t for t in tasks if t.key() not in done]

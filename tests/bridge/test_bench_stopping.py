@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from bridge.bench.cli import bench_main
 from bridge.bench.executors import LocalExecutor
 from bridge.bench.stopping import (
     StoppingCampaign,
@@ -19,6 +20,7 @@ from bridge.bench.stopping import (
 )
 from hilbo_core.benchmarks import StoppingProtocol
 from hilbo_core.errors import ConfigError
+from hilbo_core.gp import GaussianProcess
 
 TOY = StoppingProtocol(n_explore=3, max_breaths=4, window=1, budget=8, n_candidates=32, n_local=0)
 
@@ -45,6 +47,8 @@ def test_campaign_is_trial_major_with_shared_seeds_per_trial() -> None:
     ({"methods": ("fixed", "oracle")}, "unknown method 'oracle'; choose one of"),
     ({"noises": (1.0, -2.0)}, "noise=-2.0"),
     ({"methods": ("fixed", "fixed")}, "listed twice"),
+    ({"refit_growth": 0.5}, r"refit_growth=0.5; expected a finite factor >= 1.0"),
+    ({"refit_growth": math.nan}, "refit_growth=nan"),
 ])
 def test_campaign_rejects_bad_input_before_any_work(kwargs: dict, match: str) -> None:
     with pytest.raises(ConfigError, match=match):
@@ -113,3 +117,63 @@ def test_load_trials_skips_a_truncated_last_line(tmp_path: Path) -> None:
     loaded = load_trials(path, TOY)
     assert list(loaded) == [("branin", 1.0, "fixed", 0)]
     assert math.isclose(loaded[("branin", 1.0, "fixed", 0)]["y"][0], 1.0)
+
+
+def test_refit_growth_reaches_every_method_and_is_recorded(tmp_path: Path,
+                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    fits: list[int] = []
+    original = GaussianProcess._optimize
+
+    def spy(self, theta0, F, ys, extra, rng):
+        fits.append(int(F.shape[0]))
+        return original(self, theta0, F, ys, extra, rng)
+
+    monkeypatch.setattr(GaussianProcess, "_optimize", spy)
+    proto = StoppingProtocol(n_explore=3, max_breaths=4, window=1, budget=40, n_candidates=32, n_local=0)
+    ex = LocalExecutor(1, progress=False)
+    kw = {"functions": ("branin",), "noises": (1.0,), "methods": ("fixed", "adaptive"), "trials": 1,
+          "protocol": proto}
+    every, _ = run_campaign(StoppingCampaign(**kw), ex, tmp_path / "g1")
+    n_every = len(fits)
+    fits.clear()
+    rare, _ = run_campaign(StoppingCampaign(**kw, refit_growth=100.0), ex, tmp_path / "g100")
+    # Growth 100 in a 3-point start: per trial one fit for x_0 (best() after exploration) and
+    # one at the first proposal; every later GP only re-conditions, in both methods.
+    assert fits == [3, 3, 3, 3]
+    # Growth 1: x_0, one fit per proposal and one for the final recommendation.
+    assert n_every == sum(2 + r["evaluations"] for r in every)
+    for a, b in zip(every, rare, strict=True):
+        assert a["x0"] == b["x0"] and a["refit_growth"] == 1.0 and b["refit_growth"] == 100.0
+    # A trial is identified by its growth factor too: the other campaign's trials are not reused.
+    assert load_trials(tmp_path / "g100" / "trials.jsonl", proto, 100.0).keys() == {
+        ("branin", 1.0, "fixed", 0), ("branin", 1.0, "adaptive", 0)}
+    assert load_trials(tmp_path / "g100" / "trials.jsonl", proto) == {}
+
+
+def test_trials_recorded_before_refit_growth_count_as_growth_one(tmp_path: Path) -> None:
+    path = tmp_path / "trials.jsonl"
+    rec = fake("fixed", 0, [1.0]) | {"protocol": TOY.to_json()}  # no "refit_growth" key
+    path.write_text(json.dumps(rec) + "\n")
+    assert list(load_trials(path, TOY)) == [("branin", 1.0, "fixed", 0)]
+    assert load_trials(path, TOY, 1.25) == {}
+
+
+def test_cli_refit_growth_toy_run_and_bad_value(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    argv = ["stopping", "--trials", "1", "--functions", "branin", "--noise", "1", "--n-explore", "3",
+            "--max-breaths", "4", "--budget", "8", "--n-candidates", "32", "--workers", "1",
+            "--no-progress", "--out", str(tmp_path / "ok")]
+    assert bench_main(argv) == 0  # the benchmark's default growth factor, 1.25
+    doc = json.loads((tmp_path / "ok" / "results.json").read_text())
+    assert " --refit-growth 1.25 " in doc["command"]
+    assert doc["campaign"]["refit_growth"] == 1.25
+    assert {s["refit_growth"] for s in doc["settings"]} == {1.25} and len(doc["settings"]) == 2
+    lines = [json.loads(x) for x in (tmp_path / "ok" / "trials.jsonl").read_text().splitlines()]
+    assert [r["refit_growth"] for r in lines] == [1.25, 1.25]
+    # The summary of another growth factor finds none of these trials.
+    summarize = [*argv[:-1], str(tmp_path / "ok"), "--summarize-only", "--refit-growth", "1"]
+    assert bench_main(summarize) == 2
+    assert "no trial of this campaign" in capsys.readouterr().err
+    bad = tmp_path / "bad"
+    assert bench_main([*argv[:-2], "--refit-growth", "0.9", "--out", str(bad)]) == 2
+    assert "refit_growth=0.9; expected a finite factor >= 1.0" in capsys.readouterr().err
+    assert not bad.exists()
