@@ -63,7 +63,7 @@ def _stopping_command(args: argparse.Namespace, campaign: Any) -> str:
             f"--noise {','.join(f'{n:g}' for n in campaign.noises)} --methods {','.join(campaign.methods)} "
             f"--noise-model {p.noise_model.value} --budget {p.budget} --n-explore {p.n_explore} "
             f"--max-breaths {p.max_breaths} --window {p.window} --n-candidates {p.n_candidates} "
-            f"--seed {campaign.seed} "
+            f"--seed {campaign.seed} --refit-growth {campaign.refit_growth:g} "
             f"--grid-step {args.grid_step} --out {args.out}"
             + (" --summarize-only" if args.summarize_only else "")
             + "".join(f" --merge {d}" for d in args.merge or []))
@@ -91,7 +91,8 @@ def _cmd_stopping(args: argparse.Namespace) -> int:
                                 budget=args.budget, noise_model=args.noise_model,
                                 n_candidates=args.n_candidates)
     campaign = StoppingCampaign(functions=tuple(functions), noises=tuple(noises), methods=tuple(methods),
-                                trials=args.trials, seed=args.seed, protocol=protocol)
+                                trials=args.trials, seed=args.seed, protocol=protocol,
+                                refit_growth=args.refit_growth)
     out = Path(args.out)
     console = _console()
     if args.merge and not args.summarize_only:
@@ -100,7 +101,7 @@ def _cmd_stopping(args: argparse.Namespace) -> int:
         have: dict[Any, dict[str, Any]] = {}
         sources = [out, *(Path(d) for d in args.merge or [])]
         for d in sources:
-            have.update(load_trials(d / "trials.jsonl", protocol))
+            have.update(load_trials(d / "trials.jsonl", protocol, campaign.refit_growth))
         results = [have[t.key()] for t in campaign.tasks() if t.key() in have]
         if not results:
             raise ConfigError(f"--summarize-only: no trial of this campaign in "
@@ -146,6 +147,7 @@ def _cmd_stopping(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------------ hil
 def _cmd_hil(args: argparse.Namespace) -> int:
     from bridge.bench.hil import (
+        DEFAULT_HIL_METHODS,
         HIL_METHODS,
         HilProtocol,
         HilTask,
@@ -159,7 +161,7 @@ def _cmd_hil(args: argparse.Namespace) -> int:
     from hilbo_core.presets import PRESETS
 
     spaces = choices(args.spaces, PRESETS, "space", list(PRESETS))
-    methods = choices(args.methods, HIL_METHODS, "method", list(HIL_METHODS))
+    methods = choices(args.methods, HIL_METHODS, "method", list(DEFAULT_HIL_METHODS))
     if args.subjects < 1:
         raise ConfigError(f"--subjects {args.subjects}; expected an integer >= 1")
     if args.seed < 0:
@@ -169,11 +171,16 @@ def _cmd_hil(args: argparse.Namespace) -> int:
                            n_explore=args.n_explore, max_breaths=args.max_breaths, window=args.window,
                            grid_min=args.grid_min)
     seeds = list(range(args.seed, args.seed + args.subjects))
-    # Subject-major: an interrupted run has every method on the first subjects.
-    tasks = [HilTask(m, s, k, protocol) for k in seeds for s in spaces for m in methods]
     out = Path(args.out)
     console = _console()
     done = load_sessions(out / "sessions.jsonl", protocol) if (args.resume or args.summarize_only) else {}
+    tuning = _hil_tuned_k(args, methods, spaces, seeds, protocol, done, console)
+    # Subject-major: an interrupted run has every method on the first subjects.
+    tasks = [HilTask(m, s, k, protocol, stopping_k=tuning[s]["k"] if m == "adaptive-tuned-k" else None)
+             for k in seeds for s in spaces for m in methods]
+    if not args.summarize_only:  # a kept session must have run with this run's K
+        want = {t.key(): t.stopping_k for t in tasks}
+        done = {key: r for key, r in done.items() if key not in want or r.get("stopping_k") == want[key]}
     if args.summarize_only:
         results = [done[t.key()] for t in tasks if t.key() in done]
         if not results:
@@ -206,12 +213,16 @@ def _cmd_hil(args: argparse.Namespace) -> int:
                f"--condition-s {args.condition_s:g} --popsize {args.popsize} --sigma0 {args.sigma0:g} "
                f"--penalty-w {args.penalty_w:g} --n-explore {args.n_explore} "
                f"--max-breaths {args.max_breaths} --window {args.window} --grid-min {args.grid_min:g} "
-               f"--out {args.out}"
+               + (f"--tuned-k {args.tuned_k} --tune-subjects {args.tune_subjects} --tune-seed "
+                  f"{args.tune_seed} --error-weight {args.error_weight:g} "
+                  if "adaptive-tuned-k" in methods else "")
+               + f"--out {args.out}"
                + (" --summarize-only" if args.summarize_only else ""))
     write_json(out / "hil.json", {
         "benchmark": "hil", "command": command, "protocol": protocol.to_json(), "subjects": seeds,
         "machine": machine_info(), "executor": executor_name, "wall_s": wall,
         "sessions_found": len(results), "results": entries, "comparisons": comparisons,
+        "tuning": tuning or None,
         # Per-session numbers without the recommendation traces (those stay in sessions.jsonl).
         "sessions": [{k: v for k, v in r.items() if k not in ("protocol", "trace")} for r in results],
     })
@@ -229,21 +240,83 @@ def _cmd_hil(args: argparse.Namespace) -> int:
     return 0
 
 
+def _hil_tuned_k(args: argparse.Namespace, methods: Sequence[str], spaces: Sequence[str],
+                 seeds: Sequence[int], protocol: Any, done: dict[Any, dict[str, Any]],
+                 console: Console) -> dict[str, dict[str, Any]]:
+    """K of ``adaptive-tuned-k`` per space: ``--tuned-k K``, or tuned on training wearers."""
+    from bridge.bench.hil import HilTask, run_training_session, tune_constant_k
+
+    if "adaptive-tuned-k" not in methods:
+        return {}
+    text = str(args.tuned_k).strip()
+    if text not in ("bo", "grid"):
+        try:
+            k = float(text)
+        except ValueError as err:
+            raise ConfigError(f"--tuned-k {text!r}; expected bo, grid or a constant K >= 0 (in σ)") from err
+        if not (k >= 0 and k < float("inf")):
+            raise ConfigError(f"--tuned-k {text!r}; expected bo, grid or a constant K >= 0 (in σ)")
+        return {s: {"k": k, "pick": "given"} for s in spaces}
+    if args.tune_subjects < 1:
+        raise ConfigError(f"--tune-subjects {args.tune_subjects}; expected an integer >= 1")
+    if args.tune_seed < 0:
+        raise ConfigError(f"--tune-seed {args.tune_seed}; expected an integer >= 0")
+    train = list(range(args.tune_seed, args.tune_seed + args.tune_subjects))
+    overlap = sorted(set(train) & set(seeds))
+    if overlap:
+        raise ConfigError(f"--tune-seed {args.tune_seed} --tune-subjects {args.tune_subjects}: training "
+                          f"wearers {overlap} are also test subjects; K must be tuned on other wearers")
+    if args.summarize_only:  # nothing is run: K as the sessions found used it
+        found = {key[1]: r.get("stopping_k") for key, r in done.items() if key[0] == "adaptive-tuned-k"}
+        return {s: {"k": float(found.get(s) or 0.0), "pick": f"{text} (as found in sessions.jsonl)"}
+                for s in spaces}
+    executor = _executor(args)
+    out: dict[str, dict[str, Any]] = {}
+    for space in spaces:
+        t0 = time.perf_counter()
+        tasks = [HilTask("adaptive", space, s, protocol) for s in train]
+        console.print(f"hilbo bench hil: tuning K for {space} on {len(train)} training wearers "
+                      f"(seeds {train[0]}-{train[-1]}) on {executor.name}")
+        trajs = [t for r in executor.map(run_training_session, tasks, label="training sessions") for t in r]
+        tuned = tune_constant_k(trajs, protocol, pick=text, error_weight=args.error_weight)
+        tuned |= {"train_seeds": train, "wall_s": time.perf_counter() - t0}
+        console.print(f"  K = {tuned['k']:.3g} ({text}; BO-RESAMPLE {tuned['recommended']['k']:.3g}, "
+                      f"grid best {tuned['grid_best']['k']:.3g}) from {tuned['n_trajectories']} "
+                      f"trajectories, {tuned['wall_s']:.0f} s")
+        out[space] = round_sig(tuned)
+    return out
+
+
 # ------------------------------------------------------------------------------------ perf
 def _cmd_perf(args: argparse.Namespace) -> int:
+    from bridge.bench.bridge_perf import bridge_table
     from bridge.bench.perf import PerfConfig, perf_table, run_perf
 
     sizes = [int(v) for v in numbers(args.sizes, "observation count", (10, 30, 60, 100))]
     cfg = PerfConfig(breaths=args.breaths, sizes=tuple(sizes), reps=args.reps, sessions=args.sessions,
-                     seed=args.seed)
+                     seed=args.seed, bridge_minutes=args.bridge_minutes, bridge_speed=args.bridge_speed,
+                     bridge_feedback_hz=args.bridge_feedback_hz, bridge_baseline_s=args.bridge_baseline_s)
     console = _console()
-    console.print("hilbo bench perf: timing breath, proposal and session (in this process)")
-    result = run_perf(cfg)
-    result["command"] = (f"hilbo bench perf --breaths {cfg.breaths} --sizes {','.join(map(str, sizes))} "
-                         f"--reps {cfg.reps} --sessions {cfg.sessions} --seed {cfg.seed} --out {args.out}")
-    result["machine"] = machine_info()
+    console.print("hilbo bench perf: timing breath, proposal and session (in this process)"
+                  + (f", then the bridge at real time for {cfg.bridge_minutes:g} min"
+                     if cfg.bridge_minutes > 0 else ""))
     out = Path(args.out)
+    result = run_perf(cfg, bridge_out=out / "bridge_session")
+    result["command"] = (f"hilbo bench perf --breaths {cfg.breaths} --sizes {','.join(map(str, sizes))} "
+                         f"--reps {cfg.reps} --sessions {cfg.sessions} --seed {cfg.seed}"
+                         + (f" --bridge-minutes {cfg.bridge_minutes:g} --bridge-speed {cfg.bridge_speed:g} "
+                            f"--bridge-feedback-hz {cfg.bridge_feedback_hz:g} "
+                            f"--bridge-baseline-s {cfg.bridge_baseline_s:g}"
+                            if cfg.bridge_minutes > 0 else "")
+                         + f" --out {args.out}")
+    result["machine"] = machine_info()
     write_json(out / "perf.json", result)
+    bridge = result["bridge_realtime"]
+    bridge_files = [out / "perf_bridge.json", out / "perf_bridge_table.md"] if bridge is not None else []
+    if bridge is not None:  # the small files docs/results/perf/ keeps
+        write_json(out / "perf_bridge.json", {"benchmark": "perf-bridge", "command": result["command"],
+                                              "machine": result["machine"], **bridge})
+        (out / "perf_bridge_table.md").write_text(bridge_table(bridge))
     table = perf_table(result)
     (out / "perf_table.md").write_text(table)
     console.print(table)
@@ -251,7 +324,7 @@ def _cmd_perf(args: argparse.Namespace) -> int:
     if prof:
         console.print(f"one proposal at {prof['observations']} observations: {prof['total_ms']:.1f} ms, "
                       f"GP fit {prof['gp_fit_ms']:.1f} ms, EI maximisation {prof['maximize_ei_ms']:.1f} ms")
-    for p in (out / "perf.json", out / "perf_table.md"):
+    for p in (out / "perf.json", out / "perf_table.md", *bridge_files):
         console.print(str(p))
     return 0
 
@@ -290,6 +363,13 @@ def add_bench_parser(subparsers: Any) -> Any:
     st.add_argument("--n-candidates", type=_int, default=1024,
                     help="EI candidates per proposal (1024)")
     st.add_argument("--seed", type=_int, default=0, help="seed of the first trial (0)")
+    # 1.25, not the optimizer's 1.0: measured in docs/results.md §1 ("Refitting the GP
+    # hyperparameters less often"): the same y_t within noise, expensive adaptive trials ≈ 8× cheaper.
+    st.add_argument("--refit-growth", type=float, default=1.25, metavar="G",
+                    help="refit the GP hyperparameters once the observations have grown by the "
+                         "factor G since the last fit, else re-condition with the last ones; the "
+                         "same for every method (1 = at every proposal, as hilbo run does; "
+                         "default 1.25)")
     st.add_argument("--grid-step", type=_int, default=1, help="keep y_t every k measurements (1)")
     st.add_argument("--out", default="runs/bench/stopping", help="output directory")
     st.add_argument("--resume", action="store_true",
@@ -305,13 +385,19 @@ def add_bench_parser(subparsers: Any) -> Any:
     hil = bsub.add_parser(
         "hil", help="whole simulated sessions: stopping BO, fixed BO, CMA-ES, random search",
         description="Whole HIL sessions on simulated wearers; regret of the recommended setting "
-                    "against minutes walked.")
+                    "against minutes walked. Besides the four default methods, the seed-003 ones: "
+                    "adaptive-day2 (a second day, no prior), adaptive-prior and adaptive-prior-e3 "
+                    "(day 2 with day 1's evaluations as a fast prior; E or 3 exploration points), "
+                    "adaptive-features (kernel on raw parameters + force-profile features), "
+                    "adaptive-features-only, adaptive-tuned-k (constant-K stopping, see --tuned-k).")
     hil.add_argument("--subjects", type=_int, default=10, help="subject seeds per space (10)")
     hil.add_argument("--seed", type=_int, default=1, help="first subject seed (1)")
     hil.add_argument("--spaces", default=None,
                      help="comma-separated, from hip_6d,hip_ankle_4d (default both)")
     hil.add_argument("--methods", default=None,
-                     help="comma-separated, from adaptive,fixed,cmaes,random (default all)")
+                     help="comma-separated, from adaptive,fixed,cmaes,random (the default) and "
+                          "adaptive-day2,adaptive-prior,adaptive-prior-e3,adaptive-features,"
+                          "adaptive-features-only,adaptive-tuned-k")
     hil.add_argument("--minutes", type=float, default=60.0, help="session length incl. warm-ups (60)")
     hil.add_argument("--warmup-s", type=float, default=180.0, help="each of the two warm-ups (180 s)")
     hil.add_argument("--condition-s", type=float, default=120.0,
@@ -324,6 +410,15 @@ def add_bench_parser(subparsers: Any) -> Any:
     hil.add_argument("--max-breaths", type=_int, default=45, help="BO's N (45)")
     hil.add_argument("--window", type=_int, default=2, help="BO's window W (2)")
     hil.add_argument("--grid-min", type=float, default=1.0, help="minutes grid of the summary (1)")
+    hil.add_argument("--tuned-k", default="bo", metavar="bo|grid|K",
+                     help="K of adaptive-tuned-k: bo = BO-RESAMPLE's recommendation, grid = the best "
+                          "of an exhaustive grid, both tuned offline on the full-length trajectories "
+                          "of --tune-subjects training wearers before the sessions; or a number (bo)")
+    hil.add_argument("--tune-subjects", type=_int, default=10, help="training wearers for --tuned-k (10)")
+    hil.add_argument("--tune-seed", type=_int, default=101,
+                     help="first training wearer seed, disjoint from the subjects (101)")
+    hil.add_argument("--error-weight", type=float, default=2.0,
+                     help="tuning cost of a wrong early stop, in evaluations (2)")
     hil.add_argument("--out", default="runs/bench/hil", help="output directory")
     hil.add_argument("--resume", action="store_true",
                      help="keep the sessions already in OUT/sessions.jsonl and run only the missing ones")
@@ -332,13 +427,33 @@ def add_bench_parser(subparsers: Any) -> Any:
     _add_executor_args(hil)
     hil.set_defaults(func=_cmd_hil)
 
-    pf = bsub.add_parser("perf", help="compute latency: breath, proposal, whole session",
-                         description="Latency of one breath, one proposal and a 60-minute simulated session.")
+    pf = bsub.add_parser("perf",
+                         help="compute latency: breath, proposal, whole session; the bridge at real time",
+                         description="Latency of one breath, one proposal and a 60-minute simulated session. "
+                                     "With --bridge-minutes M > 0 also the bridge at real time (issue 6): an "
+                                     "M-minute hilbo-sim session at speed 1 (hip_6d, 2 actuators × 1 kHz "
+                                     "force feedback, 2 exploration points, N = 10, 20 s warm-ups) reporting "
+                                     "stop decision → device ack latency, feedback frames sent / received / "
+                                     "lost / logged, the achieved feedback rate and the process's CPU in "
+                                     "cores (devices included: an upper bound); also written to "
+                                     "OUT/perf_bridge.json and OUT/perf_bridge_table.md, the session's log "
+                                     "to OUT/bridge_session/.")
     pf.add_argument("--breaths", type=_int, default=1500, help="optimisation-phase breaths to time (1500)")
     pf.add_argument("--sizes", default="10,30,60,100", help="observation counts for proposals (10,30,60,100)")
     pf.add_argument("--reps", type=_int, default=20, help="timed proposals per size (20)")
     pf.add_argument("--sessions", type=_int, default=3, help="60-minute sessions to time (3)")
     pf.add_argument("--seed", type=_int, default=1, help="first seed (1)")
+    pf.add_argument("--bridge-minutes", type=float, default=0.0, metavar="M",
+                    help="also run the bridge at real time for M minutes of wall time (at least 2.7; "
+                         "5 gives ~10 profile pushes; default 0 = skip)")
+    pf.add_argument("--bridge-speed", type=float, default=1.0,
+                    help="real-time factor of that session (1 = real time, as issue 6 asks; more only "
+                         "for quick checks)")
+    pf.add_argument("--bridge-feedback-hz", type=float, default=1000.0,
+                    help="its force-feedback rate per actuator (1000 Hz)")
+    pf.add_argument("--bridge-baseline-s", type=float, default=30.0, metavar="S",
+                    help="then run the virtual exosuit alone for S s: the process's CPU minus the "
+                         "device's estimates the bridge's own share (30; 0 = skip)")
     pf.add_argument("--out", default="runs/bench/perf", help="output directory")
     pf.set_defaults(func=_cmd_perf)
     return bsub

@@ -12,6 +12,9 @@
   One proposal at the largest size ≤ 60 is profiled to say where the time goes.
 * **Session wall time** — :func:`bridge.insim.run_insim` of a 60-minute ``hip_6d`` session
   (adaptive stopping) at ``speed=max``, for a few subject seeds.
+* **The bridge at real time** (opt-in, ``bridge_minutes`` > 0; issue 6) — a
+  :func:`bridge.sim.run_virtual_sim` session at speed 1 with 2 × 1 kHz force feedback: stop →
+  ack latency, dropped and logged feedback frames, CPU (:mod:`bridge.bench.bridge_perf`).
 
 Runs in this process (latency is a single-process property); other load on the machine shows up
 in the numbers, so the load average at the start is recorded.
@@ -26,10 +29,12 @@ import pstats
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from bridge.bench.bridge_perf import BridgeRtConfig, bridge_realtime, bridge_table
 from bridge.bench.common import blas_threads, markdown_table, round_sig
 from bridge.insim import SimConfig, run_insim
 from hilbo_core.errors import ConfigError
@@ -61,6 +66,11 @@ class PerfConfig:
         sessions: 60-minute sessions to time.
         session_minutes: Session length for the wall-time measurement.
         seed: First seed.
+        bridge_minutes: Length of the real-time bridge session (minutes; 0 = skip it).
+        bridge_speed: Its real-time factor (1 = real time; more only for tests and demos).
+        bridge_feedback_hz: Its force-feedback rate per actuator (Hz).
+        bridge_baseline_s: How long the virtual exosuit then runs alone, for the bridge's share of
+            the CPU (wall s; 0 = skip).
     """
 
     breaths: int = 1500
@@ -69,6 +79,10 @@ class PerfConfig:
     sessions: int = 3
     session_minutes: float = 60.0
     seed: int = 1
+    bridge_minutes: float = 0.0
+    bridge_speed: float = 1.0
+    bridge_feedback_hz: float = 1000.0
+    bridge_baseline_s: float = 30.0
 
     def __post_init__(self) -> None:
         for name, low in (("breaths", 10), ("reps", 1), ("sessions", 0), ("seed", 0)):
@@ -81,6 +95,20 @@ class PerfConfig:
         object.__setattr__(self, "sizes", sizes)
         if not (math.isfinite(self.session_minutes) and 0 < self.session_minutes <= 600):
             raise ConfigError(f"session_minutes={self.session_minutes!r}; expected a number in (0, 600]")
+        if not (math.isfinite(self.bridge_minutes) and 0 <= self.bridge_minutes <= 600):
+            raise ConfigError(f"bridge_minutes={self.bridge_minutes!r}; expected 0 (skip) or a number "
+                              "in (0, 600]")
+        if self.bridge_minutes > 0:
+            try:  # the bridge session is validated before any work starts
+                self.bridge_config()
+            except ConfigError as err:
+                raise ConfigError(f"bridge_minutes={self.bridge_minutes:g}: {err}") from err
+
+    def bridge_config(self) -> BridgeRtConfig:
+        """The real-time bridge session of this benchmark."""
+        return BridgeRtConfig(minutes=self.bridge_minutes, speed=self.bridge_speed,
+                              feedback_hz=self.bridge_feedback_hz, seed=self.seed,
+                              baseline_s=self.bridge_baseline_s)
 
 
 def _quantiles_ms(samples_ns: Sequence[int], q: float, cpu_ns: Sequence[int] = ()) -> dict[str, float]:
@@ -223,8 +251,14 @@ def session_wall(sessions: int, minutes: float, seed: int) -> list[dict[str, flo
     return out
 
 
-def run_perf(cfg: PerfConfig) -> dict[str, Any]:
-    """The whole perf benchmark; the ``perf.json`` content."""
+def run_perf(cfg: PerfConfig, bridge_out: Path | None = None) -> dict[str, Any]:
+    """The whole perf benchmark; the ``perf.json`` content.
+
+    Args:
+        cfg: The sizes.
+        bridge_out: Where the real-time bridge session writes ``session.mcap`` and
+            ``summary.json`` (default a temporary directory); unused with ``bridge_minutes`` 0.
+    """
     before = blas_threads(1)  # as the benchmarks and (recommended) the bridge run
     load = os.getloadavg()
     t0 = time.perf_counter()
@@ -232,6 +266,7 @@ def run_perf(cfg: PerfConfig) -> dict[str, Any]:
     proposal, profile = proposal_latency(cfg.sizes, cfg.reps, cfg.seed)
     sessions = session_wall(cfg.sessions, cfg.session_minutes, cfg.seed)
     walls = [s["wall_s"] for s in sessions]
+    bridge = bridge_realtime(cfg.bridge_config(), bridge_out) if cfg.bridge_minutes > 0 else None
     return round_sig({
         "benchmark": "perf",
         "config": {**asdict(cfg), "sizes": list(cfg.sizes)},
@@ -243,6 +278,7 @@ def run_perf(cfg: PerfConfig) -> dict[str, Any]:
         "session_60min_wall_s": float(np.median(walls)) if walls else None,
         "session_60min_cpu_s": float(np.median([s["cpu_s"] for s in sessions])) if walls else None,
         "sessions": sessions,
+        "bridge_realtime": bridge,
         "targets": TARGETS,
         "wall_s": time.perf_counter() - t0,
     })
@@ -275,4 +311,10 @@ def perf_table(result: dict[str, Any]) -> str:
         rows.append([f"{result['config']['session_minutes']:g}-minute simulated session (median of "
                      f"{len(result['sessions'])})", f"{s:.1f} s", "–" if c is None else f"{c:.1f} s",
                      f"< {ts:g} s", met(s, ts)])
-    return markdown_table(["measurement", "wall clock", "CPU time", "target (wall)", "met"], rows)
+    table = markdown_table(["measurement", "wall clock", "CPU time", "target (wall)", "met"], rows)
+    if result.get("bridge_realtime"):
+        b = result["bridge_realtime"]
+        c = b["config"]
+        table += (f"\nThe bridge at real time ({c['minutes']:g} min at speed {c['speed']:g}, "
+                  f"{b['actuators']} × {c['feedback_hz']:g} Hz feedback):\n\n" + bridge_table(b))
+    return table

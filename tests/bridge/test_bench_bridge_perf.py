@@ -1,0 +1,109 @@
+"""bridge.bench.bridge_perf: the real-time bridge measurement at toy size (fast clock, short session).
+
+Only structure and invariants are asserted, never wall times: the numbers depend on the machine.
+"""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from bridge.bench.bridge_perf import BRIDGE_TARGETS, BridgeRtConfig, bridge_realtime, bridge_table
+from bridge.bench.cli import bench_main
+from bridge.bench.perf import PerfConfig
+from hilbo_core.errors import ConfigError
+
+#: A session of ~2 s wall time: 1.8 simulated minutes at 60 × real time, short warm-ups.
+TOY = BridgeRtConfig(minutes=1.8, speed=60.0, feedback_hz=500.0, warmup_s=5.0, max_breaths=6,
+                     sample_period_s=0.25, baseline_s=0.5)
+
+
+def _check(b: dict, cfg: BridgeRtConfig) -> None:
+    assert b["actuators"] == 2 and b["joints"] == ["hip", "hip"]
+    assert b["config"]["feedback_hz"] == cfg.feedback_hz
+    assert b["wall_s"] > 0 and b["n_evaluations"] >= 2
+    for key in ("stop_to_ack_ms", "push_latency_ms", "push_only_ms"):
+        q = b[key]
+        assert q["n"] >= 1, key
+        assert 0 < q["median"] <= q["p99"] <= q["max"], key
+    # Every stop-decision push is a push; each latency holds its push's transfer.
+    assert b["stop_to_ack_ms"]["n"] <= b["push_latency_ms"]["n"] == b["push_only_ms"]["n"]
+    assert len(b["stop_to_ack_samples_ms"]) == b["stop_to_ack_ms"]["n"]
+    # The log's pushes pair with the session's latencies: proposal + gate + transfer = total.
+    bd = b["stop_to_ack_breakdown"]
+    assert {q["n"] for q in bd.values()} == {b["stop_to_ack_ms"]["n"]}
+    assert bd["transfer_ms"]["median"] > 0 and bd["proposal_ms"]["median"] > 0
+    fb = b["force_feedback"]
+    assert 0 < fb["bridge_received_total"] <= fb["device_sent_total"]
+    assert fb["lost_counter_gaps"] >= 0 and fb["subscriber_overflow"] >= 0
+    # The feedback task logs its last batch too, so every received frame is in the log.
+    assert fb["logged_to_mcap"] == fb["bridge_received_total"]
+    assert fb["not_logged"] == 0
+    assert set(fb["logged_per_actuator"]) == {"0", "1"}
+    w = fb["window"]
+    assert w["window_s"] > 0
+    assert 0 < w["received"] <= w["sent"] + 50  # + the frames in flight at the first sample
+    assert w["rate_hz"]["target"] == 2 * cfg.feedback_hz
+    assert 0 < w["rate_hz"]["received_min"] <= w["rate_hz"]["received"]
+    cpu = b["cpu"]
+    assert cpu["process_cpu_s"] > 0 and cpu["cores"] > 0
+    assert any(name.startswith("MainThread") for name in cpu["threads_in_window"])
+    if cfg.baseline_s > 0:
+        alone = cpu["device_alone"]
+        assert alone["cores"] > 0 and alone["sent_rate_hz"] > 0 and alone["seconds"] > 0
+        estimate = cpu["cores_in_window"] - alone["cores"]
+        assert cpu["bridge_estimate_cores"] == pytest.approx(estimate, abs=1e-5)
+    assert b["targets"] == BRIDGE_TARGETS
+    assert set(b["met"]) == {"stop_to_ack_p99_ms", "cores", "dropped_frames", "feedback_rate"}
+    assert b["events"]["session_end"] == 1
+
+
+def test_toy_real_time_session_reports_latency_frames_and_cpu(tmp_path) -> None:
+    b = bridge_realtime(TOY, tmp_path)
+    _check(b, TOY)
+    assert (tmp_path / "session.mcap").exists() and (tmp_path / "summary.json").exists()
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["stop_to_ack_ms"]["n"] == b["stop_to_ack_ms"]["n"]
+    table = bridge_table(b)
+    assert "| stop decision → device ack of the next profile |" in table
+    assert "< 0.5 core" in table
+
+
+@pytest.mark.slow
+def test_perf_cli_with_bridge_minutes_writes_perf_and_perf_bridge_json(tmp_path) -> None:
+    out = tmp_path / "perf"
+    code = bench_main(["perf", "--breaths", "10", "--sizes", "3", "--reps", "1", "--sessions", "0",
+                       "--bridge-minutes", "2.7", "--bridge-speed", "60", "--bridge-feedback-hz", "500",
+                       "--bridge-baseline-s", "0", "--out", str(out)])
+    assert code == 0
+    perf = json.loads((out / "perf.json").read_text())
+    for key in ("benchmark", "config", "load_average_at_start", "breath_latency_ms", "proposal_latency_ms",
+                "proposal_profile", "session_60min_wall_s", "sessions", "targets", "wall_s", "command",
+                "machine", "bridge_realtime"):
+        assert key in perf, key
+    assert "--bridge-minutes 2.7 --bridge-speed 60 --bridge-feedback-hz 500 --bridge-baseline-s 0" \
+        in perf["command"]
+    small = json.loads((out / "perf_bridge.json").read_text())
+    assert small["benchmark"] == "perf-bridge" and small["command"] == perf["command"]
+    cfg = BridgeRtConfig(minutes=2.7, speed=60.0, feedback_hz=500.0, baseline_s=0.0)
+    _check(small, cfg)
+    assert small["cpu"]["device_alone"] is None and small["cpu"]["bridge_estimate_cores"] is None
+    assert (out / "bridge_session" / "session.mcap").exists()
+    assert "The bridge at real time" in (out / "perf_table.md").read_text()
+    assert "stop decision → device ack" in (out / "perf_bridge_table.md").read_text()
+
+
+def test_perf_without_bridge_minutes_skips_it(tmp_path) -> None:
+    assert PerfConfig().bridge_minutes == 0
+
+
+def test_too_short_bridge_session_is_refused_before_any_work(tmp_path, capsys) -> None:
+    with pytest.raises(ConfigError, match="bridge_minutes=1"):
+        PerfConfig(bridge_minutes=1.0)
+    with pytest.raises(ConfigError, match="speed"):
+        BridgeRtConfig(speed=0.0)
+    code = bench_main(["perf", "--bridge-minutes", "1", "--out", str(tmp_path / "x")])
+    assert code == 2
+    assert "bridge_minutes=1" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
