@@ -945,7 +945,10 @@ def _feedback(scan: _FileScan, index: int, obs_pos: int, notes: list[str]) -> Fe
     version = _i(prof.get("version"))
     samples: dict[int, tuple[list[float], list[float], list[float]]] = {}
     for pos, d in scan.feedback:
-        if not pos0 < pos < obs_pos or _i(d.get("profile_version")) != version:
+        # Every batch stamped with this version, also those logged after the observation: a
+        # setting stopped after a breath or two may end before its first batch is written (at
+        # `hilbo sim` speed always). Samples of another table are filtered out below.
+        if pos <= pos0 or _i(d.get("profile_version")) != version:
             continue
         act = _i(d.get("actuator"))
         des, mea, gait = d.get("desired_n"), d.get("measured_n"), d.get("gait_phase_pct")
@@ -985,7 +988,7 @@ def _feedback(scan: _FileScan, index: int, obs_pos: int, notes: list[str]) -> Fe
             arrays[act] = (g, des, mea)
     if not arrays:
         notes.append(f"no force feedback plot: the log has no /force_feedback samples for profile version "
-                     f"{version} while evaluation {index} (the recommended setting) was measured")
+                     f"{version} of evaluation {index} (the recommended setting)")
         return None
     if excluded:
         notes.append(f"force tracking: {excluded} feedback samples of the recommended setting's batches "
