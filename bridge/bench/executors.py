@@ -20,7 +20,7 @@ import logging
 import multiprocessing
 import os
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import FIRST_EXCEPTION, Future, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from contextlib import contextmanager
 from typing import Any, Protocol, TypeVar
 
@@ -111,7 +111,10 @@ class LocalExecutor:
                 futures: dict[Future[R], int] = {pool.submit(fn, t): i for i, t in enumerate(tasks)}
                 pending = set(futures)
                 while pending:
-                    done, pending = wait(pending, return_when=FIRST_EXCEPTION)
+                    # FIRST_COMPLETED, not FIRST_EXCEPTION: the latter waits for *all* futures
+                    # when none fails, so on_result (which appends to trials.jsonl) only ran at
+                    # the very end and an interrupted campaign kept nothing.
+                    done, pending = wait(pending, return_when=FIRST_COMPLETED)
                     for fut in done:
                         err = fut.exception()
                         if err is not None:

@@ -23,6 +23,24 @@ def fail_on_three(x: int) -> int:
     return x
 
 
+def _marker_task(path: str) -> bool:
+    """Task 0 (no path) returns at once; task 1 returns True once ``path`` exists."""
+    return True if not path else wait_for_marker(path)
+
+
+def wait_for_marker(path: str) -> bool:
+    """True once the parent's callback for task 0 made ``path`` (False after 30 s)."""
+    import os
+    import time
+
+    deadline = time.monotonic() + 30.0  # bounded: a pool that holds results back fails, not hangs
+    while time.monotonic() < deadline:
+        if os.path.exists(path):
+            return True
+        time.sleep(0.02)
+    return False
+
+
 def _strip(results: list[dict]) -> list[dict]:
     return [{k: v for k, v in r.items() if k != "wall_s"} for r in results]
 
@@ -48,6 +66,19 @@ def test_a_failing_task_raises_its_own_error_in_process() -> None:
         LocalExecutor(1, progress=False).map(fail_on_three, [1, 2, 3, 4],
                                              on_result=lambda i, r: seen.append(r))
     assert seen == [1, 2]
+
+
+@pytest.mark.slow
+def test_process_pool_reports_each_result_as_it_finishes(tmp_path) -> None:
+    # A campaign appends every finished trial to trials.jsonl from on_result: results held back
+    # until the whole map ends would lose an interrupted campaign. Task 1 only finishes after
+    # on_result has run for task 0.
+    marker = tmp_path / "task0-reported"
+    tasks = ["", str(marker)]
+
+    out = LocalExecutor(2, progress=False).map(
+        _marker_task, tasks, on_result=lambda i, r: marker.touch() if i == 0 else None)
+    assert out == [True, True]
 
 
 @pytest.mark.slow
