@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import os
 import sys
@@ -272,6 +273,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"hilbo {args.command}: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:
+        # `hilbo review LOG | head`: the reader left; what was asked for is written. Point stdout
+        # at /dev/null so the interpreter's own flush at exit does not raise again.
+        with contextlib.suppress(OSError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
 
 
 if __name__ == "__main__":
