@@ -47,6 +47,7 @@ import can
 import numpy as np
 
 from bridge.errors import BridgeConfigError
+from bridge.proposals import WorkerKind
 from bridge.safety import (
     ACTUATOR_LIMIT_RANGES,
     ProfileLimits,
@@ -80,6 +81,7 @@ __all__ = [
     "HilboConfig",
     "PriorConfig",
     "ProtocolConfig",
+    "RefitMode",
     "SessionConfig",
     "SpaceConfig",
     "WatchdogConfig",
@@ -368,6 +370,13 @@ def _parse_space(data: object) -> SpaceConfig:
 # --------------------------------------------------------------------------------------------
 
 
+class RefitMode(enum.Enum):
+    """``[protocol] refit``: when the GP hyperparameters are refitted (see ProtocolConfig)."""
+
+    AHEAD = "ahead"
+    AT_PROPOSAL = "at_proposal"
+
+
 @dataclass(frozen=True)
 class ProtocolConfig:
     """``[protocol]``: the walking protocol and the optimizer (seed 000 §IV.A.3, Algorithm 1).
@@ -392,6 +401,13 @@ class ProtocolConfig:
         n_candidates: Feasible Sobol candidates per acquisition maximisation.
         n_local: Candidates refined locally per acquisition maximisation.
         pause_between_bouts: Pause for the operator between the bouts.
+        refit: When the GP hyperparameters are refitted: ``ahead`` (default: on the completed
+            evaluations while the next setting is measured, so the proposal after a stop
+            decision only conditions the GP on every observation and maximises EI; the
+            hyperparameters lag the data by one evaluation) or ``at_proposal`` (inside every
+            proposal, as seed 000 describes it; adds 10–60 ms to each stop -> push).
+        proposal_worker: Where proposals and fits run: ``process`` (default: a worker process,
+            off the CAN traffic's GIL) or ``thread``.
     """
 
     warmup_s: float = 180.0
@@ -407,6 +423,8 @@ class ProtocolConfig:
     n_candidates: int = 1024
     n_local: int = 3
     pause_between_bouts: bool = True
+    refit: RefitMode = RefitMode.AHEAD
+    proposal_worker: WorkerKind = WorkerKind.PROCESS
 
     @property
     def budget_s(self) -> float | None:
@@ -419,7 +437,7 @@ class ProtocolConfig:
             n_explore=self.n_explore, max_breaths=self.max_breaths, window=self.window,
             budget_s=self.budget_s, budget_breaths=self.budget_breaths, stopping=self.stopping,
             seed=self.seed, xi=self.xi, kernel=self.kernel, n_candidates=self.n_candidates,
-            n_local=self.n_local,
+            n_local=self.n_local, refit_lag=1 if self.refit is RefitMode.AHEAD else 0,
         )
 
     def to_json(self) -> dict[str, Any]:
@@ -450,6 +468,8 @@ def _parse_protocol(data: object) -> ProtocolConfig:
         n_candidates=t.integer("n_candidates", 1024, lo=16, hi=1_000_000),
         n_local=t.integer("n_local", 3, lo=0, hi=100),
         pause_between_bouts=t.boolean("pause_between_bouts", True),
+        refit=t.choice("refit", RefitMode, RefitMode.AHEAD),
+        proposal_worker=t.choice("proposal_worker", WorkerKind, WorkerKind.PROCESS),
     )
     try:
         cfg.optimizer_config()  # the optimizer's own validation is the final word

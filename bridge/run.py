@@ -58,6 +58,7 @@ def runtime_settings(cfg: HilboConfig, *, auto_resume_s: float | None = None,
         heartbeat_period_s=cfg.can.heartbeat_period_s,
         feedback_log_period_s=feedback_log_period_s,
         n_actuators=n_actuators,
+        proposal_worker=cfg.protocol.proposal_worker,
     )
 
 

@@ -35,6 +35,7 @@ import numpy as np
 
 from bridge.errors import UnsafeProfileError
 from bridge.log import LogError, SessionLog
+from bridge.proposals import ProposalWorker, WorkerKind
 from drivers.errors import DriverError, ProfilePushError
 from drivers.exosuit import (
     AssistanceOffReason,
@@ -44,7 +45,7 @@ from drivers.exosuit import (
     DeviceStatus,
     ForceFeedback,
 )
-from hilbo_core import HILOptimizer, brockway_watts
+from hilbo_core import HILOptimizer, HyperparameterFit, brockway_watts
 from hilbo_core.optimizer import Phase
 from hilbo_core.types import BreathRecord
 
@@ -101,6 +102,7 @@ class RuntimeSettings:
         feedback_log_period_s: Force feedback is logged in batches this long (s).
         status_log_period_s: Device status is logged at most this often per actuator (s).
         n_actuators: Actuators whose status must be alive.
+        proposal_worker: Where proposals and hyperparameter fits run (bridge/proposals.py).
     """
 
     warmup_s: float = 180.0
@@ -116,6 +118,7 @@ class RuntimeSettings:
     feedback_log_period_s: float = 0.1
     status_log_period_s: float = 0.5
     n_actuators: int = 2
+    proposal_worker: WorkerKind = WorkerKind.PROCESS
 
 
 @dataclass
@@ -236,8 +239,17 @@ class BridgeSession:
         self.latencies_s: list[float] = []
         self.stop_latencies_s: list[float] = []
         self._t_stop: float | None = None  # wall time of the last stop decision not yet pushed
+        self._worker = ProposalWorker(self.settings.proposal_worker)
+        self._worker_lost_logged = False
+        # A hyperparameter fit running ahead of the next proposal (refit_lag >= 1).
+        self._fit_ahead: tuple[HyperparameterFit, asyncio.Task[Any]] | None = None
         self.records: list[dict[str, Any]] = []  # completed evaluations with session times
         self._t_session0: float | None = None
+
+    @property
+    def proposal_worker(self) -> ProposalWorker:
+        """Where this session's proposals and hyperparameter fits run."""
+        return self._worker
 
     # ------------------------------------------------------------------ public control
     def command(self, cmd: Command) -> None:
@@ -255,6 +267,22 @@ class BridgeSession:
         self.log.log_optimizer_state(self.opt, reason="start")
         self._event("session_start", f"session started ({self.opt.phase.value})")
         try:
+            with self._worker:
+                self._worker.start()  # the process starts during the warm-up walk
+                await self._run_tasks()
+        except* _Stopped:
+            pass
+        finally:
+            await self._safe_off(AssistanceOffReason.OPERATOR_STOP if self._stop.is_set()
+                                 else AssistanceOffReason.SESSION_END, "session end")
+            self._log_counters()
+            with contextlib.suppress(DriverError):
+                await self.endpoint.stop_heartbeat()
+        self._event("session_end", f"session ended after {len(self.records)} evaluations")
+        return self.summary()
+
+    async def _run_tasks(self) -> None:
+        try:
             async with asyncio.TaskGroup() as tg:
                 tasks = [
                     tg.create_task(self._cart_task(), name="cart"),
@@ -270,16 +298,8 @@ class BridgeSession:
                 finally:
                     for t in tasks:
                         t.cancel()
-        except* _Stopped:
-            pass
         finally:
-            await self._safe_off(AssistanceOffReason.OPERATOR_STOP if self._stop.is_set()
-                                 else AssistanceOffReason.SESSION_END, "session end")
-            self._log_counters()
-            with contextlib.suppress(DriverError):
-                await self.endpoint.stop_heartbeat()
-        self._event("session_end", f"session ended after {len(self.records)} evaluations")
-        return self.summary()
+            await self._drop_fit_ahead()
 
     def summary(self) -> dict[str, Any]:
         """The summary.json fields of shared/DESIGN.md (without simulation truth)."""
@@ -327,10 +347,13 @@ class BridgeSession:
     async def _evaluate_one(self) -> None:
         t_stop, self._t_stop = self._t_stop, None
         t_decided = t_stop if t_stop is not None else self._clock()
-        loop = asyncio.get_running_loop()
-        # The GP fit and EI maximisation take tens of ms: off the loop, so heartbeats and CAN
-        # traffic keep flowing. Only this task touches the optimizer.
-        params = await loop.run_in_executor(None, self.opt.ask)
+        # The GP work takes tens of ms: off the loop (a worker process by default, so it does
+        # not compete with the CAN traffic for the GIL). Only this task touches the optimizer.
+        await self._collect_fit_ahead()
+        self.opt, params = await self._worker.ask(self.opt)
+        if self._worker.lost is not None and not self._worker_lost_logged:
+            self._worker_lost_logged = True
+            self._event("proposal_worker_lost", self._worker.lost)
         self.status.bout = self.opt.phase.value
         index = len(self.opt.evaluations)
         self.log.log_proposal(params, index=index, phase=self.opt.phase.value,
@@ -362,6 +385,7 @@ class BridgeSession:
         if t_stop is not None:
             self.stop_latencies_s.append(latency)
         await self._wait_applied(self._version)
+        self._start_fit_ahead()
         t0 = self._breaths.last_t if self._breaths.last_t is not None else 0.0
         t0_session = self._session_time(t0)
         self.status.evaluation, self.status.params = index + 1, params
@@ -393,6 +417,45 @@ class BridgeSession:
                 self.status.best_mean_w = min(r["mean"] for r in self.records)
                 self.status.event(f"eval {ev.index + 1}: {ev.mean:.0f} W, {ev.breaths} breaths, {ev.reason}")
                 return
+
+    # ------------------------------------------------------------------ hyperparameters ahead
+    def _start_fit_ahead(self) -> None:
+        """Fit the GP hyperparameters on the completed evaluations while this one is measured
+        (``refit_lag`` >= 1), so the proposal after the stop decision only conditions the GP
+        and maximises EI: the fit is off the stop -> push path (issue 6's latency)."""
+        if not self.opt.config.refit_lag or self._fit_ahead is not None:
+            return
+        fit = self.opt.hyperparameter_fit()
+        if fit is not None:
+            self._fit_ahead = (fit, asyncio.ensure_future(self._worker.fit(fit)))
+
+    async def _collect_fit_ahead(self) -> None:
+        """Keep the result of the fit made ahead (waiting for it if it still runs: a fit takes
+        tens of ms, a measurement at least a breath)."""
+        if self._fit_ahead is None:
+            return
+        fit, task = self._fit_ahead
+        self._fit_ahead = None
+        try:
+            hyp = await task
+        except Exception as err:
+            logger.exception("hyperparameter fit ahead of the proposal failed")
+            self._event("fit_ahead_failed", f"hyperparameter fit on {fit.n_obs} observations failed "
+                        f"({err!r}); the proposal fits them itself")
+            return
+        self.opt.apply_hyperparameters(fit, hyp)
+
+    async def _drop_fit_ahead(self) -> None:
+        if self._fit_ahead is not None:
+            _, task = self._fit_ahead
+            self._fit_ahead = None
+            task.cancel()
+            try:
+                await task
+            except asyncio.CancelledError:
+                pass
+            except Exception:
+                logger.exception("hyperparameter fit ahead failed as the session ended")
 
     async def _push(self, table: np.ndarray, version: int, admitted: Any, index: int) -> None:
         s = self.settings

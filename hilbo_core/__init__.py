@@ -22,10 +22,12 @@ from hilbo_core.optimizer import (
     BreathStep,
     Evaluation,
     HILOptimizer,
+    HyperparameterFit,
     OptimizerConfig,
     Phase,
     PriorObservation,
     StoppingKind,
+    fit_hyperparameters,
 )
 from hilbo_core.profiles import ForceProfile, build_profile, hip_ankle_profiles, hip_spline_profile
 from hilbo_core.space import DerivedParameter, LinearConstraint, Parameter, ParameterSpace
@@ -52,6 +54,7 @@ __all__ = [
     "GaussianProductEstimator",
     "HILOptimizer",
     "HilboError",
+    "HyperparameterFit",
     "InfeasibleError",
     "KernelKind",
     "LinearConstraint",
@@ -71,6 +74,7 @@ __all__ = [
     "brockway_watts",
     "build_profile",
     "expected_improvement",
+    "fit_hyperparameters",
     "hip_ankle_profiles",
     "hip_spline_profile",
     "log_expected_improvement",

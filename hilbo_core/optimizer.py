@@ -23,7 +23,12 @@ on the marginal likelihood) at every proposal. With ``refit_growth`` G > 1 they 
 once the number of training observations has grown by the factor G since the last fit; in between,
 the GP is re-conditioned on all observations with the last hyperparameters. A session of hundreds
 of one-measurement evaluations (seed 000 §III.2 at high noise) then costs a few dozen fits instead
-of one per evaluation, and each new observation still enters the posterior at once.
+of one per evaluation, and each new observation still enters the posterior at once. With
+``refit_lag`` L >= 1 a proposal reuses hyperparameters fitted on up to L fewer observations; the
+caller fits them *ahead*, off the proposal's critical path: :meth:`HILOptimizer.hyperparameter_fit`
+describes the fit on the completed evaluations, the free function :func:`fit_hyperparameters`
+runs it (anywhere: it is pure and picklable, the bridge runs it in a worker process while the
+next setting is measured), and :meth:`HILOptimizer.apply_hyperparameters` keeps the result.
 
 Determinism: every random choice (design, GP restarts, candidate sets) comes from one
 ``np.random.default_rng(seed)``, so the same seed and the same breaths give the same proposals.
@@ -57,13 +62,17 @@ __all__ = [
     "BreathStep",
     "Evaluation",
     "HILOptimizer",
+    "HyperparameterFit",
     "OptimizerConfig",
     "Phase",
     "PriorObservation",
     "StoppingKind",
+    "fit_hyperparameters",
 ]
 
 _STATE_VERSION = 1
+# Generator stream of fits made ahead (HyperparameterFit.seed), apart from the optimizer's own.
+_FIT_AHEAD_STREAM = 0xF17
 _MAX_WATTS = 5000.0
 
 
@@ -104,6 +113,12 @@ class OptimizerConfig:
             GP is re-conditioned on all observations with the last fitted hyperparameters. The
             stopping rule's incumbent uses the proposal's model; between refits, so does the
             recommendation (:meth:`HILOptimizer.best`).
+        refit_lag: With L >= 1, a proposal refits the hyperparameters only when the stored ones
+            were fitted on more than L fewer observations than it conditions on; the caller keeps
+            them fresh with :meth:`HILOptimizer.hyperparameter_fit` + :func:`fit_hyperparameters`
+            + :meth:`HILOptimizer.apply_hyperparameters` (fitting *ahead*, e.g. while the next
+            setting is measured, so no proposal waits for a fit). 0, the default, leaves refits to
+            ``refit_growth``. The two are exclusive: L >= 1 needs ``refit_growth`` = 1.
     """
 
     n_explore: int = 6
@@ -118,6 +133,7 @@ class OptimizerConfig:
     n_candidates: int = 1024
     n_local: int = 3
     refit_growth: float = 1.0
+    refit_lag: int = 0
 
     def __post_init__(self) -> None:
         try:
@@ -151,6 +167,12 @@ class OptimizerConfig:
                 f"refit_growth={growth!r}; expected a finite factor >= 1.0 (1.0 = refit at every proposal)"
             )
         object.__setattr__(self, "refit_growth", float(growth))
+        _int_at_least("refit_lag", self.refit_lag, 0)
+        if self.refit_lag and self.refit_growth != 1.0:
+            raise ConfigError(
+                f"refit_lag={self.refit_lag!r} with refit_growth={self.refit_growth!r}; expected one "
+                "of them only (refit_lag >= 1 needs refit_growth = 1.0)"
+            )
 
     def to_json(self) -> dict[str, Any]:
         """JSON-able form."""
@@ -253,6 +275,47 @@ class _Current:
     breaths: list[tuple[float, float]] = field(default_factory=list)
     means: list[float] = field(default_factory=list)
     vars: list[float] = field(default_factory=list)
+
+
+@dataclass(frozen=True, eq=False)
+class HyperparameterFit:
+    """One GP hyperparameter fit, described completely (picklable: it may run in another process).
+
+    Made by :meth:`HILOptimizer.hyperparameter_fit`, run by :func:`fit_hyperparameters`, its
+    result kept by :meth:`HILOptimizer.apply_hyperparameters`.
+
+    Attributes:
+        kernel: The GP's kernel.
+        X_unit: Training points in the unit cube, shape (n, d).
+        y: Their estimated costs (W), shape (n,).
+        var: Their variances (W²), shape (n,).
+        init: Warm start (the last fitted hyperparameters), or None.
+        seed: Entropy of the fit's own generator (the multi-start points), derived from the
+            optimizer's seed and n, so a fit gives the same result wherever and whenever it runs.
+    """
+
+    kernel: KernelKind
+    X_unit: np.ndarray
+    y: np.ndarray
+    var: np.ndarray
+    init: GPHyperparameters | None
+    seed: tuple[int, ...]
+
+    @property
+    def n_obs(self) -> int:
+        """Training observations n."""
+        return int(self.y.size)
+
+
+def fit_hyperparameters(fit: HyperparameterFit) -> GPHyperparameters:
+    """Run a :class:`HyperparameterFit`: MAP marginal likelihood, multi-start L-BFGS-B (gp.py).
+
+    Pure: the same ``fit`` gives the same hyperparameters in any process.
+    """
+    gp = GaussianProcess(fit.kernel)
+    gp.fit(fit.X_unit, fit.y, fit.var, rng=np.random.default_rng(fit.seed), init=fit.init,
+           optimize=True)
+    return gp.hyperparameters
 
 
 class HILOptimizer:
@@ -514,6 +577,46 @@ class HILOptimizer:
         return dict(cur.params)
 
     # ------------------------------------------------------------------ internals
+    def hyperparameter_fit(self) -> HyperparameterFit | None:
+        """The hyperparameter fit on every observation so far, to run ahead of the next proposal.
+
+        Returns:
+            The fit (a snapshot: later breaths and evaluations do not change it), or None when
+            fewer than 2 observations exist or the stored hyperparameters already cover them all.
+        """
+        n = self._n_obs()
+        if n < 2 or (self._hyp is not None and self._n_at_fit == n):
+            return None
+        U, y, v = self._training_set()
+        return HyperparameterFit(kernel=self.config.kernel, X_unit=U, y=y, var=v, init=self._hyp,
+                                 seed=(self.config.seed, n, _FIT_AHEAD_STREAM))
+
+    def apply_hyperparameters(self, fit: HyperparameterFit, hyp: GPHyperparameters) -> bool:
+        """Keep the result of ``fit`` (from :meth:`hyperparameter_fit`) for the next proposals.
+
+        Args:
+            fit: The fit that was run.
+            hyp: Its result, :func:`fit_hyperparameters` (``fit``).
+
+        Returns:
+            True if kept; False when the stored hyperparameters are as recent or more recent.
+
+        Raises:
+            OptimizerStateError: ``fit`` has more observations than this optimizer (it belongs
+                to another optimizer).
+        """
+        n = self._n_obs()
+        if fit.n_obs > n:
+            raise OptimizerStateError(
+                f"a hyperparameter fit on {fit.n_obs} observations; this optimizer has {n}"
+            )
+        if not isinstance(hyp, GPHyperparameters) or len(hyp.lengthscales) != fit.X_unit.shape[1]:
+            raise OptimizerStateError(f"hyperparameters {hyp!r} do not fit a {fit.X_unit.shape[1]}-D GP")
+        if self._hyp is not None and self._n_at_fit is not None and self._n_at_fit >= fit.n_obs:
+            return False
+        self._hyp, self._n_at_fit = hyp, fit.n_obs
+        return True
+
     def _step(self, stop: bool, reason: str, decision: StopDecision | None) -> BreathStep:
         cur = self._current
         if cur is None:
@@ -583,6 +686,8 @@ class HILOptimizer:
         """Whether the next GP must refit its hyperparameters (see ``refit_growth``)."""
         if self._hyp is None or self._n_at_fit is None:
             return True
+        if self.config.refit_lag:
+            return self._n_obs() - self._n_at_fit > self.config.refit_lag
         # The smallest count >= G·n_fit; the 1e-9 keeps round-off (1.1·10 = 11.000000000000002)
         # from postponing a refit by one observation.
         return self._n_obs() >= math.ceil(self.config.refit_growth * self._n_at_fit - 1e-9)

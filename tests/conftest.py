@@ -10,6 +10,9 @@
   ``HILBO_IN_UML=1`` is set inside the guest, so the inner run never boots UML again.
 * Skipped with the reason when neither is possible.
 
+Also the fixture ``optimize_calls``: the training-set size of every GP hyperparameter optimisation
+(a spy on ``GaussianProcess._optimize``), for the tests of when fits happen.
+
 Knobs (environment): ``HILBO_UML_TIMEOUT_S`` (whole boot, default 240 s), ``HILBO_UML_MEM``
 (default 1G), ``HILBO_UML_KEEP=1`` (keep the work directory with the console log).
 """
@@ -261,3 +264,19 @@ def pytest_terminal_summary(terminalreporter: Any, exitstatus: int, config: pyte
     batch = config.stash.get(_BATCH_KEY, None)
     if batch is not None and batch.summary:
         terminalreporter.write_line(f"vcan: {batch.summary}")
+
+
+@pytest.fixture
+def optimize_calls(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """Training-set size of every hyperparameter optimisation (GaussianProcess._optimize)."""
+    from hilbo_core.gp import GaussianProcess
+
+    calls: list[int] = []
+    original = GaussianProcess._optimize
+
+    def spy(self, theta0, F, ys, extra, rng):
+        calls.append(int(F.shape[0]))
+        return original(self, theta0, F, ys, extra, rng)
+
+    monkeypatch.setattr(GaussianProcess, "_optimize", spy)
+    return calls

@@ -135,23 +135,31 @@ class _Sample:
     received: int
     lost: int
     threads: dict[int, float]
+    worker_cpu_s: float  # the proposal worker process's CPU so far (0 without one)
+
+
+def _stat_cpu_s(stat_path: str | Path) -> float | None:
+    """User + system CPU time (s) from a /proc ``stat`` file; None when it cannot be read."""
+    tick = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+    try:
+        stat = Path(stat_path).read_text()
+    except OSError:
+        return None  # ended meanwhile, or not Linux
+    fields = stat.rsplit(")", 1)[1].split()  # fields[0] is field 3 (state) of proc(5)
+    return (int(fields[11]) + int(fields[12])) / tick  # utime, stime
 
 
 def _thread_cpu_s() -> dict[int, float]:
     """CPU time (user + system, s) of every thread of this process by native id; {} off Linux."""
-    tick = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
     out: dict[int, float] = {}
     try:
         entries = list(os.scandir("/proc/self/task"))
     except OSError:
         return out
     for entry in entries:
-        try:
-            stat = Path(entry.path, "stat").read_text()
-        except OSError:
-            continue  # the thread ended meanwhile
-        fields = stat.rsplit(")", 1)[1].split()  # fields[0] is field 3 (state) of proc(5)
-        out[int(entry.name)] = (int(fields[11]) + int(fields[12])) / tick  # utime, stime
+        cpu = _stat_cpu_s(Path(entry.path, "stat"))
+        if cpu is not None:
+            out[int(entry.name)] = cpu
     return out
 
 
@@ -173,8 +181,11 @@ async def _measure(cfg: BridgeRtConfig, out: Path) -> dict[str, Any]:
         exo: VirtualExosuit = held["exo"]
         s: BridgeSession = held["session"]
         names.update({t.native_id: t.name for t in threading.enumerate() if t.native_id is not None})
+        pid = s.proposal_worker.pid
+        worker = (_stat_cpu_s(f"/proc/{pid}/stat") if pid is not None else None) or 0.0
+        held["worker_cpu_s"] = max(held.get("worker_cpu_s", 0.0), worker)
         return _Sample(time.perf_counter(), time.process_time(), int(exo.stats.get("feedback_sent", 0)),
-                       s.device.feedback_frames, s.device.feedback_lost, _thread_cpu_s())
+                       s.device.feedback_frames, s.device.feedback_lost, _thread_cpu_s(), worker)
 
     async def sampler(session: BridgeSession) -> None:
         # Only while the session runs its protocol: its feedback task ends once the budget is
@@ -207,7 +218,10 @@ async def _measure(cfg: BridgeRtConfig, out: Path) -> dict[str, Any]:
         await asyncio.gather(*tasks, return_exceptions=True)
     wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
     load1 = os.getloadavg()
-    return {"summary": summary, "samples": samples, "wall_s": wall, "cpu_s": cpu,
+    return {"summary": summary, "samples": samples, "wall_s": wall,
+            # The worker's CPU as of the last sample (it exits with the session): the part of
+            # the session after that sample (< one sample period) is missing from it.
+            "cpu_s": cpu + held.get("worker_cpu_s", 0.0), "worker_cpu_s": held.get("worker_cpu_s", 0.0),
             "load": (load0, load1), "exo": held["exo"], "session": held["session"],
             "threads_before_bridge": held.get("threads_before_bridge", set()), "thread_names": names}
 
@@ -260,7 +274,8 @@ def _window(samples: list[_Sample], n_streams: int, target_hz: float,
         "lost_counter_gaps": b.lost - a.lost,
         "rate_hz": {"target": n_streams * target_hz, "sent": sent / dt, "received": received / dt,
                     "sent_min": min(sent_steps), "received_min": min(steps)},
-        "cores": (b.cpu_s - a.cpu_s) / dt,
+        "cores": (b.cpu_s - a.cpu_s + b.worker_cpu_s - a.worker_cpu_s) / dt,
+        "worker_cores": (b.worker_cpu_s - a.worker_cpu_s) / dt,
         "threads": dict(sorted(threads.items(), key=lambda kv: -kv[1]["cpu_s"])),
     }
 
@@ -379,15 +394,19 @@ def bridge_realtime(cfg: BridgeRtConfig, out: Path | None = None) -> dict[str, A
             "logged_to_mcap": logged["feedback_logged"],
             "logged_per_actuator": logged["feedback_logged_per_actuator"],
             "not_logged": not_logged,
-            "window": {k: v for k, v in window.items() if k not in ("cores", "threads")},
+            "window": {k: v for k, v in window.items() if k not in ("cores", "threads", "worker_cores")},
         },
         "cpu": {
             "process_cpu_s": raw["cpu_s"],
+            "worker_cpu_s": raw["worker_cpu_s"],
+            "proposal_worker": session.settings.proposal_worker.value,
+            "worker_cores_in_window": window.get("worker_cores"),
             "cores": cores,
             "cores_in_window": window.get("cores"),
             "threads_in_window": window.get("threads"),
             "note": "the virtual exosuit and cart run in this process and event loop: an upper "
-                    "bound on the bridge's own use",
+                    "bound on the bridge's own use; process_cpu_s includes the proposal worker "
+                    "process (worker_cpu_s)",
             "device_alone": alone,
             "bridge_estimate_cores": None if alone is None or window.get("cores") is None
             else window["cores"] - alone["cores"],
@@ -417,7 +436,8 @@ def bridge_table(result: dict[str, Any]) -> str:
         ["stop decision → device ack of the next profile", q(result["stop_to_ack_ms"]),
          f"p99 < {BRIDGE_TARGETS['stop_to_ack_p99_ms']:g} ms", yes(met["stop_to_ack_p99_ms"])],
         *([[f"… of which {what}", q(bd[key]), "–", "–"] for key, what in (
-            ("proposal_ms", "the proposal (stop → proposal logged: logging, GP fit + EI)"),
+            ("proposal_ms", "the proposal (stop → proposal logged: logging, EI, GP fit unless "
+                            "fitted ahead)"),
             ("gate_and_logging_ms", "the safety gate and profile logging"),
             ("transfer_ms", "the transfer (paced segments, commit → ack)"))]
           if (bd := result.get("stop_to_ack_breakdown")) else []),
@@ -435,8 +455,9 @@ def bridge_table(result: dict[str, Any]) -> str:
          "–" if rate is None else f"{rate['received']:.0f} /s, {rate['received_min']:.0f} /s "
                                   f"(device sent {rate['sent']:.0f} /s)",
          "–" if rate is None else f"{rate['target']:.0f} /s", yes(met["feedback_rate"])],
-        ["CPU of the whole process (bridge + virtual devices)",
-         f"{cpu['cores']:.3f} cores ({cpu['process_cpu_s']:.1f} s CPU in {result['wall_s']:.1f} s)",
+        ["CPU of the whole process (bridge + virtual devices) and its proposal worker",
+         f"{cpu['cores']:.3f} cores ({cpu['process_cpu_s']:.1f} s CPU in {result['wall_s']:.1f} s, "
+         f"of which the worker {cpu.get('worker_cpu_s', 0.0):.1f} s)",
          f"< {BRIDGE_TARGETS['cores']:g} core", yes(met["cores"])],
     ]
     alone = cpu.get("device_alone")

@@ -10,6 +10,10 @@
   has warmed the hyperparameters), then gets one more evaluation and the timed proposal follows —
   the situation after every evaluation of a real session. Median and p95 over ``reps`` seeds.
   One proposal at the largest size ≤ 60 is profiled to say where the time goes.
+* **Proposal latency, hyperparameters fitted ahead** — the same proposals with ``refit_lag`` 1,
+  the bridge's default (``[protocol] refit = "ahead"``): the hyperparameters were fitted on the
+  n − 1 earlier evaluations while the n-th was measured, so the timed ``ask()`` conditions the GP
+  on all n and maximises EI. This is what stands between a stop decision and the next push.
 * **Session wall time** — :func:`bridge.insim.run_insim` of a 60-minute ``hip_6d`` session
   (adaptive stopping) at ``speed=max``, for a few subject seeds.
 * **The bridge at real time** (opt-in, ``bridge_minutes`` > 0; issue 6) — a
@@ -28,7 +32,7 @@ import os
 import pstats
 import time
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -47,6 +51,7 @@ __all__ = [
     "PerfConfig",
     "breath_latency",
     "perf_table",
+    "proposal_ahead_latency",
     "proposal_latency",
     "run_perf",
     "session_wall",
@@ -181,6 +186,21 @@ def _synthetic_optimizer(n_obs: int, seed: int) -> HILOptimizer:
     return opt
 
 
+def _before_timed_proposal(n: int, seed: int, rep: int, *, refit_lag: int = 0) -> HILOptimizer:
+    """An optimizer just after its n-th evaluation, its hyperparameters fitted on the first n − 1
+    (by the previous proposal of a session, or ahead of this one with ``refit_lag`` 1)."""
+    opt = _synthetic_optimizer(n - 1, seed + rep)
+    opt.ask()
+    opt.cancel_current()
+    if refit_lag:
+        opt.config = replace(opt.config, refit_lag=refit_lag)
+    space = opt.space
+    rng = np.random.default_rng([seed, rep, n])
+    params = space.to_dict(space.from_unit(space.sample_unit(1, rng)[0]))
+    opt.tell(params, 400.0 + rng.normal(0.0, 20.0), 64.0)
+    return opt
+
+
 def proposal_latency(sizes: Sequence[int], reps: int,
                      seed: int) -> tuple[dict[str, dict[str, float]], dict[str, Any]]:
     """Time ``ask()`` at every size (see the module doc); also profile one proposal.
@@ -196,13 +216,7 @@ def proposal_latency(sizes: Sequence[int], reps: int,
     for n in sizes:
         timer = _Timer()
         for r in range(reps):
-            opt = _synthetic_optimizer(n - 1, seed + r)
-            opt.ask()  # warms the hyperparameters, as the previous proposal of a session would
-            opt.cancel_current()
-            space = opt.space
-            rng = np.random.default_rng([seed, r, n])
-            params = space.to_dict(space.from_unit(space.sample_unit(1, rng)[0]))
-            opt.tell(params, 400.0 + rng.normal(0.0, 20.0), 64.0)
+            opt = _before_timed_proposal(n, seed, r)
             with timer:
                 opt.ask()
             if n == prof_n and r == 0:
@@ -219,6 +233,23 @@ def proposal_latency(sizes: Sequence[int], reps: int,
                 profile = _profile_summary(prof, n)
         out[str(n)] = _quantiles_ms(timer.wall, 95, timer.cpu)
     return out, profile
+
+
+def proposal_ahead_latency(sizes: Sequence[int], reps: int, seed: int) -> dict[str, dict[str, float]]:
+    """Time ``ask()`` with the hyperparameters fitted ahead (see the module doc).
+
+    Returns:
+        ``{str(n): {median, p95, max, n, cpu_median, cpu_p95}}`` in ms.
+    """
+    out: dict[str, dict[str, float]] = {}
+    for n in sizes:
+        timer = _Timer()
+        for r in range(reps):
+            opt = _before_timed_proposal(n, seed, r, refit_lag=1)
+            with timer:
+                opt.ask()
+        out[str(n)] = _quantiles_ms(timer.wall, 95, timer.cpu)
+    return out
 
 
 def _profile_summary(prof: cProfile.Profile, n: int) -> dict[str, Any]:
@@ -264,6 +295,7 @@ def run_perf(cfg: PerfConfig, bridge_out: Path | None = None) -> dict[str, Any]:
     t0 = time.perf_counter()
     breath = breath_latency(cfg.breaths, cfg.seed)
     proposal, profile = proposal_latency(cfg.sizes, cfg.reps, cfg.seed)
+    ahead = proposal_ahead_latency(cfg.sizes, cfg.reps, cfg.seed)
     sessions = session_wall(cfg.sessions, cfg.session_minutes, cfg.seed)
     walls = [s["wall_s"] for s in sessions]
     bridge = bridge_realtime(cfg.bridge_config(), bridge_out) if cfg.bridge_minutes > 0 else None
@@ -275,6 +307,7 @@ def run_perf(cfg: PerfConfig, bridge_out: Path | None = None) -> dict[str, Any]:
         "breath_latency_ms": breath,
         "proposal_latency_ms": proposal,
         "proposal_profile": profile,
+        "proposal_ahead_latency_ms": ahead,
         "session_60min_wall_s": float(np.median(walls)) if walls else None,
         "session_60min_cpu_s": float(np.median([s["cpu_s"] for s in sessions])) if walls else None,
         "sessions": sessions,
@@ -304,6 +337,9 @@ def perf_table(result: dict[str, Any]) -> str:
         rows.append([f"proposal, {n} observations (GP fit + EI)",
                      f"median {q['median']:.1f} ms, p95 {q['p95']:.1f} ms", cpu(q, "p95", 1),
                      f"p95 < {t60:g} ms" if n == "60" else "–", met(q["p95"], t60) if n == "60" else "–"])
+    for n, q in (result.get("proposal_ahead_latency_ms") or {}).items():
+        rows.append([f"proposal, {n} observations, hyperparameters fitted ahead (EI only)",
+                     f"median {q['median']:.1f} ms, p95 {q['p95']:.1f} ms", cpu(q, "p95", 1), "–", "–"])
     s = result["session_60min_wall_s"]
     if s is not None:
         ts = TARGETS["session_60min_wall_s"]

@@ -4,7 +4,13 @@ from __future__ import annotations
 
 import pytest
 
-from bridge.bench.perf import PerfConfig, breath_latency, perf_table, proposal_latency
+from bridge.bench.perf import (
+    PerfConfig,
+    breath_latency,
+    perf_table,
+    proposal_ahead_latency,
+    proposal_latency,
+)
 from hilbo_core.errors import ConfigError
 
 
@@ -22,6 +28,15 @@ def test_proposal_latency_per_size_and_a_profile() -> None:
         assert v["n"] == 2 and 0 < v["median"] <= v["p95"] <= v["max"]
     assert prof["observations"] == 8
     assert 0 < prof["gp_fit_ms"] <= prof["total_ms"] and 0 < prof["maximize_ei_ms"] <= prof["total_ms"]
+
+
+def test_proposal_ahead_latency_times_proposals_that_do_not_fit(optimize_calls: list[int]) -> None:
+    q = proposal_ahead_latency(sizes=(5, 8), reps=2, seed=1)
+    assert set(q) == {"5", "8"}
+    for v in q.values():
+        assert v["n"] == 2 and 0 < v["median"] <= v["p95"] <= v["max"]
+    # Only the untimed warm-up proposals fitted, each on the n - 1 earlier evaluations.
+    assert optimize_calls == [4, 4, 7, 7]
 
 
 def test_perf_config_rejects_bad_sizes() -> None:

@@ -20,7 +20,6 @@ from bridge.bench.stopping import (
 )
 from hilbo_core.benchmarks import StoppingProtocol
 from hilbo_core.errors import ConfigError
-from hilbo_core.gp import GaussianProcess
 
 TOY = StoppingProtocol(n_explore=3, max_breaths=4, window=1, budget=8, n_candidates=32, n_local=0)
 
@@ -119,16 +118,8 @@ def test_load_trials_skips_a_truncated_last_line(tmp_path: Path) -> None:
     assert math.isclose(loaded[("branin", 1.0, "fixed", 0)]["y"][0], 1.0)
 
 
-def test_refit_growth_reaches_every_method_and_is_recorded(tmp_path: Path,
-                                                           monkeypatch: pytest.MonkeyPatch) -> None:
-    fits: list[int] = []
-    original = GaussianProcess._optimize
-
-    def spy(self, theta0, F, ys, extra, rng):
-        fits.append(int(F.shape[0]))
-        return original(self, theta0, F, ys, extra, rng)
-
-    monkeypatch.setattr(GaussianProcess, "_optimize", spy)
+def test_refit_growth_reaches_every_method_and_is_recorded(tmp_path: Path, optimize_calls: list[int]) -> None:
+    fits = optimize_calls
     proto = StoppingProtocol(n_explore=3, max_breaths=4, window=1, budget=40, n_candidates=32, n_local=0)
     ex = LocalExecutor(1, progress=False)
     kw = {"functions": ("branin",), "noises": (1.0,), "methods": ("fixed", "adaptive"), "trials": 1,

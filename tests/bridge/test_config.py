@@ -20,6 +20,7 @@ from bridge.config import (
     HilboConfig,
     PriorConfig,
     ProtocolConfig,
+    RefitMode,
     SessionConfig,
     WatchdogConfig,
     add_config_parser,
@@ -29,6 +30,7 @@ from bridge.config import (
     summarize,
 )
 from bridge.errors import BridgeConfigError, BridgeError
+from bridge.proposals import WorkerKind
 from bridge.safety import ActuatorLimits, ProfileLimits, SafeProfileGate
 from drivers.cart import CartConfig
 from drivers.exosuit.endpoint import CanBusConfig
@@ -66,6 +68,8 @@ kernel = "se"
 n_candidates = 256
 n_local = 2
 pause_between_bouts = false
+refit = "at_proposal"
+proposal_worker = "thread"
 
 [cart]
 transport = "udp"
@@ -117,7 +121,8 @@ def test_golden_config_parses_to_the_expected_dataclasses():
     assert cfg.protocol == ProtocolConfig(
         warmup_s=120.0, n_explore=8, max_breaths=40, window=3, budget_min=None, budget_breaths=500,
         stopping=StoppingKind.FIXED, seed=11, xi=0.01, kernel=KernelKind.SE, n_candidates=256,
-        n_local=2, pause_between_bouts=False,
+        n_local=2, pause_between_bouts=False, refit=RefitMode.AT_PROPOSAL,
+        proposal_worker=WorkerKind.THREAD,
     )
     assert cfg.protocol.optimizer_config() == OptimizerConfig(
         n_explore=8, max_breaths=40, window=3, budget_s=None, budget_breaths=500, stopping="fixed",
@@ -265,6 +270,10 @@ def test_unknown_and_missing_tables():
     ("protocol", "n_local = 2", "n_local = 2.5", ["protocol.n_local = 2.5", "an integer"]),
     ("protocol", "pause_between_bouts = false", "pause_between_bouts = 0",
      ["protocol.pause_between_bouts = 0", "true or false"]),
+    ("protocol", 'refit = "at_proposal"', 'refit = "later"', ["protocol.refit = 'later'",
+                                                              "'ahead', 'at_proposal'"]),
+    ("protocol", 'proposal_worker = "thread"', 'proposal_worker = "gpu"',
+     ["protocol.proposal_worker = 'gpu'", "'process', 'thread'"]),
     ("cart", "port = 6000", "port = 70000", ["cart.options.port = 70000", "65535]"]),
     ("can", 'interface = "virtual"', 'interface = "virtal"', ["can.interface = 'virtal'",
                                                               "did you mean 'virtual'", "socketcan"]),

@@ -38,20 +38,6 @@ def run(opt: HILOptimizer, rng: np.random.Generator) -> list[dict[str, float]]:
     return asked
 
 
-@pytest.fixture
-def optimize_calls(monkeypatch: pytest.MonkeyPatch) -> list[int]:
-    """Training-set size of every hyperparameter optimisation (GaussianProcess._optimize)."""
-    calls: list[int] = []
-    original = GaussianProcess._optimize
-
-    def spy(self, theta0, F, ys, extra, rng):
-        calls.append(int(F.shape[0]))
-        return original(self, theta0, F, ys, extra, rng)
-
-    monkeypatch.setattr(GaussianProcess, "_optimize", spy)
-    return calls
-
-
 @pytest.mark.parametrize("bad", [0.5, 0.999, 0.0, -1.0, float("nan"), float("inf"), "2", True, None])
 def test_refit_growth_is_validated_and_the_error_names_the_value(bad: object) -> None:
     with pytest.raises(ConfigError, match=rf"refit_growth={bad!r}; expected a finite factor >= 1.0"):
