@@ -16,7 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from hilbo_core import HILOptimizer, brockway_watts, presets
+from hilbo_core import HILOptimizer, brockway_watts, fit_hyperparameters, presets
 from hilbo_core.errors import ConfigError
 from hilbo_core.optimizer import Evaluation
 from virtual_hw.wearer import SimulatedWearer
@@ -40,6 +40,9 @@ class SimConfig:
         window: Algorithm 2's window W.
         warmup_s: Warm-up at the start of each bout, without assistance (seed: 3 min).
         stopping: ``"adaptive"`` or ``"fixed"``.
+        refit: ``"at_proposal"`` (GP hyperparameters refitted in every proposal) or ``"ahead"``
+            (as the bridge does by default: fitted on the completed evaluations while the next
+            setting is measured, ``refit_lag`` 1).
     """
 
     minutes: float = 60.0
@@ -51,6 +54,7 @@ class SimConfig:
     window: int = 2
     warmup_s: float = 180.0
     stopping: str = "adaptive"
+    refit: str = "at_proposal"
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.minutes) and 0 < self.minutes <= 600):
@@ -59,6 +63,8 @@ class SimConfig:
             raise ConfigError(f"speed={self.speed!r}; expected 'max' or a positive factor")
         if not (math.isfinite(self.warmup_s) and self.warmup_s >= 0):
             raise ConfigError(f"warmup_s={self.warmup_s!r}; expected >= 0 s")
+        if self.refit not in ("at_proposal", "ahead"):
+            raise ConfigError(f"refit={self.refit!r}; expected 'at_proposal' or 'ahead'")
 
 
 @dataclass(frozen=True)
@@ -112,7 +118,8 @@ def run_insim(
     space = presets.preset(cfg.preset)
     wearer = SimulatedWearer(space, seed=cfg.seed)
     opt = HILOptimizer(space, n_explore=cfg.n_explore, max_breaths=cfg.max_breaths,
-                       window=cfg.window, stopping=cfg.stopping, seed=cfg.seed)
+                       window=cfg.window, stopping=cfg.stopping, seed=cfg.seed,
+                       refit_lag=1 if cfg.refit == "ahead" else 0)
     clock = _Clock(cfg.speed)
     session_s = cfg.minutes * 60.0
     records: list[SimEvaluation] = []
@@ -138,6 +145,10 @@ def run_insim(
             opt.set_budget(budget_s=remaining, budget_breaths=None)
             optimisation_started = True
         params = opt.ask()
+        if cfg.refit == "ahead":  # what the bridge's worker does while this setting is measured
+            fit = opt.hyperparameter_fit()
+            if fit is not None:
+                opt.apply_hyperparameters(fit, fit_hyperparameters(fit))
         t0 = wearer.t_s
         wearer.apply_params(params, t0)
         while True:

@@ -307,6 +307,10 @@ _CHANNEL_LIST = (
             "t_s": _T_S,
             "incumbent": _obj("The stopping rule's x* when proposed", {
                 "params": _PARAMS, "mean": _p("number", "μ* in W"), "var": _p("number", "σ*² in W²")}),
+            "compute_ms": _p("number", "Wall time of ask() itself in the proposal worker, ms"),
+            "total_ms": _p("number", "Wall time of the whole ask as the session saw it (moving the "
+                                     "optimizer to the worker and back included), ms"),
+            "worker": _p("string", "Where ask() ran: process or thread"),
         },
         ("index", "params", "phase"),
     ),
@@ -805,13 +809,19 @@ class SessionLog:
 
     def log_proposal(self, params: Mapping[str, float], *, index: int, phase: str,
                      t_s: float | None = None,
-                     incumbent: tuple[Mapping[str, float], float, float] | None = None) -> None:
-        """``/proposals``: the setting ``ask()`` returned, logged right after every ask()."""
-        self.log(Topic.PROPOSALS, {
+                     incumbent: tuple[Mapping[str, float], float, float] | None = None,
+                     compute_ms: float | None = None, total_ms: float | None = None,
+                     worker: str | None = None) -> None:
+        """``/proposals``: the setting ``ask()`` returned, logged right after every ask(), with
+        how long it took (``compute_ms`` in the worker, ``total_ms`` as the session saw it)."""
+        msg: dict[str, Any] = {
             "index": index, "params": dict(params), "phase": phase, "t_s": t_s,
             "incumbent": None if incumbent is None else {
                 "params": dict(incumbent[0]), "mean": incumbent[1], "var": incumbent[2]},
-        })
+        }
+        timing = {"compute_ms": compute_ms, "total_ms": total_ms, "worker": worker}
+        msg.update({k: v for k, v in timing.items() if v is not None})
+        self.log(Topic.PROPOSALS, msg)
 
     def log_observation(self, evaluation: Evaluation, *, t_start: float | None = None,
                         t_end: float | None = None, t_s: float | None = None) -> None:

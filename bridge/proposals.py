@@ -25,17 +25,17 @@ import logging
 import multiprocessing
 import os
 import threading
+import time
 from concurrent.futures.process import BrokenProcessPool
-from typing import Any, TypeVar
+from dataclasses import dataclass
+from typing import Any
 
 from hilbo_core import HILOptimizer, HyperparameterFit, fit_hyperparameters
 from hilbo_core.gp import GPHyperparameters
 
-__all__ = ["ProposalWorker", "WorkerKind"]
+__all__ = ["Asked", "ProposalWorker", "WorkerKind"]
 
 logger = logging.getLogger(__name__)
-
-T = TypeVar("T")
 
 #: How often a worker process checks that the session's process still exists (s).
 _PARENT_POLL_S = 0.5
@@ -48,10 +48,30 @@ class WorkerKind(enum.Enum):
     THREAD = "thread"  # a thread of the session's process
 
 
-def _ask(opt: HILOptimizer) -> tuple[HILOptimizer, dict[str, float]]:
-    """``opt.ask()``, returning the advanced optimizer too (it comes back from another process)."""
+@dataclass(frozen=True)
+class Asked:
+    """What :meth:`ProposalWorker.ask` returns.
+
+    Attributes:
+        opt: The optimizer after the ask (in a process, a new object that replaces the caller's).
+        params: The setting.
+        compute_s: Wall time of ``ask()`` itself in the worker (s).
+        total_s: Wall time of the whole call as the caller saw it (s): ``compute_s`` plus moving
+            the optimizer to the worker and back and waiting for the event loop.
+    """
+
+    opt: HILOptimizer
+    params: dict[str, float]
+    compute_s: float
+    total_s: float
+
+
+def _ask(opt: HILOptimizer) -> tuple[HILOptimizer, dict[str, float], float]:
+    """``opt.ask()``, returning the advanced optimizer too (it comes back from another process)
+    and how long the ask took there."""
+    t0 = time.perf_counter()
     params = opt.ask()
-    return opt, params
+    return opt, params, time.perf_counter() - t0
 
 
 def _watch_parent(pid: int) -> None:
@@ -131,14 +151,16 @@ class ProposalWorker:
         """The work runs in a worker process (not given up for a thread)."""
         return self.kind is WorkerKind.PROCESS and self.lost is None
 
-    async def ask(self, opt: HILOptimizer) -> tuple[HILOptimizer, dict[str, float]]:
+    async def ask(self, opt: HILOptimizer) -> Asked:
         """``opt.ask()`` in the worker.
 
         Returns:
-            (the optimizer after the ask, the setting); in a process the optimizer is a new
-            object that replaces ``opt``, in a thread it is ``opt`` itself.
+            The optimizer after the ask (in a process a new object that replaces ``opt``, in a
+            thread ``opt`` itself), the setting and the timing.
         """
-        return await self._call(_ask, opt)
+        t0 = time.perf_counter()
+        new_opt, params, compute_s = await self._call(_ask, opt)
+        return Asked(new_opt, params, compute_s, time.perf_counter() - t0)
 
     async def fit(self, fit: HyperparameterFit) -> GPHyperparameters:
         """:func:`hilbo_core.fit_hyperparameters` (``fit``) in the worker."""

@@ -350,14 +350,17 @@ class BridgeSession:
         # The GP work takes tens of ms: off the loop (a worker process by default, so it does
         # not compete with the CAN traffic for the GIL). Only this task touches the optimizer.
         await self._collect_fit_ahead()
-        self.opt, params = await self._worker.ask(self.opt)
+        asked = await self._worker.ask(self.opt)
+        self.opt, params = asked.opt, asked.params
         if self._worker.lost is not None and not self._worker_lost_logged:
             self._worker_lost_logged = True
             self._event("proposal_worker_lost", self._worker.lost)
         self.status.bout = self.opt.phase.value
         index = len(self.opt.evaluations)
         self.log.log_proposal(params, index=index, phase=self.opt.phase.value,
-                              t_s=self._breaths.last_t, incumbent=self.opt.incumbent)
+                              t_s=self._breaths.last_t, incumbent=self.opt.incumbent,
+                              compute_ms=1e3 * asked.compute_s, total_ms=1e3 * asked.total_s,
+                              worker="process" if self._worker.in_process else "thread")
         try:
             admitted = self.gate.admit(params)
         except UnsafeProfileError as err:

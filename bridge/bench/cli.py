@@ -385,7 +385,9 @@ def add_bench_parser(subparsers: Any) -> Any:
     hil = bsub.add_parser(
         "hil", help="whole simulated sessions: stopping BO, fixed BO, CMA-ES, random search",
         description="Whole HIL sessions on simulated wearers; regret of the recommended setting "
-                    "against minutes walked. Besides the four default methods, the seed-003 ones: "
+                    "against minutes walked. Besides the four default methods, adaptive-ahead "
+                    "(adaptive with the GP hyperparameters fitted ahead, as hilbo run does) and "
+                    "the seed-003 ones: "
                     "adaptive-day2 (a second day, no prior), adaptive-prior and adaptive-prior-e3 "
                     "(day 2 with day 1's evaluations as a fast prior; E or 3 exploration points), "
                     "adaptive-features (kernel on raw parameters + force-profile features), "
@@ -396,7 +398,7 @@ def add_bench_parser(subparsers: Any) -> Any:
                      help="comma-separated, from hip_6d,hip_ankle_4d (default both)")
     hil.add_argument("--methods", default=None,
                      help="comma-separated, from adaptive,fixed,cmaes,random (the default) and "
-                          "adaptive-day2,adaptive-prior,adaptive-prior-e3,adaptive-features,"
+                          "adaptive-ahead,adaptive-day2,adaptive-prior,adaptive-prior-e3,adaptive-features,"
                           "adaptive-features-only,adaptive-tuned-k")
     hil.add_argument("--minutes", type=float, default=60.0, help="session length incl. warm-ups (60)")
     hil.add_argument("--warmup-s", type=float, default=180.0, help="each of the two warm-ups (180 s)")

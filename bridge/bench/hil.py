@@ -19,6 +19,11 @@ bout until the session ends. The methods:
   distribution back into the feasible set without discarding the measurement. Its recommendation
   is the distribution mean (projected), updated after every complete generation; a generation
   cut short by the end of the session does not count.
+* ``adaptive-ahead`` — ``adaptive`` with the GP hyperparameters fitted *ahead*, as ``hilbo run``
+  and ``hilbo sim`` do by default (``[protocol] refit = "ahead"``): on the completed evaluations
+  while the next setting is measured, so every proposal uses hyperparameters one evaluation old
+  (``HILOptimizer`` with ``refit_lag`` 1). Not run by default; paired with ``adaptive``, it
+  measures what that costs.
 * ``random`` — uniform random feasible settings (rejection sampling), 2-minute conditions, the
   same UKF estimate; recommendation: the lowest estimate so far. Bout 1 is its first 8 conditions.
 
@@ -99,7 +104,7 @@ PRIOR_METHODS: tuple[str, ...] = ("adaptive-prior", "adaptive-prior-e3")
 THESIS_METHODS: tuple[str, ...] = ("adaptive-day2", *PRIOR_METHODS, "adaptive-features",
                                    "adaptive-features-only", "adaptive-tuned-k")
 """The seed-003 methods (module docstring)."""
-HIL_METHODS: tuple[str, ...] = (*DEFAULT_HIL_METHODS, *THESIS_METHODS)
+HIL_METHODS: tuple[str, ...] = (*DEFAULT_HIL_METHODS, "adaptive-ahead", *THESIS_METHODS)
 _PRIOR_E3 = 3  # exploration points of adaptive-prior-e3 (docs/results_thesis.md §2)
 _BO_METHODS = ("adaptive", "fixed")
 _CMA_STREAM = 0xC3A
@@ -334,7 +339,8 @@ def _run_bo(task: HilTask) -> dict[str, Any]:
     summary = run_insim(
         SimConfig(minutes=proto.minutes, seed=task.seed, preset=task.space, n_explore=proto.n_explore,
                   max_breaths=proto.max_breaths, window=proto.window, warmup_s=proto.warmup_s,
-                  stopping=task.method),
+                  stopping="adaptive" if task.method == "adaptive-ahead" else task.method,
+                  refit="ahead" if task.method == "adaptive-ahead" else "at_proposal"),
         on_evaluation=on_eval,
     )
     evals = summary["evaluations"]
@@ -543,7 +549,8 @@ def run_hil_task(task: HilTask) -> dict[str, Any]:
     """
     blas_threads(1)  # wherever it runs: see bridge.bench.common.blas_threads
     t0 = time.perf_counter()
-    runner = {"adaptive": _run_bo, "fixed": _run_bo, "cmaes": _run_cmaes, "random": _run_random,
+    runner = {"adaptive": _run_bo, "fixed": _run_bo, "adaptive-ahead": _run_bo, "cmaes": _run_cmaes,
+              "random": _run_random,
               **dict.fromkeys(THESIS_METHODS, _run_thesis)}[task.method]
     out = runner(task)
     # The true landscape of the same subject (same seed); the optimum is found numerically.

@@ -82,6 +82,15 @@ def test_protocol_rejects_a_session_shorter_than_warmups_and_exploration() -> No
         HilTask("cmaes", "knee", 1)
 
 
+def test_adaptive_ahead_is_adaptive_with_its_own_fits() -> None:
+    ahead = run_hil_task(HilTask("adaptive-ahead", "hip_ankle_4d", 2, TOY))
+    plain = run_hil_task(HilTask("adaptive", "hip_ankle_4d", 2, TOY))
+    assert ahead["method"] == "adaptive-ahead"
+    # The same exploration bout (the design does not depend on the hyperparameters).
+    assert ahead["trace"][:TOY.n_explore] == plain["trace"][:TOY.n_explore]
+    assert ahead["n_evaluations"] > TOY.n_explore and ahead["early_stops"] >= 0
+
+
 @pytest.mark.parametrize("space", ["hip_6d", "hip_ankle_4d"])
 def test_cmaes_and_random_sessions_use_whole_conditions_within_the_session(space: str) -> None:
     for method in ("cmaes", "random"):

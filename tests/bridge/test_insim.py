@@ -46,7 +46,18 @@ def test_too_short_session_is_a_clear_error() -> None:
         run_insim(small(minutes=2))
 
 
-@pytest.mark.parametrize(("kw", "match"), [({"minutes": 0}, "minutes"), ({"speed": -1.0}, "speed")])
+def test_fitting_ahead_takes_the_fits_off_the_proposals(optimize_calls: list[int]) -> None:
+    a = run_insim(small(seed=5, refit="ahead"))
+    n = a["n_evaluations"]
+    # One fit ahead after each ask from 2 completed evaluations on (on 2, 3, ..., n - 1), one
+    # for the final recommendation at most; no proposal fitted by itself.
+    assert optimize_calls[: n - 2] == list(range(2, n))
+    assert len(optimize_calls) <= n - 1
+    assert a["evaluations"] == run_insim(small(seed=5, refit="ahead"))["evaluations"]
+
+
+@pytest.mark.parametrize(("kw", "match"), [({"minutes": 0}, "minutes"), ({"speed": -1.0}, "speed"),
+                                           ({"refit": "never"}, "refit='never'; expected")])
 def test_bad_sim_config(kw, match) -> None:
     with pytest.raises(ConfigError, match=match):
         small(**kw)

@@ -35,8 +35,10 @@ async def test_ask_and_fit_give_what_the_optimizer_gives_in_place(kind: WorkerKi
     assert fit is not None
     with ProposalWorker(kind) as worker:
         worker.start()
-        got_opt, got = await worker.ask(opt)
+        asked = await worker.ask(opt)
         hyp = await worker.fit(fit)
+    got_opt, got = asked.opt, asked.params
+    assert 0 < asked.compute_s <= asked.total_s
     assert got == want
     assert got_opt.to_json() == local.to_json()  # the whole advanced state, generator included
     assert (got_opt is opt) == (kind is WorkerKind.THREAD)
@@ -59,13 +61,14 @@ async def test_a_dead_worker_process_is_replaced_by_a_thread_with_the_same_resul
     with ProposalWorker(WorkerKind.PROCESS) as worker:
         pid = _worker_pid(worker)
         os.kill(pid, signal.SIGKILL)
-        got_opt, got = await worker.ask(opt)
+        asked = await worker.ask(opt)
+        got_opt, got = asked.opt, asked.params
         assert got == want and got_opt is opt  # computed in this process's thread
         assert worker.lost is not None and "died" in worker.lost
         assert not worker.in_process
         assert _worker_pid(worker) == os.getpid()  # and it stays in the thread
-        _, again = await worker.ask(copy.deepcopy(opt))
-        assert again == want
+        again = await worker.ask(copy.deepcopy(opt))
+        assert again.params == want
 
 
 def test_unknown_kind_is_rejected_with_the_choices() -> None:
