@@ -6,9 +6,10 @@ process competes with that loop for the GIL: in ``hilbo bench perf --bridge-minu
 proposal thread used ≈ 15 ms of CPU per proposal but took 35–48 ms of wall time
 (docs/results.md §3). A worker process computes on the other core.
 
-The optimizer travels by pickle (≈ 15 kB at 60 evaluations, about a millisecond each way). The
-session's main task owns the optimizer and awaits the result, so nothing changes it meanwhile;
-the worker returns the advanced optimizer, which replaces the session's copy. A worker that dies
+The optimizer travels by pickle (≈ 15 kB at 60 evaluations, about a millisecond each way),
+taken when the ask is started (:meth:`ProposalWorker.start_ask`), so the session can log the
+evaluation that just ended while the worker computes; the worker returns the advanced optimizer,
+which replaces the session's copy (in a thread too: the thread works on its own copy). A worker that dies
 (killed, out of memory) costs nothing collected: the call is repeated in a thread and the session
 goes on there (:attr:`ProposalWorker.lost` says why).
 
@@ -24,6 +25,7 @@ import enum
 import logging
 import multiprocessing
 import os
+import pickle
 import threading
 import time
 from concurrent.futures.process import BrokenProcessPool
@@ -53,11 +55,12 @@ class Asked:
     """What :meth:`ProposalWorker.ask` returns.
 
     Attributes:
-        opt: The optimizer after the ask (in a process, a new object that replaces the caller's).
+        opt: The optimizer after the ask: a new object that replaces the caller's.
         params: The setting.
         compute_s: Wall time of ``ask()`` itself in the worker (s).
         total_s: Wall time of the whole call as the caller saw it (s): ``compute_s`` plus moving
-            the optimizer to the worker and back and waiting for the event loop.
+            the optimizer to the worker and back (pickling included) and waiting for the event
+            loop.
     """
 
     opt: HILOptimizer
@@ -66,9 +69,10 @@ class Asked:
     total_s: float
 
 
-def _ask(opt: HILOptimizer) -> tuple[HILOptimizer, dict[str, float], float]:
-    """``opt.ask()``, returning the advanced optimizer too (it comes back from another process)
-    and how long the ask took there."""
+def _ask(payload: bytes) -> tuple[HILOptimizer, dict[str, float], float]:
+    """``ask()`` of the pickled optimizer ``payload``, returning the advanced optimizer too (it
+    comes back from another process) and how long the ask took there."""
+    opt = pickle.loads(payload)
     t0 = time.perf_counter()
     params = opt.ask()
     return opt, params, time.perf_counter() - t0
@@ -151,22 +155,32 @@ class ProposalWorker:
         """The work runs in a worker process (not given up for a thread)."""
         return self.kind is WorkerKind.PROCESS and self.lost is None
 
-    async def ask(self, opt: HILOptimizer) -> Asked:
-        """``opt.ask()`` in the worker.
+    def start_ask(self, opt: HILOptimizer) -> asyncio.Task[Asked]:
+        """Start ``opt.ask()`` in the worker on a copy of ``opt`` taken now.
+
+        ``opt`` itself is not touched, so the caller may go on reading (logging) it; it must not
+        change it before using the result, which replaces it.
 
         Returns:
-            The optimizer after the ask (in a process a new object that replaces ``opt``, in a
-            thread ``opt`` itself), the setting and the timing.
+            A task with the :class:`Asked` result (the new optimizer, the setting, the timing).
         """
         t0 = time.perf_counter()
-        new_opt, params, compute_s = await self._call(_ask, opt)
-        return Asked(new_opt, params, compute_s, time.perf_counter() - t0)
+        payload = pickle.dumps(opt, protocol=pickle.HIGHEST_PROTOCOL)
+        return asyncio.ensure_future(self._ask(payload, t0))
+
+    async def ask(self, opt: HILOptimizer) -> Asked:
+        """``await start_ask(opt)``."""
+        return await self.start_ask(opt)
 
     async def fit(self, fit: HyperparameterFit) -> GPHyperparameters:
         """:func:`hilbo_core.fit_hyperparameters` (``fit``) in the worker."""
         return await self._call(fit_hyperparameters, fit)
 
     # ------------------------------------------------------------------ internals
+    async def _ask(self, payload: bytes, t0: float) -> Asked:
+        new_opt, params, compute_s = await self._call(_ask, payload)
+        return Asked(new_opt, params, compute_s, time.perf_counter() - t0)
+
     def _threads(self) -> concurrent.futures.ThreadPoolExecutor:
         if self._thread_pool is None:
             self._thread_pool = concurrent.futures.ThreadPoolExecutor(

@@ -38,6 +38,7 @@ from bridge.log import LogError, SessionLog
 from bridge.proposals import ProposalWorker, WorkerKind
 from drivers.errors import DriverError, ProfilePushError
 from drivers.exosuit import (
+    DEFAULT_PACE_S,
     AssistanceOffReason,
     BridgeState,
     CanEndpoint,
@@ -113,7 +114,7 @@ class RuntimeSettings:
     apply_timeout_s: float = 5.0
     push_timeout_s: float = 0.25
     push_retries: int = 3
-    pace_s: float = 0.002
+    pace_s: float = DEFAULT_PACE_S
     heartbeat_period_s: float = 0.02
     feedback_log_period_s: float = 0.1
     status_log_period_s: float = 0.5
@@ -243,6 +244,7 @@ class BridgeSession:
         self._worker_lost_logged = False
         # A hyperparameter fit running ahead of the next proposal (refit_lag >= 1).
         self._fit_ahead: tuple[HyperparameterFit, asyncio.Task[Any]] | None = None
+        self._next_ask: asyncio.Task[Any] | None = None  # started at a stop decision
         self.records: list[dict[str, Any]] = []  # completed evaluations with session times
         self._t_session0: float | None = None
 
@@ -349,21 +351,28 @@ class BridgeSession:
         t_decided = t_stop if t_stop is not None else self._clock()
         # The GP work takes tens of ms: off the loop (a worker process by default, so it does
         # not compete with the CAN traffic for the GIL). Only this task touches the optimizer.
-        await self._collect_fit_ahead()
-        asked = await self._worker.ask(self.opt)
+        # After a stop decision the ask was started at the decision (_start_next_ask).
+        task, self._next_ask = self._next_ask, None
+        if task is None:
+            task = await self._start_next_ask()
+        asked = await task
         self.opt, params = asked.opt, asked.params
         if self._worker.lost is not None and not self._worker_lost_logged:
             self._worker_lost_logged = True
             self._event("proposal_worker_lost", self._worker.lost)
         self.status.bout = self.opt.phase.value
         index = len(self.opt.evaluations)
-        self.log.log_proposal(params, index=index, phase=self.opt.phase.value,
-                              t_s=self._breaths.last_t, incumbent=self.opt.incumbent,
-                              compute_ms=1e3 * asked.compute_s, total_ms=1e3 * asked.total_s,
-                              worker="process" if self._worker.in_process else "thread")
+
+        def log_proposal() -> None:
+            self.log.log_proposal(params, index=index, phase=self.opt.phase.value,
+                                  t_s=self._breaths.last_t, incumbent=self.opt.incumbent,
+                                  compute_ms=1e3 * asked.compute_s, total_ms=1e3 * asked.total_s,
+                                  worker="process" if self._worker.in_process else "thread")
+
         try:
             admitted = self.gate.admit(params)
         except UnsafeProfileError as err:
+            log_proposal()
             # Never transmit what the limits forbid, and never clip (bridge/safety.py): nothing
             # is sent, the device keeps its last acknowledged profile, the setting is dropped
             # and the optimizer asked again; after too many in a row, assistance-off and pause.
@@ -382,7 +391,7 @@ class BridgeSession:
         # The device assists only while the bridge heartbeat says "running" (PROTOCOL.md);
         # assistance-off switches it to "paused".
         self.endpoint.bridge_state = BridgeState.RUNNING
-        await self._push(table, self._version, admitted, index)
+        await self._push(table, self._version, admitted, index, log_first=log_proposal)
         latency = self._clock() - t_decided
         self.latencies_s.append(latency)
         if t_stop is not None:
@@ -412,6 +421,9 @@ class BridgeSession:
             used = self.opt.budget_used
             self.status.budget_used_s = used["seconds"]
             if step.stop and step.evaluation is not None:
+                if not self.opt.done:
+                    # The next proposal starts now, on a copy; the logging below overlaps it.
+                    self._next_ask = await self._start_next_ask()
                 ev = step.evaluation
                 t_end = self._session_time(rec.t_s)
                 self.records.append({**ev.to_json(), "t_start": t0_session, "t_end": t_end})
@@ -449,6 +461,16 @@ class BridgeSession:
         self.opt.apply_hyperparameters(fit, hyp)
 
     async def _drop_fit_ahead(self) -> None:
+        """At the session's end: cancel a fit made ahead and an ask started at a stop decision."""
+        if self._next_ask is not None:
+            task, self._next_ask = self._next_ask, None
+            task.cancel()
+            try:
+                await task
+            except asyncio.CancelledError:
+                pass
+            except Exception:
+                logger.exception("a proposal started at the last stop decision failed as the session ended")
         if self._fit_ahead is not None:
             _, task = self._fit_ahead
             self._fit_ahead = None
@@ -460,13 +482,36 @@ class BridgeSession:
             except Exception:
                 logger.exception("hyperparameter fit ahead failed as the session ended")
 
-    async def _push(self, table: np.ndarray, version: int, admitted: Any, index: int) -> None:
+    async def _start_next_ask(self) -> asyncio.Task[Any]:
+        """Start ``ask()`` in the worker on the optimizer as it is now (a fit made ahead is
+        applied first, so the state, and what a resume rebuilds, do not depend on timing)."""
+        await self._collect_fit_ahead()
+        return self._worker.start_ask(self.opt)
+
+    async def _push(self, table: np.ndarray, version: int, admitted: Any, index: int, *,
+                    log_first: Callable[[], None] | None = None) -> None:
+        """Push ``table`` (already admitted by the gate) and wait for the device's ack.
+
+        The proposal (``log_first``) and the profile are logged while the paced segments go out:
+        the first segment is on the bus before the logging starts, and the logging (a few ms of
+        JSON) fits in the gaps between segments instead of delaying the first one.
+        """
         s = self.settings
-        self.log.log_profile_sent(admitted.profiles, version=version, index=index,
-                                  params=admitted.params, t_s=self._breaths.last_t)
+        push = asyncio.ensure_future(self.endpoint.push_profile(
+            table, version, timeout_s=s.push_timeout_s, retries=s.push_retries, pace_s=s.pace_s))
+        await asyncio.sleep(0)  # lets the push send its first segment
         try:
-            result = await self.endpoint.push_profile(table, version, timeout_s=s.push_timeout_s,
-                                                      retries=s.push_retries, pace_s=s.pace_s)
+            if log_first is not None:
+                log_first()
+            self.log.log_profile_sent(admitted.profiles, version=version, index=index,
+                                      params=admitted.params, t_s=self._breaths.last_t)
+        except BaseException:
+            push.cancel()
+            with contextlib.suppress(asyncio.CancelledError, DriverError):
+                await push
+            raise
+        try:
+            result = await push
         except ProfilePushError as err:
             reason = getattr(err, "reason", "none")
             self.log.log_ack(version=version, accepted=False, reason=reason, error=str(err))

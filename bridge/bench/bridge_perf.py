@@ -7,13 +7,15 @@ measuring what issue 6 asks for:
 
 * **stop → ack latency** — wall time from the stopping rule's decision (the breath's
   ``observe_breath`` returning *stop*) to the device's ack of the commit of the next setting's
-  profile: the proposal (GP fit + EI, off the loop), the safety gate, the paced segments
-  (34 × 2 ms for a 101-point table), the commit and the ack
-  (``BridgeSession.stop_latencies_s``). The ack follows the commit within a frame time on this
-  bus, so this bounds "stop decision → new profile committed on the bus" from above. Pushes not
-  preceded by a stop decision (the first of each bout, counted from the end of its warm-up)
-  are in ``push_latency_ms`` only. The push alone (segments → ack, the ``/acks`` log's
-  ``elapsed_s``) is given too, so the latency splits into proposal and transfer.
+  profile: the proposal (in the proposal worker, started at the decision; EI maximisation, the
+  GP hyperparameters having been fitted ahead), the safety gate, the paced segments (34 at the
+  ``[can] segment_pace_ms`` pace, 1.5 ms by default, for a 101-point table), the commit and the
+  ack (``BridgeSession.stop_latencies_s``). The ack follows the commit within a frame time on
+  this bus, so this bounds "stop decision → new profile committed on the bus" from above. Pushes
+  not preceded by a stop decision (the first of each bout, counted from the end of its warm-up)
+  are in ``push_latency_ms`` only. The breakdown takes the ask from the ``/proposals`` log
+  (``total_ms``, of which ``compute_ms`` in the worker) and the transfer from the ``/acks`` log
+  (``elapsed_s``: first segment → ack); the rest is everything else on the path.
 * **force feedback** — frames the device sent (``VirtualExosuit.stats["feedback_sent"]``) vs
   frames the bridge's feedback task received (``DeviceView.feedback_frames``) over the window in
   which the session ran its protocol (sampled every ``sample_period_s``; the difference also
@@ -287,18 +289,19 @@ _WARM_UP_EVENTS = frozenset({"pause", "bout_pause", "resume"})
 def _log_counts(path: Path) -> dict[str, Any]:
     """Force-feedback samples, events and the pushes in the session log.
 
-    Each accepted push gives ``(after_stop, proposal_to_ack_ms, transfer_ms)``: whether it
-    answers a stop decision (an ``/observations`` message since the last warm-up), the time from
-    the ``/proposals`` message (logged after ``ask()``) to the ``/acks`` one, and the transfer
-    alone (the ack's ``elapsed_s``: first segment → ack).
+    Each accepted push gives ``(after_stop, ask_ms, compute_ms, transfer_ms)``: whether it
+    answers a stop decision (an ``/observations`` message since the last warm-up), the ask as
+    the session saw it and inside the worker (the ``/proposals`` message's ``total_ms`` and
+    ``compute_ms``; NaN in logs without them), and the transfer alone (the ack's ``elapsed_s``:
+    first segment → ack).
     """
     topics = [Topic.FORCE_FEEDBACK, Topic.ACKS, Topic.EVENTS, Topic.OBSERVATIONS, Topic.PROPOSALS]
     contents = read_log(path, topics=topics)
     per_act: collections.Counter[str] = collections.Counter()
     events: collections.Counter[str] = collections.Counter()
-    pushes: list[tuple[bool, float, float]] = []
+    pushes: list[tuple[bool, float, float, float]] = []
     after_stop = False
-    proposal_ns: int | None = None
+    ask_ms = compute_ms = math.nan
     for m in contents.messages:
         if m.topic == Topic.FORCE_FEEDBACK:
             per_act[str(m.data["actuator"])] += int(m.data["n"])
@@ -309,27 +312,28 @@ def _log_counts(path: Path) -> dict[str, Any]:
         elif m.topic == Topic.OBSERVATIONS:
             after_stop = True
         elif m.topic == Topic.PROPOSALS:
-            proposal_ns = m.log_time_ns
+            ask_ms = float(m.data.get("total_ms", math.nan))
+            compute_ms = float(m.data.get("compute_ms", math.nan))
         elif m.topic == Topic.ACKS and m.data.get("accepted") and m.data.get("elapsed_s") is not None:
-            to_ack = (m.log_time_ns - proposal_ns) / 1e6 if proposal_ns is not None else math.nan
-            pushes.append((after_stop, to_ack, 1e3 * float(m.data["elapsed_s"])))
-            after_stop, proposal_ns = False, None
+            pushes.append((after_stop, ask_ms, compute_ms, 1e3 * float(m.data["elapsed_s"])))
+            after_stop, ask_ms, compute_ms = False, math.nan, math.nan
     return {"feedback_logged": sum(per_act.values()), "feedback_logged_per_actuator": dict(per_act),
             "pushes": pushes, "events": dict(events)}
 
 
-def _breakdown(stop_ms: list[float], pushes: list[tuple[bool, float, float]]) -> dict[str, Any] | None:
-    """Split every stop → ack latency into the proposal (stop decision → proposal logged: the
-    observation and optimizer-state logging, ``ask()``), the gate and profile logging (proposal →
-    first segment) and the transfer (first segment → ack); None if the log's pushes and the
-    session's latencies do not pair up."""
-    after = [(to_ack, transfer) for stop, to_ack, transfer in pushes if stop]
+def _breakdown(stop_ms: list[float], pushes: list[tuple[bool, float, float, float]]) -> dict[str, Any] | None:
+    """Split every stop → ack latency into the ask (started at the decision, in the worker:
+    ``ask_ms``, of which ``compute_ms`` is ``ask()`` itself), the transfer (first segment → ack)
+    and the rest (everything else on the path: the decision's breath logging, the safety gate,
+    starting the push); None if the log's pushes and the session's latencies do not pair up."""
+    after = [(ask, compute, transfer) for stop, ask, compute, transfer in pushes if stop]
     if len(after) != len(stop_ms) or not stop_ms:
         return None
-    proposal = [total - to_ack for total, (to_ack, _) in zip(stop_ms, after, strict=True)]
-    gate = [to_ack - transfer for to_ack, transfer in after]
-    return {"proposal_ms": _quantiles(proposal), "gate_and_logging_ms": _quantiles(gate),
-            "transfer_ms": _quantiles([t for _, t in after])}
+    rest = [total - ask - transfer for total, (ask, _, transfer) in zip(stop_ms, after, strict=True)]
+    return {"ask_ms": _quantiles([a for a, _, _ in after]),
+            "compute_ms": _quantiles([c for _, c, _ in after]),
+            "transfer_ms": _quantiles([t for _, _, t in after]),
+            "rest_ms": _quantiles(rest)}
 
 
 def bridge_realtime(cfg: BridgeRtConfig, out: Path | None = None) -> dict[str, Any]:
@@ -383,7 +387,7 @@ def bridge_realtime(cfg: BridgeRtConfig, out: Path | None = None) -> dict[str, A
         "n_breaths": summary["n_breaths"],
         "stop_to_ack_ms": stop,
         "push_latency_ms": summary.get("push_latency_ms"),
-        "push_only_ms": _quantiles([t for _, _, t in logged["pushes"]]),
+        "push_only_ms": _quantiles([t for *_, t in logged["pushes"]]),
         "stop_to_ack_samples_ms": stop_samples,
         "stop_to_ack_breakdown": _breakdown(stop_samples, logged["pushes"]),
         "force_feedback": {
@@ -436,10 +440,12 @@ def bridge_table(result: dict[str, Any]) -> str:
         ["stop decision → device ack of the next profile", q(result["stop_to_ack_ms"]),
          f"p99 < {BRIDGE_TARGETS['stop_to_ack_p99_ms']:g} ms", yes(met["stop_to_ack_p99_ms"])],
         *([[f"… of which {what}", q(bd[key]), "–", "–"] for key, what in (
-            ("proposal_ms", "the proposal (stop → proposal logged: logging, EI, GP fit unless "
-                            "fitted ahead)"),
-            ("gate_and_logging_ms", "the safety gate and profile logging"),
-            ("transfer_ms", "the transfer (paced segments, commit → ack)"))]
+            ("ask_ms", "the proposal, as the session waited for it (in the worker, started at "
+                       "the decision)"),
+            ("compute_ms", "… of that, ask() itself in the worker (EI; GP fit only when not "
+                           "fitted ahead)"),
+            ("transfer_ms", "the transfer (paced segments, commit → ack)"),
+            ("rest_ms", "the rest (the decision's logging, the safety gate, starting the push)"))]
           if (bd := result.get("stop_to_ack_breakdown")) else []),
         ["every push: the transfer alone (first segment → ack)", q(result["push_only_ms"]), "–", "–"],
         ["every push (incl. the first of each bout, from its warm-up's end)", q(result["push_latency_ms"]),

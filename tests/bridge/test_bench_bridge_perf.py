@@ -30,10 +30,13 @@ def _check(b: dict, cfg: BridgeRtConfig) -> None:
     # Every stop-decision push is a push; each latency holds its push's transfer.
     assert b["stop_to_ack_ms"]["n"] <= b["push_latency_ms"]["n"] == b["push_only_ms"]["n"]
     assert len(b["stop_to_ack_samples_ms"]) == b["stop_to_ack_ms"]["n"]
-    # The log's pushes pair with the session's latencies: proposal + gate + transfer = total.
+    # The log's pushes pair with the session's latencies: ask + transfer + rest = total, and
+    # ask() itself in the worker is part of the ask as the session waited for it.
     bd = b["stop_to_ack_breakdown"]
     assert {q["n"] for q in bd.values()} == {b["stop_to_ack_ms"]["n"]}
-    assert bd["transfer_ms"]["median"] > 0 and bd["proposal_ms"]["median"] > 0
+    assert bd["transfer_ms"]["median"] > 0 and 0 < bd["compute_ms"]["median"] <= bd["ask_ms"]["median"]
+    assert bd["ask_ms"]["max"] + bd["transfer_ms"]["max"] + bd["rest_ms"]["max"] >= b["stop_to_ack_ms"]["max"]
+    assert b["cpu"]["proposal_worker"] == "process" and b["cpu"]["worker_cpu_s"] >= 0
     fb = b["force_feedback"]
     assert 0 < fb["bridge_received_total"] <= fb["device_sent_total"]
     assert fb["lost_counter_gaps"] >= 0 and fb["subscriber_overflow"] >= 0

@@ -1,0 +1,44 @@
+"""The bus-budget analysis of drivers/PROTOCOL.md: reference values and invariants."""
+
+from __future__ import annotations
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from drivers.exosuit.busload import budget_table, segment_response
+from drivers.exosuit.endpoint import DEFAULT_PACE_S
+
+
+def test_the_critical_instant_of_protocol_md() -> None:
+    # No jitter, 2 ms: w = 770·ceil(w/1000) + 305 = 1845 µs, plus the segment's 135 µs.
+    r = segment_response(2000, 0)
+    assert (r.busy_period_us, r.instances, r.response_us) == (1980, 1, 1980)
+    assert r.assistance_off_us == 1980 + 135 + 65
+    assert r.utilisation == pytest.approx(0.78525 + 135 / 2000)  # 85.3 %
+
+
+def test_the_default_pace_keeps_an_assistance_off_within_3_ms() -> None:
+    r = segment_response(round(DEFAULT_PACE_S * 1e6))
+    assert (r.pace_us, r.jitter_us) == (1500, 750)
+    assert (r.busy_period_us, r.instances, r.response_us, r.assistance_off_us) == (3925, 4, 2730, 2930)
+    # ...no worse than 2 ms pacing with its catch-up rule (jitter 1 ms).
+    assert r.assistance_off_us <= segment_response(2000).assistance_off_us == 3180
+
+
+def test_a_pace_that_saturates_the_bus_is_refused() -> None:
+    with pytest.raises(ValueError, match=r"pace_us=500: bus load 105\.5%"):
+        segment_response(500)
+
+
+@given(st.integers(min_value=700, max_value=20000))
+def test_the_response_covers_the_segment_and_the_busy_period_holds_it(pace_us: int) -> None:
+    r = segment_response(pace_us)
+    assert r.response_us >= 135 and r.busy_period_us >= 135 and r.instances >= 1
+    assert r.assistance_off_us == r.response_us + 200
+    assert 0.78 < r.utilisation < 1.0
+
+
+def test_the_table_has_a_row_per_pace() -> None:
+    lines = budget_table().splitlines()
+    assert len(lines) == 2 + 4 and lines[4].startswith("| 1.5 ms | 0.75 ms | 3.925 ms | 4 | 2.73 ms")
