@@ -310,6 +310,9 @@ _CHANNEL_LIST = (
             "compute_ms": _p("number", "Wall time of ask() itself in the proposal worker, ms"),
             "total_ms": _p("number", "Wall time of the whole ask as the session saw it (moving the "
                                      "optimizer to the worker and back included), ms"),
+            "to_worker_ms": _p("number", "From the start of the ask to the worker starting on it, ms"),
+            "from_worker_ms": _p("number", "From the worker's end of ask() to the result in the "
+                                           "session's event loop, ms"),
             "worker": _p("string", "Where ask() ran: process or thread"),
         },
         ("index", "params", "phase"),
@@ -811,6 +814,7 @@ class SessionLog:
                      t_s: float | None = None,
                      incumbent: tuple[Mapping[str, float], float, float] | None = None,
                      compute_ms: float | None = None, total_ms: float | None = None,
+                     to_worker_ms: float | None = None, from_worker_ms: float | None = None,
                      worker: str | None = None) -> None:
         """``/proposals``: the setting ``ask()`` returned, logged right after every ask(), with
         how long it took (``compute_ms`` in the worker, ``total_ms`` as the session saw it)."""
@@ -819,7 +823,8 @@ class SessionLog:
             "incumbent": None if incumbent is None else {
                 "params": dict(incumbent[0]), "mean": incumbent[1], "var": incumbent[2]},
         }
-        timing = {"compute_ms": compute_ms, "total_ms": total_ms, "worker": worker}
+        timing = {"compute_ms": compute_ms, "total_ms": total_ms, "to_worker_ms": to_worker_ms,
+                  "from_worker_ms": from_worker_ms, "worker": worker}
         msg.update({k: v for k, v in timing.items() if v is not None})
         self.log(Topic.PROPOSALS, msg)
 

@@ -6,31 +6,38 @@ process competes with that loop for the GIL: in ``hilbo bench perf --bridge-minu
 proposal thread used ≈ 15 ms of CPU per proposal but took 35–48 ms of wall time
 (docs/results.md §3). A worker process computes on the other core.
 
+The worker is a plain child interpreter, ``python -m bridge.proposals``, that reads requests from
+its stdin and answers on its stdout (length-prefixed pickles), read by the event loop itself
+(asyncio subprocess pipes: no thread hand-offs on the way back). Not ``multiprocessing``: its
+spawn and forkserver children import the parent's ``__main__``, so a lab script without the
+``if __name__ == "__main__":`` idiom would run its own session a second time inside the worker
+(open the bus, truncate the log) before failing. The child also ends by itself when its stdin
+closes, i.e. when the session's process is gone, even after ``kill -9``.
+
 The optimizer travels by pickle (≈ 15 kB at 60 evaluations, about a millisecond each way),
 taken when the ask is started (:meth:`ProposalWorker.start_ask`), so the session can log the
 evaluation that just ended while the worker computes; the worker returns the advanced optimizer,
-which replaces the session's copy (in a thread too: the thread works on its own copy). A worker that dies
-(killed, out of memory) costs nothing collected: the call is repeated in a thread and the session
-goes on there (:attr:`ProposalWorker.lost` says why).
-
-A worker process watches the session's process and exits when it is gone, so a session killed
-with ``kill -9`` leaves no idle worker behind.
+which replaces the session's copy (in a thread too: the thread works on its own copy). A worker
+that dies (killed, out of memory) costs nothing collected: the call is repeated in a thread and
+the session goes on there (:attr:`ProposalWorker.lost` says why).
 """
 
 from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import contextlib
 import enum
 import logging
-import multiprocessing
+import math
 import os
 import pickle
-import threading
+import struct
+import sys
 import time
-from concurrent.futures.process import BrokenProcessPool
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, BinaryIO
 
 from hilbo_core import HILOptimizer, HyperparameterFit, fit_hyperparameters
 from hilbo_core.gp import GPHyperparameters
@@ -39,8 +46,9 @@ __all__ = ["Asked", "ProposalWorker", "WorkerKind"]
 
 logger = logging.getLogger(__name__)
 
-#: How often a worker process checks that the session's process still exists (s).
-_PARENT_POLL_S = 0.5
+_HEADER = struct.Struct("<Q")  # payload length in bytes
+#: How long the session waits for the worker to exit at the end before killing it (s).
+_EXIT_TIMEOUT_S = 5.0
 
 
 class WorkerKind(enum.Enum):
@@ -61,55 +69,69 @@ class Asked:
         total_s: Wall time of the whole call as the caller saw it (s): ``compute_s`` plus moving
             the optimizer to the worker and back (pickling included) and waiting for the event
             loop.
+        to_worker_s: From the start of the call to the worker starting on it (s).
+        from_worker_s: From the worker's end of ``ask()`` to the result in the caller's event
+            loop (s).
     """
 
     opt: HILOptimizer
     params: dict[str, float]
     compute_s: float
     total_s: float
+    to_worker_s: float = math.nan
+    from_worker_s: float = math.nan
 
 
-def _ask(payload: bytes) -> tuple[HILOptimizer, dict[str, float], float]:
+def _ask(payload: bytes) -> tuple[HILOptimizer, dict[str, float], float, float, float]:
     """``ask()`` of the pickled optimizer ``payload``, returning the advanced optimizer too (it
-    comes back from another process) and how long the ask took there."""
+    comes back from another process), when the ask started and ended (``time.monotonic``, the
+    same clock in every process of the machine) and how long it took."""
+    start = time.monotonic()
     opt = pickle.loads(payload)
     t0 = time.perf_counter()
     params = opt.ask()
-    return opt, params, time.perf_counter() - t0
+    return opt, params, time.perf_counter() - t0, start, time.monotonic()
 
 
-def _watch_parent(pid: int) -> None:
-    """Worker initializer: exit when the session's process ``pid`` is gone."""
-
-    def watch() -> None:
-        while True:
-            threading.Event().wait(_PARENT_POLL_S)
-            try:
-                os.kill(pid, 0)
-            except ProcessLookupError:
-                os._exit(0)  # the session died (kill -9): nothing here is worth keeping
-            except PermissionError:
-                pass  # exists, owned by someone else: cannot happen for our parent
-
-    threading.Thread(target=watch, name="hilbo-parent-watch", daemon=True).start()
+def _pid(_: object = None) -> int:
+    return os.getpid()
 
 
-def _context() -> multiprocessing.context.BaseContext:
-    # forkserver: each session's worker forks from a server that has imported numpy/scipy once
-    # (a fresh interpreter per session would spend ≈ 1 s importing), and nothing is forked from
-    # the session's own multi-threaded process. Windows has only spawn.
-    if "forkserver" in multiprocessing.get_all_start_methods():
-        ctx = multiprocessing.get_context("forkserver")
-        ctx.set_forkserver_preload(["hilbo_core", "bridge.proposals"])
-        return ctx
-    return multiprocessing.get_context("spawn")
+#: What a worker may be asked to run, by name (the request names the function, not pickles it).
+_FUNCTIONS: dict[str, Callable[[Any], Any]] = {"ask": _ask, "fit": fit_hyperparameters, "pid": _pid}
+
+
+def _read_message(stream: BinaryIO) -> bytes | None:
+    header = stream.read(_HEADER.size)
+    if len(header) < _HEADER.size:
+        return None  # the session closed our stdin: it ended (or died)
+    (n,) = _HEADER.unpack(header)
+    data = stream.read(n)
+    return data if len(data) == n else None
+
+
+def _serve(stdin: BinaryIO, stdout: BinaryIO) -> None:
+    """The worker's loop: one request at a time until stdin closes."""
+    while (request := _read_message(stdin)) is not None:
+        name, arg = pickle.loads(request)
+        try:
+            reply: tuple[str, Any] = ("ok", _FUNCTIONS[name](arg))
+        except Exception as err:  # sent back and raised in the session
+            reply = ("error", err)
+        try:
+            data = pickle.dumps(reply, protocol=pickle.HIGHEST_PROTOCOL)
+        except Exception as err:  # an unpicklable result or exception
+            data = pickle.dumps(("error", RuntimeError(f"{name}: unpicklable reply: {err!r}")))
+        stdout.write(_HEADER.pack(len(data)) + data)
+        stdout.flush()
 
 
 class ProposalWorker:
     """Runs :meth:`HILOptimizer.ask` and hyperparameter fits off the event loop.
 
     One call at a time (one worker): a fit made ahead finishes before the next proposal starts.
-    Use as a context manager; :meth:`start` launches the process early (during the warm-up walk).
+    Use as an async context manager; entering starts the worker process (it imports numpy and
+    scipy, about a second, while the session's warm-up walk goes on).
 
     Args:
         kind: :class:`WorkerKind` (or its value).
@@ -117,43 +139,52 @@ class ProposalWorker:
 
     def __init__(self, kind: WorkerKind | str = WorkerKind.PROCESS) -> None:
         self.kind = WorkerKind(kind)
-        self._pool: concurrent.futures.Executor | None = None
-        self._thread_pool: concurrent.futures.ThreadPoolExecutor | None = None
+        self._proc: asyncio.subprocess.Process | None = None
+        self._lock: asyncio.Lock | None = None
+        self._threads: concurrent.futures.ThreadPoolExecutor | None = None
+        self._entered = False
         #: Why the worker process was given up for a thread, or None.
         self.lost: str | None = None
-        self._pid: concurrent.futures.Future[int] | None = None
 
-    def __enter__(self) -> ProposalWorker:
+    async def __aenter__(self) -> ProposalWorker:
+        self._entered = True
+        self._lock = asyncio.Lock()
         if self.kind is WorkerKind.PROCESS:
-            self._pool = concurrent.futures.ProcessPoolExecutor(
-                max_workers=1, mp_context=_context(), initializer=_watch_parent,
-                initargs=(os.getpid(),))
-        else:
-            self._pool = self._threads()
+            try:
+                self._proc = await asyncio.create_subprocess_exec(
+                    sys.executable, "-m", "bridge.proposals",
+                    stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE)
+            except OSError as err:
+                self._give_up(f"the proposal worker process could not start ({err})")
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        for pool in (self._pool, self._thread_pool):
-            if pool is not None:
-                pool.shutdown(wait=True, cancel_futures=True)
-        self._pool = self._thread_pool = None
-
-    def start(self) -> None:
-        """Start the worker now rather than at the first proposal (the call returns at once)."""
-        self._pid = self._executor().submit(os.getpid)
-
-    @property
-    def pid(self) -> int | None:
-        """The worker process's id once it runs (after :meth:`start`), else None (also for a thread)."""
-        f = self._pid
-        if not self.in_process or f is None or not f.done() or f.cancelled() or f.exception() is not None:
-            return None
-        return f.result()
+    async def __aexit__(self, *exc: object) -> None:
+        proc, self._proc = self._proc, None
+        if proc is not None:
+            if proc.stdin is not None:
+                proc.stdin.close()  # the worker's loop ends at EOF
+            try:
+                async with asyncio.timeout(_EXIT_TIMEOUT_S):
+                    await proc.wait()
+            except TimeoutError:
+                logger.warning("proposal worker %d did not exit; killing it", proc.pid)
+                with contextlib.suppress(ProcessLookupError):
+                    proc.kill()
+                await proc.wait()
+        if self._threads is not None:
+            self._threads.shutdown(wait=True, cancel_futures=True)
+            self._threads = None
+        self._entered = False
 
     @property
     def in_process(self) -> bool:
         """The work runs in a worker process (not given up for a thread)."""
         return self.kind is WorkerKind.PROCESS and self.lost is None
+
+    @property
+    def pid(self) -> int | None:
+        """The worker process's id, or None (a thread, or given up)."""
+        return self._proc.pid if self._proc is not None and self.in_process else None
 
     def start_ask(self, opt: HILOptimizer) -> asyncio.Task[Asked]:
         """Start ``opt.ask()`` in the worker on a copy of ``opt`` taken now.
@@ -164,9 +195,10 @@ class ProposalWorker:
         Returns:
             A task with the :class:`Asked` result (the new optimizer, the setting, the timing).
         """
-        t0 = time.perf_counter()
+        self._check_entered()
+        t0, m0 = time.perf_counter(), time.monotonic()
         payload = pickle.dumps(opt, protocol=pickle.HIGHEST_PROTOCOL)
-        return asyncio.ensure_future(self._ask(payload, t0))
+        return asyncio.ensure_future(self._ask(payload, t0, m0))
 
     async def ask(self, opt: HILOptimizer) -> Asked:
         """``await start_ask(opt)``."""
@@ -174,31 +206,70 @@ class ProposalWorker:
 
     async def fit(self, fit: HyperparameterFit) -> GPHyperparameters:
         """:func:`hilbo_core.fit_hyperparameters` (``fit``) in the worker."""
-        return await self._call(fit_hyperparameters, fit)
+        return await self._call("fit", fit)
+
+    async def worker_pid(self) -> int:
+        """The process id the work runs in (this process's in a thread), asked of the worker."""
+        return await self._call("pid", None)
 
     # ------------------------------------------------------------------ internals
-    async def _ask(self, payload: bytes, t0: float) -> Asked:
-        new_opt, params, compute_s = await self._call(_ask, payload)
-        return Asked(new_opt, params, compute_s, time.perf_counter() - t0)
+    async def _ask(self, payload: bytes, t0: float, m0: float) -> Asked:
+        new_opt, params, compute_s, start, end = await self._call("ask", payload)
+        return Asked(new_opt, params, compute_s, time.perf_counter() - t0, to_worker_s=start - m0,
+                     from_worker_s=time.monotonic() - end)
 
-    def _threads(self) -> concurrent.futures.ThreadPoolExecutor:
-        if self._thread_pool is None:
-            self._thread_pool = concurrent.futures.ThreadPoolExecutor(
-                max_workers=1, thread_name_prefix="hilbo-proposal")
-        return self._thread_pool
+    def _check_entered(self) -> None:
+        if not self._entered or self._lock is None:
+            raise RuntimeError("ProposalWorker used outside its `async with` block")
 
-    def _executor(self) -> concurrent.futures.Executor:
-        if self._pool is None:
-            raise RuntimeError("ProposalWorker used outside its `with` block")
-        return self._pool if self.lost is None else self._threads()
-
-    async def _call(self, fn: Any, arg: Any) -> Any:
-        loop = asyncio.get_running_loop()
-        try:
-            return await loop.run_in_executor(self._executor(), fn, arg)
-        except BrokenProcessPool as err:
-            # The argument is the caller's own object, untouched by the dead worker: the same
-            # call in a thread gives exactly the result the worker would have.
-            self.lost = f"the proposal worker process died ({err}); proposals continue in a thread"
+    def _give_up(self, why: str) -> None:
+        if self.lost is None:
+            self.lost = f"{why}; proposals continue in a thread"
             logger.error("%s", self.lost)
-            return await loop.run_in_executor(self._threads(), fn, arg)
+
+    async def _call(self, name: str, arg: Any) -> Any:
+        self._check_entered()
+        lock = self._lock
+        if lock is None:
+            raise RuntimeError("ProposalWorker used outside its `async with` block")
+        async with lock:  # one request on the pipe at a time
+            proc = self._proc
+            if proc is not None and self.lost is None:
+                try:
+                    status, value = await self._request(proc, name, arg)
+                except (BrokenPipeError, ConnectionResetError, asyncio.IncompleteReadError) as err:
+                    code = proc.returncode
+                    self._give_up(f"the proposal worker process died (exit status {code}, {err!r})")
+                except asyncio.CancelledError:
+                    # Its reply is still on the way: the pipe is out of step, so nothing more goes
+                    # to this worker (only at a session's end in practice).
+                    self._proc = None
+                    if proc.stdin is not None:
+                        proc.stdin.close()
+                    raise
+                else:
+                    if status == "error":
+                        raise value
+                    return value
+            # A thread: the same function on the same argument gives the same result.
+            if self._threads is None:
+                self._threads = concurrent.futures.ThreadPoolExecutor(
+                    max_workers=1, thread_name_prefix="hilbo-proposal")
+            return await asyncio.get_running_loop().run_in_executor(self._threads, _FUNCTIONS[name], arg)
+
+    @staticmethod
+    async def _request(proc: asyncio.subprocess.Process, name: str, arg: Any) -> tuple[str, Any]:
+        if proc.stdin is None or proc.stdout is None:
+            raise BrokenPipeError("the worker's pipes are closed")
+        data = pickle.dumps((name, arg), protocol=pickle.HIGHEST_PROTOCOL)
+        proc.stdin.write(_HEADER.pack(len(data)) + data)
+        await proc.stdin.drain()
+        (n,) = _HEADER.unpack(await proc.stdout.readexactly(_HEADER.size))
+        return pickle.loads(await proc.stdout.readexactly(n))
+
+
+if __name__ == "__main__":  # the worker process: python -m bridge.proposals
+    # The replies get the real stdout to themselves; anything a library prints goes to stderr.
+    _replies = os.fdopen(os.dup(sys.stdout.fileno()), "wb")
+    os.dup2(sys.stderr.fileno(), sys.stdout.fileno())
+    _serve(sys.stdin.buffer, _replies)

@@ -269,8 +269,7 @@ class BridgeSession:
         self.log.log_optimizer_state(self.opt, reason="start")
         self._event("session_start", f"session started ({self.opt.phase.value})")
         try:
-            with self._worker:
-                self._worker.start()  # the process starts during the warm-up walk
+            async with self._worker:  # the process starts during the warm-up walk
                 await self._run_tasks()
         except* _Stopped:
             pass
@@ -367,6 +366,8 @@ class BridgeSession:
             self.log.log_proposal(params, index=index, phase=self.opt.phase.value,
                                   t_s=self._breaths.last_t, incumbent=self.opt.incumbent,
                                   compute_ms=1e3 * asked.compute_s, total_ms=1e3 * asked.total_s,
+                                  to_worker_ms=1e3 * asked.to_worker_s,
+                                  from_worker_ms=1e3 * asked.from_worker_s,
                                   worker="process" if self._worker.in_process else "thread")
 
         try:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 import os
 import signal
 import subprocess
@@ -15,15 +16,11 @@ import pytest
 
 from bridge.bench.perf import _synthetic_optimizer
 from bridge.proposals import ProposalWorker, WorkerKind
-from hilbo_core import HILOptimizer, fit_hyperparameters
+from hilbo_core import HILOptimizer, OptimizerStateError, fit_hyperparameters
 
 
 def optimizer(n_obs: int = 12) -> HILOptimizer:
     return _synthetic_optimizer(n_obs, seed=3)
-
-
-def _worker_pid(worker: ProposalWorker) -> int:
-    return worker._executor().submit(os.getpid).result(timeout=60)
 
 
 @pytest.mark.parametrize("kind", list(WorkerKind))
@@ -33,12 +30,12 @@ async def test_ask_and_fit_give_what_the_optimizer_gives_in_place(kind: WorkerKi
     want = local.ask()
     fit = copy.deepcopy(opt).hyperparameter_fit()
     assert fit is not None
-    with ProposalWorker(kind) as worker:
-        worker.start()
+    async with ProposalWorker(kind) as worker:
         asked = await worker.ask(opt)
         hyp = await worker.fit(fit)
     got_opt, got = asked.opt, asked.params
     assert 0 < asked.compute_s <= asked.total_s
+    assert asked.to_worker_s >= 0 and asked.from_worker_s >= 0
     assert got == want
     assert got_opt.to_json() == local.to_json()  # the whole advanced state, generator included
     assert got_opt is not opt and opt.current_params is None  # the caller's copy is untouched
@@ -47,26 +44,36 @@ async def test_ask_and_fit_give_what_the_optimizer_gives_in_place(kind: WorkerKi
 
 
 async def test_the_process_worker_runs_in_another_process() -> None:
-    with ProposalWorker(WorkerKind.PROCESS) as worker:
+    async with ProposalWorker(WorkerKind.PROCESS) as worker:
         assert worker.in_process
-        assert _worker_pid(worker) != os.getpid()
-    with ProposalWorker("thread") as worker:
-        assert not worker.in_process
-        assert _worker_pid(worker) == os.getpid()
+        pid = await worker.worker_pid()
+        assert pid == worker.pid != os.getpid()
+    assert not _alive(pid)  # the block's end stops it
+    async with ProposalWorker("thread") as worker:
+        assert not worker.in_process and worker.pid is None
+        assert await worker.worker_pid() == os.getpid()
+
+
+async def test_errors_in_the_worker_are_raised_in_the_session() -> None:
+    opt = optimizer()
+    opt._opt_breaths = 10**9  # the budget is spent: ask() refuses
+    opt.config = dataclasses.replace(opt.config, budget_breaths=10)
+    async with ProposalWorker(WorkerKind.PROCESS) as worker:
+        with pytest.raises(OptimizerStateError, match="budget is spent"):
+            await worker.ask(opt)
+        assert worker.in_process  # an error of the optimizer is not a dead worker
 
 
 async def test_a_dead_worker_process_is_replaced_by_a_thread_with_the_same_result() -> None:
     opt = optimizer()
     want = copy.deepcopy(opt).ask()
-    with ProposalWorker(WorkerKind.PROCESS) as worker:
-        pid = _worker_pid(worker)
-        os.kill(pid, signal.SIGKILL)
+    async with ProposalWorker(WorkerKind.PROCESS) as worker:
+        os.kill(await worker.worker_pid(), signal.SIGKILL)
         asked = await worker.ask(opt)
-        got_opt, got = asked.opt, asked.params
-        assert got == want and got_opt is not opt
+        assert asked.params == want and asked.opt is not opt
         assert worker.lost is not None and "died" in worker.lost
-        assert not worker.in_process
-        assert _worker_pid(worker) == os.getpid()  # and it stays in the thread
+        assert not worker.in_process and worker.pid is None
+        assert await worker.worker_pid() == os.getpid()  # and it stays in the thread
         again = await worker.ask(copy.deepcopy(opt))
         assert again.params == want
 
@@ -77,18 +84,23 @@ def test_unknown_kind_is_rejected_with_the_choices() -> None:
 
 
 def test_using_the_worker_outside_its_block_is_an_error() -> None:
-    with pytest.raises(RuntimeError, match="outside its `with` block"):
-        ProposalWorker().start()
+    with pytest.raises(RuntimeError, match="outside its `async with` block"):
+        ProposalWorker().start_ask(optimizer(3))
 
 
 @pytest.mark.skipif(sys.platform == "win32", reason="kill -9 and /proc are POSIX")
-def test_a_worker_exits_when_its_session_is_killed(tmp_path) -> None:
+def test_a_worker_exits_when_its_session_is_killed() -> None:
+    # No `if __name__ == "__main__":` here on purpose: the worker does not import this script.
     script = textwrap.dedent("""
-        import os, sys
+        import asyncio, sys
         from bridge.proposals import ProposalWorker
-        w = ProposalWorker("process").__enter__()
-        print(w._executor().submit(os.getpid).result(timeout=60), flush=True)
-        sys.stdin.read()  # until killed
+
+        async def main():
+            async with ProposalWorker("process") as w:
+                print(await w.worker_pid(), flush=True)
+                await asyncio.get_running_loop().run_in_executor(None, sys.stdin.read)
+
+        asyncio.run(main())
     """)
     proc = subprocess.Popen([sys.executable, "-c", script], stdin=subprocess.PIPE,
                             stdout=subprocess.PIPE, text=True)
@@ -98,7 +110,7 @@ def test_a_worker_exits_when_its_session_is_killed(tmp_path) -> None:
     finally:
         proc.kill()  # kill -9: no cleanup runs in the session process
         proc.wait(timeout=30)
-    # The worker polls its session every 0.5 s; bounded wait for a real process to exit.
+    # The worker reads EOF on its stdin and exits; bounded wait for a real process to end.
     deadline = time.monotonic() + 20.0
     while _alive(worker_pid) and time.monotonic() < deadline:
         time.sleep(0.05)
@@ -108,7 +120,7 @@ def test_a_worker_exits_when_its_session_is_killed(tmp_path) -> None:
 def _alive(pid: int) -> bool:
     try:
         with open(f"/proc/{pid}/stat") as f:
-            return f.read().split()[2] != "Z"  # a zombie has exited
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"  # a zombie has exited
     except FileNotFoundError:
         return False
 
