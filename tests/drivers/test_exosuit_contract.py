@@ -38,7 +38,7 @@ from drivers.exosuit.codec import (
     ProfileAck,
     ProfileCommit,
 )
-from drivers.exosuit.endpoint import CanBusConfig, CanEndpoint, ProfileNackError
+from drivers.exosuit.endpoint import DEFAULT_PACE_S, CanBusConfig, CanEndpoint, ProfileNackError
 from drivers.exosuit.profile import ProfileTransfer
 
 _channels = itertools.count()
@@ -140,8 +140,9 @@ async def test_101_point_profile_pushes_commits_and_acks(rig: Rig) -> None:
     assert (result.version, result.n_points, result.attempts) == (17, 101, 1)
     assert result.crc32 == expected.crc32
     assert rig.responder.seen.acked == [(17, expected.forces_n)]
-    # paced at 2 ms: 34 gaps + commit; well under the 250 ms ack timeout
-    assert 0.06 < result.elapsed_s < 1.0
+    # Paced: the commit goes 34 paces after the first segment (1.5 ms each by default, ≈ 51 ms);
+    # well under the 250 ms ack timeout.
+    assert 34 * DEFAULT_PACE_S - 0.001 < result.elapsed_s < 1.0
 
 
 async def test_corrupted_transfer_is_nacked_bad_crc(rig: Rig) -> None:
