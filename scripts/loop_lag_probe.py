@@ -5,19 +5,26 @@ than 8 ms late, with the session's bout and breath count at the time. The sessio
 ``hilbo bench perf --bridge-minutes M`` (speed 1, 2 × 1 kHz force feedback, devices in-process).
 
     nice -n -5 .venv/bin/python scripts/loop_lag_probe.py 2.7     # minutes of wall time
+    nice -n -5 .venv/bin/python scripts/loop_lag_probe.py 2.7 --pace-ms 2 --worker thread
 
-Prints the number of stalls, their total, and the first 40.
+Prints the number of stalls, their total, the endpoint's ``heartbeat_overrun`` count (heartbeat
+task woke more than a period late) and the stop decision → ack latencies, then the first 40 stalls.
+``--pace-ms`` and ``--worker`` override the session's segment pace and proposal worker.
 """
 
 from __future__ import annotations
 
+import argparse
 import asyncio
+import dataclasses
 import sys
 import tempfile
 import time
 from pathlib import Path
 
+import bridge.run as run
 from bridge.bench.bridge_perf import BridgeRtConfig
+from bridge.proposals import WorkerKind
 from bridge.runtime import BridgeSession
 from bridge.sim import run_virtual_sim
 
@@ -27,8 +34,11 @@ STALL_S = 0.008
 async def main(minutes: float) -> None:
     stalls: list[tuple[float, float, str, int]] = []
     tasks: list[asyncio.Task[None]] = []
+    held: dict[str, BridgeSession] = {}
 
     def on_session(session: BridgeSession) -> None:
+        held["session"] = session
+
         async def probe() -> None:
             loop = asyncio.get_running_loop()
             while True:
@@ -48,10 +58,31 @@ async def main(minutes: float) -> None:
         t.cancel()
     await asyncio.gather(*tasks, return_exceptions=True)
     total_ms = 1e3 * sum(lag for _, lag, *_ in stalls)
-    sys.stdout.write(f"stalls > {STALL_S * 1e3:g} ms: {len(stalls)}, total {total_ms:.0f} ms\n")
+    session = held["session"]
+    st = session.settings
+    sys.stdout.write(f"pace {1e3 * st.pace_s:g} ms, worker {st.proposal_worker.value}: "
+                     f"stalls > {STALL_S * 1e3:g} ms: {len(stalls)}, total {total_ms:.0f} ms; "
+                     f"heartbeat_overrun {session.endpoint.counters.get('heartbeat_overrun', 0)}; "
+                     f"stop -> ack ms {[round(1e3 * x) for x in session.stop_latencies_s]}\n")
     for t, lag, bout, breaths in stalls[:40]:
         sys.stdout.write(f"  t = {t - t0:7.2f} s  {1e3 * lag:5.1f} ms  {bout}, breath {breaths}\n")
 
 
 if __name__ == "__main__":
-    asyncio.run(main(float(sys.argv[1]) if len(sys.argv) > 1 else 2.7))
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("minutes", type=float, nargs="?", default=2.7)
+    ap.add_argument("--pace-ms", type=float, default=None, help="segment pace (default: the session's)")
+    ap.add_argument("--worker", choices=[k.value for k in WorkerKind], default=None)
+    args = ap.parse_args()
+    settings = run.runtime_settings
+
+    def patched(*a: object, **k: object):  # the session's settings with the overrides
+        st = settings(*a, **k)
+        if args.pace_ms is not None:
+            st = dataclasses.replace(st, pace_s=args.pace_ms / 1000.0)
+        if args.worker is not None:
+            st = dataclasses.replace(st, proposal_worker=WorkerKind(args.worker))
+        return st
+
+    run.runtime_settings = patched
+    asyncio.run(main(args.minutes))
