@@ -142,13 +142,11 @@ class ProposalWorker:
         self._proc: asyncio.subprocess.Process | None = None
         self._lock: asyncio.Lock | None = None
         self._threads: concurrent.futures.ThreadPoolExecutor | None = None
-        self._entered = False
         #: Why the worker process was given up for a thread, or None.
         self.lost: str | None = None
 
     async def __aenter__(self) -> ProposalWorker:
-        self._entered = True
-        self._lock = asyncio.Lock()
+        self._lock = asyncio.Lock()  # also marks the worker as entered
         if self.kind is WorkerKind.PROCESS:
             try:
                 self._proc = await asyncio.create_subprocess_exec(
@@ -174,7 +172,7 @@ class ProposalWorker:
         if self._threads is not None:
             self._threads.shutdown(wait=True, cancel_futures=True)
             self._threads = None
-        self._entered = False
+        self._lock = None
 
     @property
     def in_process(self) -> bool:
@@ -218,9 +216,10 @@ class ProposalWorker:
         return Asked(new_opt, params, compute_s, time.perf_counter() - t0, to_worker_s=start - m0,
                      from_worker_s=time.monotonic() - end)
 
-    def _check_entered(self) -> None:
-        if not self._entered or self._lock is None:
+    def _check_entered(self) -> asyncio.Lock:
+        if self._lock is None:
             raise RuntimeError("ProposalWorker used outside its `async with` block")
+        return self._lock
 
     def _give_up(self, why: str) -> None:
         if self.lost is None:
@@ -228,11 +227,7 @@ class ProposalWorker:
             logger.error("%s", self.lost)
 
     async def _call(self, name: str, arg: Any) -> Any:
-        self._check_entered()
-        lock = self._lock
-        if lock is None:
-            raise RuntimeError("ProposalWorker used outside its `async with` block")
-        async with lock:  # one request on the pipe at a time
+        async with self._check_entered():  # one request on the pipe at a time
             proc = self._proc
             if proc is not None and self.lost is None:
                 try:

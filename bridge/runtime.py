@@ -463,25 +463,10 @@ class BridgeSession:
 
     async def _drop_fit_ahead(self) -> None:
         """At the session's end: cancel a fit made ahead and an ask started at a stop decision."""
-        if self._next_ask is not None:
-            task, self._next_ask = self._next_ask, None
-            task.cancel()
-            try:
-                await task
-            except asyncio.CancelledError:
-                pass
-            except Exception:
-                logger.exception("a proposal started at the last stop decision failed as the session ended")
-        if self._fit_ahead is not None:
-            _, task = self._fit_ahead
-            self._fit_ahead = None
-            task.cancel()
-            try:
-                await task
-            except asyncio.CancelledError:
-                pass
-            except Exception:
-                logger.exception("hyperparameter fit ahead failed as the session ended")
+        task, self._next_ask = self._next_ask, None
+        await _cancel_and_wait(task, "a proposal started at the last stop decision")
+        fit, self._fit_ahead = self._fit_ahead, None
+        await _cancel_and_wait(None if fit is None else fit[1], "a hyperparameter fit ahead")
 
     async def _start_next_ask(self) -> asyncio.Task[Any]:
         """Start ``ask()`` in the worker on the optimizer as it is now (a fit made ahead is
@@ -764,3 +749,17 @@ def _quantiles_ms(values: list[float]) -> dict[str, float] | None:
     a = np.asarray(values) * 1e3
     return {"median": float(np.median(a)), "p99": float(np.quantile(a, 0.99)), "max": float(a.max()),
             "n": len(values)}
+
+
+async def _cancel_and_wait(task: asyncio.Task[Any] | None, what: str) -> None:
+    """Cancel ``task`` (if any) and wait for it; a failure it ends with is logged, not raised
+    (the session is over and its result is not needed)."""
+    if task is None:
+        return
+    task.cancel()
+    try:
+        await task
+    except asyncio.CancelledError:
+        pass
+    except Exception:
+        logger.exception("%s failed as the session ended", what)

@@ -28,8 +28,9 @@ measuring what issue 6 asks for:
   time, in cores. The virtual exosuit and the virtual cart run in this process and in the same
   event loop as the bridge, so this is an **upper bound** on the bridge's own use. Per thread
   (Linux ``/proc/self/task``): the event-loop thread runs the bridge, the devices and python-can's
-  callbacks together; each bus has its own python-can receive thread; the default executor runs
-  the bridge's proposals (and opened the buses). To separate the bridge's share, the virtual
+  callbacks together; each bus has its own python-can receive thread; the proposals and fits run
+  in the proposal worker process, whose CPU (``/proc/PID/stat``, as of the last sample) is added
+  to the process's (``worker_cpu_s``). To separate the bridge's share, the virtual
   exosuit then runs alone for ``baseline_s`` (same feedback rate, one idle receiving bus in place
   of the bridge's, no bridge heartbeat so it latches assistance-off and sends zero desired force):
   the whole process's cores minus the device's alone estimate the bridge's (plus the cart's, a
