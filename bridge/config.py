@@ -46,6 +46,7 @@ from typing import Any, TextIO
 import can
 import numpy as np
 
+from bridge.collector import GcMode
 from bridge.errors import BridgeConfigError
 from bridge.proposals import WorkerKind
 from bridge.safety import (
@@ -408,6 +409,9 @@ class ProtocolConfig:
             proposal, as seed 000 describes it; adds 10–60 ms to each stop -> push).
         proposal_worker: Where proposals and fits run: ``process`` (default: a worker process,
             off the CAN traffic's GIL) or ``thread``.
+        gc: When full garbage collections may stop the event loop: ``freeze`` (default: at
+            quiet points of the session, bridge/collector.py) or ``automatic`` (CPython's
+            schedule: a 40–60 ms pause at a moment nothing chooses, every few minutes).
     """
 
     warmup_s: float = 180.0
@@ -425,6 +429,7 @@ class ProtocolConfig:
     pause_between_bouts: bool = True
     refit: RefitMode = RefitMode.AHEAD
     proposal_worker: WorkerKind = WorkerKind.PROCESS
+    gc: GcMode = GcMode.FREEZE
 
     @property
     def budget_s(self) -> float | None:
@@ -470,6 +475,7 @@ def _parse_protocol(data: object) -> ProtocolConfig:
         pause_between_bouts=t.boolean("pause_between_bouts", True),
         refit=t.choice("refit", RefitMode, RefitMode.AHEAD),
         proposal_worker=t.choice("proposal_worker", WorkerKind, WorkerKind.PROCESS),
+        gc=t.choice("gc", GcMode, GcMode.FREEZE),
     )
     try:
         cfg.optimizer_config()  # the optimizer's own validation is the final word

@@ -59,6 +59,7 @@ def runtime_settings(cfg: HilboConfig, *, auto_resume_s: float | None = None,
         feedback_log_period_s=feedback_log_period_s,
         n_actuators=n_actuators,
         proposal_worker=cfg.protocol.proposal_worker,
+        gc=cfg.protocol.gc,
     )
 
 

@@ -33,6 +33,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from bridge.collector import Collector, GcMode
 from bridge.errors import UnsafeProfileError
 from bridge.log import LogError, SessionLog
 from bridge.proposals import ProposalWorker, WorkerKind
@@ -104,6 +105,7 @@ class RuntimeSettings:
         status_log_period_s: Device status is logged at most this often per actuator (s).
         n_actuators: Actuators whose status must be alive.
         proposal_worker: Where proposals and hyperparameter fits run (bridge/proposals.py).
+        gc: When full garbage collections may stop the event loop (bridge/collector.py).
     """
 
     warmup_s: float = 180.0
@@ -120,6 +122,7 @@ class RuntimeSettings:
     status_log_period_s: float = 0.5
     n_actuators: int = 2
     proposal_worker: WorkerKind = WorkerKind.PROCESS
+    gc: GcMode = GcMode.FREEZE
 
 
 @dataclass
@@ -241,6 +244,8 @@ class BridgeSession:
         self.stop_latencies_s: list[float] = []
         self._t_stop: float | None = None  # wall time of the last stop decision not yet pushed
         self._worker = ProposalWorker(self.settings.proposal_worker)
+        #: The garbage-collection policy; its ``stats`` hold the collections' pauses.
+        self.collector = Collector(self.settings.gc)
         self._worker_lost_logged = False
         # A hyperparameter fit running ahead of the next proposal (refit_lag >= 1).
         self._fit_ahead: tuple[HyperparameterFit, asyncio.Task[Any]] | None = None
@@ -269,14 +274,17 @@ class BridgeSession:
         self.log.log_optimizer_state(self.opt, reason="start")
         self._event("session_start", f"session started ({self.opt.phase.value})")
         try:
-            async with self._worker:  # the process starts during the warm-up walk
-                await self._run_tasks()
+            with self.collector:
+                async with self._worker:  # the process starts during the warm-up walk
+                    await self._run_tasks()
         except* _Stopped:
             pass
         finally:
             await self._safe_off(AssistanceOffReason.OPERATOR_STOP if self._stop.is_set()
                                  else AssistanceOffReason.SESSION_END, "session end")
             self._log_counters()
+            self.log.log_event("gc", f"garbage collection ({self.collector.mode.value})",
+                               mode=self.collector.mode.value, **self.collector.stats.to_json())
             with contextlib.suppress(DriverError):
                 await self.endpoint.stop_heartbeat()
         self._event("session_end", f"session ended after {len(self.records)} evaluations")
@@ -398,6 +406,9 @@ class BridgeSession:
         if t_stop is not None:
             self.stop_latencies_s.append(latency)
         await self._wait_applied(self._version)
+        # The new setting's measurement starts: the next stop decision is breaths away, so a
+        # collection costs nothing now (bridge/collector.py).
+        self.collector.quiet_point()
         self._start_fit_ahead()
         t0 = self._breaths.last_t if self._breaths.last_t is not None else 0.0
         t0_session = self._session_time(t0)
@@ -554,6 +565,7 @@ class BridgeSession:
     async def _bout_pause(self) -> None:
         self._event("bout_pause", "exploration bout complete; pausing until the operator resumes")
         await self._pause(AssistanceOffReason.SESSION_END, "between bouts")
+        self.collector.full()  # assistance is off: the one moment a whole-heap walk is free
         s = self.settings
         if s.auto_resume_s is not None:
             asyncio.get_running_loop().call_later(s.auto_resume_s, self.command, Command.RESUME)

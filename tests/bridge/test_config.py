@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+from bridge.collector import GcMode
 from bridge.config import (
     ALLOWED_KEYS,
     TABLES,
@@ -70,6 +71,7 @@ n_local = 2
 pause_between_bouts = false
 refit = "at_proposal"
 proposal_worker = "thread"
+gc = "automatic"
 
 [cart]
 transport = "udp"
@@ -122,7 +124,7 @@ def test_golden_config_parses_to_the_expected_dataclasses():
         warmup_s=120.0, n_explore=8, max_breaths=40, window=3, budget_min=None, budget_breaths=500,
         stopping=StoppingKind.FIXED, seed=11, xi=0.01, kernel=KernelKind.SE, n_candidates=256,
         n_local=2, pause_between_bouts=False, refit=RefitMode.AT_PROPOSAL,
-        proposal_worker=WorkerKind.THREAD,
+        proposal_worker=WorkerKind.THREAD, gc=GcMode.AUTOMATIC,
     )
     assert cfg.protocol.optimizer_config() == OptimizerConfig(
         n_explore=8, max_breaths=40, window=3, budget_s=None, budget_breaths=500, stopping="fixed",
@@ -274,6 +276,7 @@ def test_unknown_and_missing_tables():
                                                               "'ahead', 'at_proposal'"]),
     ("protocol", 'proposal_worker = "thread"', 'proposal_worker = "gpu"',
      ["protocol.proposal_worker = 'gpu'", "'process', 'thread'"]),
+    ("protocol", 'gc = "automatic"', 'gc = "never"', ["protocol.gc = 'never'", "'automatic', 'freeze'"]),
     ("cart", "port = 6000", "port = 70000", ["cart.options.port = 70000", "65535]"]),
     ("can", 'interface = "virtual"', 'interface = "virtal"', ["can.interface = 'virtal'",
                                                               "did you mean 'virtual'", "socketcan"]),
