@@ -25,6 +25,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from bridge.collector import GcMode
 from bridge.config import HilboConfig, parse_config
 from bridge.run import RunResult, run_session, write_json_atomic
 from bridge.runtime import BridgeSession
@@ -42,6 +43,7 @@ logger = logging.getLogger(__name__)
 
 #: The factor ``--speed max`` stands for (see the module docstring).
 MAX_SPEED = 100.0
+_GC_MODES = frozenset(m.value for m in GcMode)
 _MEAN_BREATH_S = 3.0  # the simulated wearer's mean breath interval, for the budget estimate
 
 
@@ -60,6 +62,7 @@ class VirtualSimConfig:
         feedback_hz: The virtual exosuit's force-feedback rate per actuator.
         exosuit_faults: Fault specs of the virtual exosuit (``virtual_hw.exosuit.EXOSUIT_FAULTS``).
         cart_faults: Fault specs of the virtual cart (``virtual_hw.cart.CART_FAULTS``).
+        gc: The bridge's ``[protocol] gc`` (``freeze`` or ``automatic``, bridge/collector.py).
     """
 
     minutes: float = 60.0
@@ -75,12 +78,15 @@ class VirtualSimConfig:
     feedback_hz: float = 200.0
     exosuit_faults: tuple[str, ...] = ()
     cart_faults: tuple[str, ...] = ()
+    gc: str = "freeze"
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.minutes) and 0 < self.minutes <= 600):
             raise ConfigError(f"minutes={self.minutes!r}; expected a number in (0, 600]")
         if self.speed is not None and not (math.isfinite(self.speed) and self.speed > 0):
             raise ConfigError(f"speed={self.speed!r}; expected 'max' or a positive factor")
+        if self.gc not in _GC_MODES:
+            raise ConfigError(f"gc={self.gc!r}; expected one of {sorted(_GC_MODES)}")
 
     @property
     def budget_min(self) -> float:
@@ -123,6 +129,7 @@ budget_min = {cfg.budget_min}
 stopping = "{cfg.stopping}"
 seed = {cfg.seed}
 pause_between_bouts = true
+gc = "{cfg.gc}"
 
 [cart]
 transport = "tcp"

@@ -92,6 +92,7 @@ class BridgeRtConfig:
         preset: Parameter space (``hip_6d``: 2 actuators, one 101-point table).
         sample_period_s: Counter sampling period (wall s).
         baseline_s: How long the virtual exosuit runs alone afterwards (wall s; 0 = skip).
+        gc: The bridge's garbage-collection policy (``freeze``, the default, or ``automatic``).
     """
 
     minutes: float = 5.0
@@ -104,6 +105,7 @@ class BridgeRtConfig:
     preset: str = "hip_6d"
     sample_period_s: float = 1.0
     baseline_s: float = 30.0
+    gc: str = "freeze"
 
     def __post_init__(self) -> None:
         if not (isinstance(self.baseline_s, int | float) and math.isfinite(self.baseline_s)
@@ -123,7 +125,7 @@ class BridgeRtConfig:
         """The :class:`~bridge.sim.VirtualSimConfig` of this session."""
         sim = VirtualSimConfig(minutes=self.minutes, seed=self.seed, speed=self.speed, preset=self.preset,
                                n_explore=self.n_explore, max_breaths=self.max_breaths,
-                               warmup_s=self.warmup_s, feedback_hz=self.feedback_hz)
+                               warmup_s=self.warmup_s, feedback_hz=self.feedback_hz, gc=self.gc)
         _ = sim.budget_min  # raises ConfigError when the minutes leave no optimisation bout
         return sim
 
@@ -334,7 +336,11 @@ def _breakdown(stop_ms: list[float], pushes: list[tuple[bool, float, float, floa
     return {"ask_ms": _quantiles([a for a, _, _ in after]),
             "compute_ms": _quantiles([c for _, c, _ in after]),
             "transfer_ms": _quantiles([t for _, _, t in after]),
-            "rest_ms": _quantiles(rest)}
+            "rest_ms": _quantiles(rest),
+            # Each stop decision's parts, in session order: which part a slow one spent its time in.
+            "per_push_ms": [{"total": round(total, 2), "ask": round(ask, 2), "compute": round(compute, 2),
+                             "transfer": round(transfer, 2), "rest": round(r, 2)}
+                            for total, (ask, compute, transfer), r in zip(stop_ms, after, rest, strict=True)]}
 
 
 def bridge_realtime(cfg: BridgeRtConfig, out: Path | None = None) -> dict[str, Any]:
@@ -417,6 +423,9 @@ def bridge_realtime(cfg: BridgeRtConfig, out: Path | None = None) -> dict[str, A
             else window["cores"] - alone["cores"],
         },
         "can_counters": dict(session.endpoint.counters),
+        # Collector pauses in this process (bridge/collector.py): automatic collections per
+        # generation and the longest of each, and the session's own at its quiet points.
+        "gc": {"mode": session.collector.mode.value, **session.collector.stats.to_json()},
         "events": logged["events"],
         "targets": BRIDGE_TARGETS,
         "met": met,
@@ -440,14 +449,21 @@ def bridge_table(result: dict[str, Any]) -> str:
     rows = [
         ["stop decision → device ack of the next profile", q(result["stop_to_ack_ms"]),
          f"p99 < {BRIDGE_TARGETS['stop_to_ack_p99_ms']:g} ms", yes(met["stop_to_ack_p99_ms"])],
-        *([[f"… of which {what}", q(bd[key]), "–", "–"] for key, what in (
-            ("ask_ms", "the proposal, as the session waited for it (in the worker, started at "
-                       "the decision)"),
-            ("compute_ms", "… of that, ask() itself in the worker (EI; GP fit only when not "
+        *([[label, q(bd[key]), "–", "–"] for key, label in (
+            ("ask_ms", "… of which the proposal, as the session waited for it (in the worker, "
+                       "started at the decision)"),
+            ("compute_ms", "… … of that, ask() itself in the worker (EI; GP fit only when not "
                            "fitted ahead)"),
-            ("transfer_ms", "the transfer (paced segments, commit → ack)"),
-            ("rest_ms", "the rest (the decision's logging, the safety gate, starting the push)"))]
+            ("transfer_ms", "… of which the transfer (paced segments, commit → ack)"),
+            ("rest_ms", "… of which the rest (the decision's logging, the safety gate, starting "
+                        "the push)"))]
           if (bd := result.get("stop_to_ack_breakdown")) else []),
+        *([["garbage collections started by Python (gen 0/1/2) and the longest",
+             " / ".join(f"{n} ({m:.1f} ms)" for n, m in zip(g["automatic"], g["automatic_max_ms"],
+                                                           strict=True))
+             + f"; at quiet points {g['quiet_points']} (longest {g['quiet_max_ms']:.1f} ms)"
+             + f"; between bouts {g['full']} ({g['full_max_ms']:.1f} ms) [{g['mode']}]", "–", "–"]]
+          if (g := result.get("gc")) else []),
         ["every push: the transfer alone (first segment → ack)", q(result["push_only_ms"]), "–", "–"],
         ["every push (incl. the first of each bout, from its warm-up's end)", q(result["push_latency_ms"]),
          "–", "–"],

@@ -295,7 +295,8 @@ def _cmd_perf(args: argparse.Namespace) -> int:
     sizes = [int(v) for v in numbers(args.sizes, "observation count", (10, 30, 60, 100))]
     cfg = PerfConfig(breaths=args.breaths, sizes=tuple(sizes), reps=args.reps, sessions=args.sessions,
                      seed=args.seed, bridge_minutes=args.bridge_minutes, bridge_speed=args.bridge_speed,
-                     bridge_feedback_hz=args.bridge_feedback_hz, bridge_baseline_s=args.bridge_baseline_s)
+                     bridge_feedback_hz=args.bridge_feedback_hz, bridge_baseline_s=args.bridge_baseline_s,
+                     bridge_gc=args.bridge_gc)
     console = _console()
     console.print("hilbo bench perf: timing breath, proposal and session (in this process)"
                   + (f", then the bridge at real time for {cfg.bridge_minutes:g} min"
@@ -306,7 +307,7 @@ def _cmd_perf(args: argparse.Namespace) -> int:
                          f"--reps {cfg.reps} --sessions {cfg.sessions} --seed {cfg.seed}"
                          + (f" --bridge-minutes {cfg.bridge_minutes:g} --bridge-speed {cfg.bridge_speed:g} "
                             f"--bridge-feedback-hz {cfg.bridge_feedback_hz:g} "
-                            f"--bridge-baseline-s {cfg.bridge_baseline_s:g}"
+                            f"--bridge-baseline-s {cfg.bridge_baseline_s:g} --bridge-gc {cfg.bridge_gc}"
                             if cfg.bridge_minutes > 0 else "")
                          + f" --out {args.out}")
     result["machine"] = machine_info()
@@ -456,6 +457,9 @@ def add_bench_parser(subparsers: Any) -> Any:
     pf.add_argument("--bridge-baseline-s", type=float, default=30.0, metavar="S",
                     help="then run the virtual exosuit alone for S s: the process's CPU minus the "
                          "device's estimates the bridge's own share (30; 0 = skip)")
+    pf.add_argument("--bridge-gc", choices=("freeze", "automatic"), default="freeze",
+                    help="that session's [protocol] gc: full garbage collections at quiet points "
+                         "(freeze, the default) or whenever Python decides (automatic)")
     pf.add_argument("--out", default="runs/bench/perf", help="output directory")
     pf.set_defaults(func=_cmd_perf)
     return bsub

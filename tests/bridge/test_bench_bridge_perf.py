@@ -33,7 +33,11 @@ def _check(b: dict, cfg: BridgeRtConfig) -> None:
     # The log's pushes pair with the session's latencies: ask + transfer + rest = total, and
     # ask() itself in the worker is part of the ask as the session waited for it.
     bd = b["stop_to_ack_breakdown"]
-    assert {q["n"] for q in bd.values()} == {b["stop_to_ack_ms"]["n"]}
+    rows = bd["per_push_ms"]
+    assert {q["n"] for k, q in bd.items() if k != "per_push_ms"} == {b["stop_to_ack_ms"]["n"]} == {len(rows)}
+    assert [r["total"] for r in rows] == [round(x, 2) for x in b["stop_to_ack_samples_ms"]]
+    for r in rows:
+        assert r["ask"] + r["transfer"] + r["rest"] == pytest.approx(r["total"], abs=0.03)
     assert bd["transfer_ms"]["median"] > 0 and 0 < bd["compute_ms"]["median"] <= bd["ask_ms"]["median"]
     assert bd["ask_ms"]["max"] + bd["transfer_ms"]["max"] + bd["rest_ms"]["max"] >= b["stop_to_ack_ms"]["max"]
     assert b["cpu"]["proposal_worker"] == "process" and b["cpu"]["worker_cpu_s"] >= 0
@@ -58,6 +62,10 @@ def _check(b: dict, cfg: BridgeRtConfig) -> None:
         estimate = cpu["cores_in_window"] - alone["cores"]
         assert cpu["bridge_estimate_cores"] == pytest.approx(estimate, abs=1e-5)
     assert b["targets"] == BRIDGE_TARGETS
+    g = b["gc"]
+    assert g["mode"] == cfg.gc
+    # FREEZE collects at every applied profile; AUTOMATIC leaves it to CPython (none of ours).
+    assert g["quiet_points"] == (b["push_latency_ms"]["n"] if cfg.gc == "freeze" else 0)
     assert set(b["met"]) == {"stop_to_ack_p99_ms", "cores", "dropped_frames", "feedback_rate"}
     assert b["events"]["session_end"] == 1
 
@@ -71,6 +79,7 @@ def test_toy_real_time_session_reports_latency_frames_and_cpu(tmp_path) -> None:
     table = bridge_table(b)
     assert "| stop decision → device ack of the next profile |" in table
     assert "< 0.5 core" in table
+    assert f"at quiet points {b['gc']['quiet_points']} " in table and "[freeze]" in table
 
 
 @pytest.mark.slow
@@ -78,18 +87,18 @@ def test_perf_cli_with_bridge_minutes_writes_perf_and_perf_bridge_json(tmp_path)
     out = tmp_path / "perf"
     code = bench_main(["perf", "--breaths", "10", "--sizes", "3", "--reps", "1", "--sessions", "0",
                        "--bridge-minutes", "2.7", "--bridge-speed", "60", "--bridge-feedback-hz", "500",
-                       "--bridge-baseline-s", "0", "--out", str(out)])
+                       "--bridge-baseline-s", "0", "--bridge-gc", "automatic", "--out", str(out)])
     assert code == 0
     perf = json.loads((out / "perf.json").read_text())
     for key in ("benchmark", "config", "load_average_at_start", "breath_latency_ms", "proposal_latency_ms",
                 "proposal_profile", "session_60min_wall_s", "sessions", "targets", "wall_s", "command",
                 "machine", "bridge_realtime"):
         assert key in perf, key
-    assert "--bridge-minutes 2.7 --bridge-speed 60 --bridge-feedback-hz 500 --bridge-baseline-s 0" \
-        in perf["command"]
+    assert ("--bridge-minutes 2.7 --bridge-speed 60 --bridge-feedback-hz 500 --bridge-baseline-s 0 "
+            "--bridge-gc automatic") in perf["command"]
     small = json.loads((out / "perf_bridge.json").read_text())
     assert small["benchmark"] == "perf-bridge" and small["command"] == perf["command"]
-    cfg = BridgeRtConfig(minutes=2.7, speed=60.0, feedback_hz=500.0, baseline_s=0.0)
+    cfg = BridgeRtConfig(minutes=2.7, speed=60.0, feedback_hz=500.0, baseline_s=0.0, gc="automatic")
     _check(small, cfg)
     assert small["cpu"]["device_alone"] is None and small["cpu"]["bridge_estimate_cores"] is None
     assert (out / "bridge_session" / "session.mcap").exists()
@@ -106,6 +115,8 @@ def test_too_short_bridge_session_is_refused_before_any_work(tmp_path, capsys) -
         PerfConfig(bridge_minutes=1.0)
     with pytest.raises(ConfigError, match="speed"):
         BridgeRtConfig(speed=0.0)
+    with pytest.raises(ConfigError, match=r"gc='never'.*'automatic', 'freeze'"):
+        BridgeRtConfig(gc="never")
     code = bench_main(["perf", "--bridge-minutes", "1", "--out", str(tmp_path / "x")])
     assert code == 2
     assert "bridge_minutes=1" in capsys.readouterr().err
