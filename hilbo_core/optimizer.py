@@ -373,7 +373,11 @@ class HILOptimizer:
         # Training observations when self._hyp was fitted (None: never, or unknown after loading
         # an older state; either way the next proposal refits).
         self._n_at_fit: int | None = None
-        self._unit_cache: list[tuple[Evaluation, np.ndarray]] = []  # see _evaluation_units
+        # Unit-cube points of the first len(_units) evaluations, and the last of them (see
+        # _evaluation_units): one array, so a pickled optimizer (the bridge's proposal worker
+        # receives one per proposal) carries one array, not one small array per evaluation.
+        self._units: np.ndarray = np.empty((0, space.dim))
+        self._units_last: Evaluation | None = None
         self._incumbent: tuple[dict[str, float], float, float] | None = None
         self._opt_breaths = 0
         self._opt_seconds = 0.0
@@ -665,12 +669,15 @@ class HILOptimizer:
         again at every proposal (twice: training set and incumbent) took ≈ 10 % of a profiled
         586-evaluation stopping trial once hyperparameters were no longer refitted every time.
         """
-        cache, evals = self._unit_cache, self._evaluations
-        if len(cache) > len(evals) or (cache and cache[-1][0] is not evals[len(cache) - 1]):
-            cache.clear()  # the evaluation list was replaced (never in normal use)
-        for e in evals[len(cache):]:
-            cache.append((e, self.space.to_unit(self.space.from_dict(e.params))))
-        return np.array([u for _, u in cache], dtype=float).reshape(len(evals), self.space.dim)
+        evals, n, d = self._evaluations, len(self._units), self.space.dim
+        if n > len(evals) or (n and self._units_last is not evals[n - 1]):
+            # the evaluation list was replaced (never in normal use)
+            self._units, self._units_last, n = np.empty((0, d)), None, 0
+        if len(evals) > n:
+            new = np.array([self.space.to_unit(self.space.from_dict(e.params)) for e in evals[n:]],
+                           dtype=float).reshape(len(evals) - n, d)
+            self._units, self._units_last = np.concatenate([self._units, new]), evals[-1]
+        return self._units.copy()
 
     def _training_set(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         xs = np.array([self.space.from_dict(p.params) for p in self._priors], dtype=float)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import copy
 import dataclasses
 import os
@@ -41,6 +42,21 @@ async def test_ask_and_fit_give_what_the_optimizer_gives_in_place(kind: WorkerKi
     assert got_opt is not opt and opt.current_params is None  # the caller's copy is untouched
     assert hyp == fit_hyperparameters(fit)
     assert worker.lost is None
+
+
+@pytest.mark.parametrize("kind", list(WorkerKind))
+async def test_one_turn_of_the_loop_hands_the_request_to_the_worker(kind: WorkerKind) -> None:
+    """The session relies on it: after a stop decision it yields once, then logs for
+    milliseconds without yielding; the worker must already be computing meanwhile."""
+    block_s = 0.5
+    async with ProposalWorker(kind) as worker:
+        await worker.worker_pid()  # started and serving
+        task = worker.start_ask(optimizer())
+        await asyncio.sleep(0)
+        time.sleep(block_s)  # the session's synchronous logging, exaggerated
+        asked = await task
+    # Handed over before the block: received within it, not after it.
+    assert asked.to_worker_s < block_s / 2
 
 
 async def test_the_process_worker_runs_in_another_process() -> None:
