@@ -1,12 +1,13 @@
 """When CPython's cyclic garbage collector may stop the session's event loop.
 
 Why: a full ("generation 2") collection walks every container object the interpreter tracks,
-holding the GIL. After the bridge's imports (numpy, scipy, cantools, mcap, python-can) that is
-about 93 000 objects, and one full collection took 40–56 ms on the lab-PC stand-in of
-docs/results.md §3 (measured there). CPython starts one by itself whenever enough objects have
-survived younger collections, and 2000 CAN frames/s of force feedback allocate enough for one
-every few minutes, at a moment nothing chooses: ``scripts/loop_lag_probe.py`` found a 52 ms
-event-loop stall that was exactly such a collection. A stall of that length stretches a paced
+holding the GIL. After a session's imports (numpy, scipy, cantools, mcap, python-can) that is
+about 85 000 objects; one full collection took 20–56 ms on this project's test machine, and
+37–66 ms inside real-time sessions (docs/results.md §3, "Bridge at real time", with the
+commands). CPython starts one by itself whenever enough objects have survived younger
+collections, and 2000 CAN frames/s of force feedback allocate enough for one every few minutes,
+at a moment nothing chooses: an instrumented ``scripts/loop_lag_probe.py`` run found a 53.6 ms
+event-loop stall that was a 52.4 ms collection. A stall of that length stretches a paced
 profile transfer (issue 6: stop decision → commit on the bus within 100 ms) and delays the
 watchdog's assistance-off by as much.
 

@@ -141,6 +141,18 @@ class _Sample:
     lost: int
     threads: dict[int, float]
     worker_cpu_s: float  # the proposal worker process's CPU so far (0 without one)
+    steal_s: float | None = None  # the machine's CPU steal so far, all CPUs (/proc/stat), or None
+
+
+def _steal_s(stat_path: str | Path = "/proc/stat") -> float | None:
+    """CPU time (s, summed over the CPUs) the hypervisor gave to others while this virtual
+    machine wanted it: the ``steal`` field of /proc/stat's ``cpu`` line; None where unreadable."""
+    tick = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+    try:
+        fields = Path(stat_path).read_text().split("\n", 1)[0].split()
+        return int(fields[8]) / tick if fields[0] == "cpu" and len(fields) > 8 else None
+    except (OSError, ValueError):
+        return None
 
 
 def _stat_cpu_s(stat_path: str | Path) -> float | None:
@@ -190,7 +202,8 @@ async def _measure(cfg: BridgeRtConfig, out: Path) -> dict[str, Any]:
         worker = (_stat_cpu_s(f"/proc/{pid}/stat") if pid is not None else None) or 0.0
         held["worker_cpu_s"] = max(held.get("worker_cpu_s", 0.0), worker)
         return _Sample(time.perf_counter(), time.process_time(), int(exo.stats.get("feedback_sent", 0)),
-                       s.device.feedback_frames, s.device.feedback_lost, _thread_cpu_s(), worker)
+                       s.device.feedback_frames, s.device.feedback_lost, _thread_cpu_s(), worker,
+                       _steal_s())
 
     async def sampler(session: BridgeSession) -> None:
         # Only while the session runs its protocol: its feedback task ends once the budget is
@@ -282,6 +295,11 @@ def _window(samples: list[_Sample], n_streams: int, target_hz: float,
         "cores": (b.cpu_s - a.cpu_s + b.worker_cpu_s - a.worker_cpu_s) / dt,
         "worker_cores": (b.worker_cpu_s - a.worker_cpu_s) / dt,
         "threads": dict(sorted(threads.items(), key=lambda kv: -kv[1]["cpu_s"])),
+        # CPU the hypervisor took from this machine (cores, all CPUs together): in the window, and
+        # the most in one sampling interval. Slow stretches with steal are not the bridge's.
+        "steal_cores": None if a.steal_s is None or b.steal_s is None else (b.steal_s - a.steal_s) / dt,
+        "steal_cores_max": max(((q.steal_s - p.steal_s) / (q.wall_s - p.wall_s) for p, q in pairs
+                                if p.steal_s is not None and q.steal_s is not None), default=None),
     }
 
 
@@ -405,13 +423,16 @@ def bridge_realtime(cfg: BridgeRtConfig, out: Path | None = None) -> dict[str, A
             "logged_to_mcap": logged["feedback_logged"],
             "logged_per_actuator": logged["feedback_logged_per_actuator"],
             "not_logged": not_logged,
-            "window": {k: v for k, v in window.items() if k not in ("cores", "threads", "worker_cores")},
+            "window": {k: v for k, v in window.items()
+                       if k not in ("cores", "threads", "worker_cores", "steal_cores", "steal_cores_max")},
         },
         "cpu": {
             "process_cpu_s": raw["cpu_s"],
             "worker_cpu_s": raw["worker_cpu_s"],
             "proposal_worker": session.settings.proposal_worker.value,
             "worker_cores_in_window": window.get("worker_cores"),
+            "machine_steal_cores_in_window": window.get("steal_cores"),
+            "machine_steal_cores_max_interval": window.get("steal_cores_max"),
             "cores": cores,
             "cores_in_window": window.get("cores"),
             "threads_in_window": window.get("threads"),
@@ -488,4 +509,9 @@ def bridge_table(result: dict[str, Any]) -> str:
         rows.append(["CPU of the bridge, estimated (process in the window − the virtual exosuit alone)",
                      f"{cpu['bridge_estimate_cores']:.3f} cores ({cpu['cores_in_window']:.3f} − "
                      f"{alone['cores']:.3f}, exosuit alone for {alone['seconds']:.0f} s)", "–", "–"])
+    if cpu.get("machine_steal_cores_in_window") is not None:
+        rows.append(["CPU stolen from this virtual machine by its host (/proc/stat steal), mean and "
+                     "the most in one sampling interval",
+                     f"{cpu['machine_steal_cores_in_window']:.3f} cores, "
+                     f"{cpu['machine_steal_cores_max_interval'] or 0.0:.3f} cores", "–", "–"])
     return markdown_table(["measurement", "value", "target", "met"], rows)

@@ -6,6 +6,7 @@ Only structure and invariants are asserted, never wall times: the numbers depend
 from __future__ import annotations
 
 import json
+import os
 
 import pytest
 
@@ -62,6 +63,8 @@ def _check(b: dict, cfg: BridgeRtConfig) -> None:
         estimate = cpu["cores_in_window"] - alone["cores"]
         assert cpu["bridge_estimate_cores"] == pytest.approx(estimate, abs=1e-5)
     assert b["targets"] == BRIDGE_TARGETS
+    if cpu["machine_steal_cores_in_window"] is not None:  # Linux: /proc/stat
+        assert 0 <= cpu["machine_steal_cores_in_window"] <= cpu["machine_steal_cores_max_interval"] + 1e-9
     g = b["gc"]
     assert g["mode"] == cfg.gc
     # FREEZE collects at every applied profile; AUTOMATIC leaves it to CPython (none of ours).
@@ -104,6 +107,18 @@ def test_perf_cli_with_bridge_minutes_writes_perf_and_perf_bridge_json(tmp_path)
     assert (out / "bridge_session" / "session.mcap").exists()
     assert "The bridge at real time" in (out / "perf_table.md").read_text()
     assert "stop decision → device ack" in (out / "perf_bridge_table.md").read_text()
+
+
+def test_steal_is_read_from_the_cpu_line_of_proc_stat(tmp_path) -> None:
+    from bridge.bench.bridge_perf import _steal_s
+
+    stat = tmp_path / "stat"
+    tick = os.sysconf("SC_CLK_TCK")
+    stat.write_text(f"cpu  10 0 5 900 1 0 2 {3 * tick} 0 0\ncpu0 5 0 2 450 0 0 1 0 0 0\n")
+    assert _steal_s(stat) == pytest.approx(3.0)
+    stat.write_text("intr 1 2 3\n")
+    assert _steal_s(stat) is None
+    assert _steal_s(tmp_path / "missing") is None
 
 
 def test_perf_without_bridge_minutes_skips_it(tmp_path) -> None:
