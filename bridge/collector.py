@@ -168,8 +168,7 @@ class Collector:
             return
         if self._ours:
             return
-        gen = int(info.get("generation", 0))
-        if 0 <= gen <= 2:
-            self.stats.automatic[gen] += 1
-            self.stats.automatic_max_ms[gen] = max(self.stats.automatic_max_ms[gen],
-                                                   1e3 * (time.perf_counter() - self._t0))
+        gen = info["generation"]  # 0, 1 or 2
+        self.stats.automatic[gen] += 1
+        self.stats.automatic_max_ms[gen] = max(self.stats.automatic_max_ms[gen],
+                                               1e3 * (time.perf_counter() - self._t0))

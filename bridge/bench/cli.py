@@ -19,6 +19,7 @@ from typing import Any
 from rich.console import Console
 
 from bridge.bench.common import choices, machine_info, numbers, round_sig, write_json
+from bridge.collector import GcMode
 from hilbo_core.benchmarks import FUNCTIONS, METHODS, NOISE_LEVELS, StoppingProtocol
 from hilbo_core.errors import ConfigError, HilboError
 
@@ -457,7 +458,7 @@ def add_bench_parser(subparsers: Any) -> Any:
     pf.add_argument("--bridge-baseline-s", type=float, default=30.0, metavar="S",
                     help="then run the virtual exosuit alone for S s: the process's CPU minus the "
                          "device's estimates the bridge's own share (30; 0 = skip)")
-    pf.add_argument("--bridge-gc", choices=("freeze", "automatic"), default="freeze",
+    pf.add_argument("--bridge-gc", choices=[m.value for m in GcMode], default=GcMode.FREEZE.value,
                     help="that session's [protocol] gc: full garbage collections at quiet points "
                          "(freeze, the default) or whenever Python decides (automatic)")
     pf.add_argument("--out", default="runs/bench/perf", help="output directory")
