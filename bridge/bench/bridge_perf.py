@@ -1,9 +1,11 @@
 """``hilbo bench perf --bridge-minutes M``: the bridge at real time (issue 6).
 
 A short :func:`bridge.sim.run_virtual_sim` session at ``speed`` (1 = real time) with the virtual
-exosuit sending force feedback of both actuators at ``feedback_hz`` (1 kHz) and a protocol cut
-down so that profile pushes come often (2 exploration points, N = 10 breaths, 20 s warm-ups),
-measuring what issue 6 asks for:
+exosuit sending force feedback of both actuators at ``feedback_hz`` (1 kHz), with one of two
+protocols (:class:`BridgeProtocol`): ``quick``, cut down so that profile pushes come often (2
+exploration points, N = 10 breaths, 20 s warm-ups), or ``lab``, the lab's own (seed 000 §IV.A.3,
+as in ``hilbo config example``: 6 exploration points, N = 45, 180 s warm-ups), measuring what
+issue 6 asks for:
 
 * **stop → ack latency** — wall time from the stopping rule's decision (the breath's
   ``observe_breath`` returning *stop*) to the device's ack of the commit of the next setting's
@@ -53,8 +55,9 @@ import threading
 import time
 import uuid
 from dataclasses import asdict, dataclass
+from enum import StrEnum
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import can
 import numpy as np
@@ -69,11 +72,41 @@ from hilbo_core.errors import ConfigError
 from virtual_hw.clock import ScaledClock
 from virtual_hw.exosuit import SUIT_JOINTS, VirtualExosuit
 
-__all__ = ["BRIDGE_TARGETS", "BridgeRtConfig", "bridge_realtime", "bridge_table"]
+__all__ = ["BRIDGE_TARGETS", "BridgeProtocol", "BridgeRtConfig", "bridge_realtime", "bridge_table"]
 
 #: Issue 6: p99 of stop → committed under 100 ms at speed 1; 2 × 1 kHz feedback plus logging
 #: without dropping frames, under half a core.
 BRIDGE_TARGETS = {"stop_to_ack_p99_ms": 100.0, "cores": 0.5, "dropped_frames": 0}
+
+
+class BridgeProtocol(StrEnum):
+    """The real-time session's protocol."""
+
+    #: 2 exploration points, N = 10, 20 s warm-ups: a stop decision every ~20 s, many per minute.
+    QUICK = "quick"
+    #: The lab's own (seed 000 §IV.A.3, ``hilbo config example``, :class:`~bridge.sim.VirtualSimConfig`'s
+    #: defaults): 6 exploration points, N = 45, 180 s warm-ups; the GP sizes of a real session.
+    LAB = "lab"
+
+    def settings(self) -> dict[str, Any]:
+        """``n_explore``, ``max_breaths`` and ``warmup_s`` of this protocol."""
+        if self is BridgeProtocol.QUICK:
+            return {"n_explore": 2, "max_breaths": 10, "warmup_s": 20.0}
+        lab = VirtualSimConfig()
+        return {"n_explore": lab.n_explore, "max_breaths": lab.max_breaths, "warmup_s": lab.warmup_s}
+
+    @classmethod
+    def parse(cls, value: str) -> BridgeProtocol:
+        """The protocol named ``value``.
+
+        Raises:
+            ConfigError: Not one of the names.
+        """
+        try:
+            return cls(value)
+        except ValueError as err:
+            raise ConfigError(f"bridge protocol={value!r}; expected one of "
+                              f"{[p.value for p in cls]}") from err
 
 
 @dataclass(frozen=True)
@@ -85,7 +118,8 @@ class BridgeRtConfig:
             also the wall time.
         speed: Real-time factor of the simulated clock (1 = real time, what issue 6 asks).
         feedback_hz: Force-feedback rate per actuator (Hz, wall clock).
-        n_explore: Exploration points.
+        n_explore: Exploration points (the ``quick`` protocol's by default; see
+            :meth:`for_protocol`).
         max_breaths: N, breaths per evaluation at most.
         warmup_s: Each bout's warm-up (breath time, s).
         seed: Subject and optimizer seed.
@@ -121,6 +155,22 @@ class BridgeRtConfig:
             raise ConfigError(f"bridge preset={self.preset!r}; expected one of {sorted(SUIT_JOINTS)}")
         self.sim_config()  # minutes vs the protocol (names the offending value)
 
+    @classmethod
+    def for_protocol(cls, protocol: BridgeProtocol | str, **kwargs: Any) -> BridgeRtConfig:
+        """A session with ``protocol``'s exploration points, N and warm-ups; ``kwargs`` the rest.
+
+        Raises:
+            ConfigError: An unknown protocol, or a bad value in ``kwargs``.
+        """
+        p = protocol if isinstance(protocol, BridgeProtocol) else BridgeProtocol.parse(protocol)
+        return cls(**(kwargs | p.settings()))
+
+    @property
+    def protocol(self) -> str:
+        """The name of the protocol this session's n_explore, N and warm-ups are, or ``custom``."""
+        mine = {"n_explore": self.n_explore, "max_breaths": self.max_breaths, "warmup_s": self.warmup_s}
+        return next((p.value for p in BridgeProtocol if p.settings() == mine), "custom")
+
     def sim_config(self) -> VirtualSimConfig:
         """The :class:`~bridge.sim.VirtualSimConfig` of this session."""
         sim = VirtualSimConfig(minutes=self.minutes, seed=self.seed, speed=self.speed, preset=self.preset,
@@ -142,6 +192,7 @@ class _Sample:
     threads: dict[int, float]
     worker_cpu_s: float  # the proposal worker process's CPU so far (0 without one)
     steal_s: float | None = None  # the machine's CPU steal so far, all CPUs (/proc/stat), or None
+    unix_ns: int = 0  # time.time_ns(): the session log's log_time clock, to place pushes
 
 
 def _steal_s(stat_path: str | Path = "/proc/stat") -> float | None:
@@ -203,7 +254,7 @@ async def _measure(cfg: BridgeRtConfig, out: Path) -> dict[str, Any]:
         held["worker_cpu_s"] = max(held.get("worker_cpu_s", 0.0), worker)
         return _Sample(time.perf_counter(), time.process_time(), int(exo.stats.get("feedback_sent", 0)),
                        s.device.feedback_frames, s.device.feedback_lost, _thread_cpu_s(), worker,
-                       _steal_s())
+                       _steal_s(), time.time_ns())
 
     async def sampler(session: BridgeSession) -> None:
         # Only while the session runs its protocol: its feedback task ends once the budget is
@@ -307,20 +358,26 @@ def _window(samples: list[_Sample], n_streams: int, target_hz: float,
 _WARM_UP_EVENTS = frozenset({"pause", "bout_pause", "resume"})
 
 
+class _Push(NamedTuple):
+    """One accepted push in the session log."""
+
+    after_stop: bool  # answers a stop decision (an /observations message since the last warm-up)
+    ask_ms: float  # the ask as the session saw it (/proposals total_ms; NaN in logs without it)
+    compute_ms: float  # ask() itself in the worker (/proposals compute_ms)
+    transfer_ms: float  # first segment → ack (the ack's elapsed_s)
+    acked_ns: int  # the ack's log_time (time.time_ns() at the bridge)
+
+
 def _log_counts(path: Path) -> dict[str, Any]:
     """Force-feedback samples, events and the pushes in the session log.
 
-    Each accepted push gives ``(after_stop, ask_ms, compute_ms, transfer_ms)``: whether it
-    answers a stop decision (an ``/observations`` message since the last warm-up), the ask as
-    the session saw it and inside the worker (the ``/proposals`` message's ``total_ms`` and
-    ``compute_ms``; NaN in logs without them), and the transfer alone (the ack's ``elapsed_s``:
-    first segment → ack).
+    Each accepted push gives a :class:`_Push`.
     """
     topics = [Topic.FORCE_FEEDBACK, Topic.ACKS, Topic.EVENTS, Topic.OBSERVATIONS, Topic.PROPOSALS]
     contents = read_log(path, topics=topics)
     per_act: collections.Counter[str] = collections.Counter()
     events: collections.Counter[str] = collections.Counter()
-    pushes: list[tuple[bool, float, float, float]] = []
+    pushes: list[_Push] = []
     after_stop = False
     ask_ms = compute_ms = math.nan
     for m in contents.messages:
@@ -336,29 +393,68 @@ def _log_counts(path: Path) -> dict[str, Any]:
             ask_ms = float(m.data.get("total_ms", math.nan))
             compute_ms = float(m.data.get("compute_ms", math.nan))
         elif m.topic == Topic.ACKS and m.data.get("accepted") and m.data.get("elapsed_s") is not None:
-            pushes.append((after_stop, ask_ms, compute_ms, 1e3 * float(m.data["elapsed_s"])))
+            pushes.append(_Push(after_stop, ask_ms, compute_ms, 1e3 * float(m.data["elapsed_s"]),
+                                m.log_time_ns))
             after_stop, ask_ms, compute_ms = False, math.nan, math.nan
     return {"feedback_logged": sum(per_act.values()), "feedback_logged_per_actuator": dict(per_act),
             "pushes": pushes, "events": dict(events)}
 
 
-def _breakdown(stop_ms: list[float], pushes: list[tuple[bool, float, float, float]]) -> dict[str, Any] | None:
+def _steal_around(samples: list[_Sample], start_ns: int, end_ns: int) -> float | None:
+    """The most CPU (cores) the host stole from this machine in a sampling interval that overlaps
+    ``[start_ns, end_ns]`` (wall clock); None without /proc/stat or samples around it."""
+    worst = None
+    for p, q in itertools.pairwise(samples):
+        if (q.unix_ns >= start_ns and p.unix_ns <= end_ns and q.wall_s > p.wall_s
+                and p.steal_s is not None and q.steal_s is not None):
+            v = (q.steal_s - p.steal_s) / (q.wall_s - p.wall_s)
+            worst = v if worst is None else max(worst, v)
+    return worst
+
+
+def _breakdown(stop_ms: list[float], pushes: list[_Push],
+               samples: list[_Sample] | None = None) -> dict[str, Any] | None:
     """Split every stop → ack latency into the ask (started at the decision, in the worker:
     ``ask_ms``, of which ``compute_ms`` is ``ask()`` itself), the transfer (first segment → ack)
     and the rest (everything else on the path: the decision's breath logging, the safety gate,
-    starting the push); None if the log's pushes and the session's latencies do not pair up."""
-    after = [(ask, compute, transfer) for stop, ask, compute, transfer in pushes if stop]
+    starting the push); None if the log's pushes and the session's latencies do not pair up.
+    With ``samples``, each push's row also has ``steal_cores``: what the host took from this
+    virtual machine around it (:func:`_steal_around`), to tell its slow stretches from ours."""
+    after = [p for p in pushes if p.after_stop]
     if len(after) != len(stop_ms) or not stop_ms:
         return None
-    rest = [total - ask - transfer for total, (ask, _, transfer) in zip(stop_ms, after, strict=True)]
-    return {"ask_ms": _quantiles([a for a, _, _ in after]),
-            "compute_ms": _quantiles([c for _, c, _ in after]),
-            "transfer_ms": _quantiles([t for _, _, t in after]),
+    rest = [total - p.ask_ms - p.transfer_ms for total, p in zip(stop_ms, after, strict=True)]
+    rows = []
+    for total, p, r in zip(stop_ms, after, rest, strict=True):
+        row: dict[str, Any] = {"total": round(total, 2), "ask": round(p.ask_ms, 2),
+                               "compute": round(p.compute_ms, 2), "transfer": round(p.transfer_ms, 2),
+                               "rest": round(r, 2)}
+        if samples:
+            steal = _steal_around(samples, p.acked_ns - round(total * 1e6), p.acked_ns)
+            row["steal_cores"] = None if steal is None else round(steal, 3)
+        rows.append(row)
+    return {"ask_ms": _quantiles([p.ask_ms for p in after]),
+            "compute_ms": _quantiles([p.compute_ms for p in after]),
+            "transfer_ms": _quantiles([p.transfer_ms for p in after]),
             "rest_ms": _quantiles(rest),
             # Each stop decision's parts, in session order: which part a slow one spent its time in.
-            "per_push_ms": [{"total": round(total, 2), "ask": round(ask, 2), "compute": round(compute, 2),
-                             "transfer": round(transfer, 2), "rest": round(r, 2)}
-                            for total, (ask, compute, transfer), r in zip(stop_ms, after, rest, strict=True)]}
+            "per_push_ms": rows}
+
+
+def _slow(breakdown: dict[str, Any] | None) -> dict[str, Any] | None:
+    """How many stop decisions missed the target, and the host's steal around them and around
+    all of them (median cores; None without steal readings)."""
+    if breakdown is None:
+        return None
+    rows, limit = breakdown["per_push_ms"], BRIDGE_TARGETS["stop_to_ack_p99_ms"]
+
+    def median_steal(rs: list[dict[str, Any]]) -> float | None:
+        v = [r["steal_cores"] for r in rs if r.get("steal_cores") is not None]
+        return float(np.median(v)) if v else None
+
+    slow = [r for r in rows if r["total"] > limit]
+    return {"over_ms": limit, "n": len(slow), "of": len(rows), "steal_median_cores": median_steal(slow),
+            "steal_median_cores_all": median_steal(rows)}
 
 
 def bridge_realtime(cfg: BridgeRtConfig, out: Path | None = None) -> dict[str, Any]:
@@ -402,6 +498,7 @@ def bridge_realtime(cfg: BridgeRtConfig, out: Path | None = None) -> dict[str, A
     }
     return {
         "config": asdict(cfg),
+        "protocol": cfg.protocol,
         "actuators": n_act,
         "joints": list(SUIT_JOINTS[cfg.preset]),
         "load_average_at_start": list(raw["load"][0]),
@@ -412,9 +509,10 @@ def bridge_realtime(cfg: BridgeRtConfig, out: Path | None = None) -> dict[str, A
         "n_breaths": summary["n_breaths"],
         "stop_to_ack_ms": stop,
         "push_latency_ms": summary.get("push_latency_ms"),
-        "push_only_ms": _quantiles([t for *_, t in logged["pushes"]]),
+        "push_only_ms": _quantiles([p.transfer_ms for p in logged["pushes"]]),
         "stop_to_ack_samples_ms": stop_samples,
-        "stop_to_ack_breakdown": _breakdown(stop_samples, logged["pushes"]),
+        "stop_to_ack_breakdown": (bd := _breakdown(stop_samples, logged["pushes"], raw["samples"])),
+        "slow_stop_decisions": _slow(bd),
         "force_feedback": {
             "device_sent_total": int(exo.stats.get("feedback_sent", 0)),
             "bridge_received_total": received_total,
@@ -467,7 +565,13 @@ def bridge_table(result: dict[str, Any]) -> str:
     fb, cpu, met = result["force_feedback"], result["cpu"], result["met"]
     w = fb["window"]
     rate = w.get("rate_hz")
+    c = result["config"]
     rows = [
+        ["session", f"{c['minutes']:g} min at speed {c['speed']:g}, protocol "
+                    f"{result.get('protocol', 'custom')} ({c['n_explore']} exploration points, "
+                    f"N = {c['max_breaths']}, {c['warmup_s']:g} s warm-ups): "
+                    f"{result['n_evaluations']} evaluations, {result['n_early_stops']} early stops",
+         "–", "–"],
         ["stop decision → device ack of the next profile", q(result["stop_to_ack_ms"]),
          f"p99 < {BRIDGE_TARGETS['stop_to_ack_p99_ms']:g} ms", yes(met["stop_to_ack_p99_ms"])],
         *([[label, q(bd[key]), "–", "–"] for key, label in (
@@ -479,6 +583,12 @@ def bridge_table(result: dict[str, Any]) -> str:
             ("rest_ms", "… of which the rest (the decision's logging, the safety gate, starting "
                         "the push)"))]
           if (bd := result.get("stop_to_ack_breakdown")) else []),
+        *([[f"stop decisions over {slow['over_ms']:g} ms; the host's steal around them (median) "
+            "and around all", f"{slow['n']} of {slow['of']}; "
+            + ("–" if slow["steal_median_cores"] is None else f"{slow['steal_median_cores']:.3f} cores")
+            + ("" if slow["steal_median_cores_all"] is None
+               else f", all {slow['steal_median_cores_all']:.3f} cores"), "–", "–"]]
+          if (slow := result.get("slow_stop_decisions")) else []),
         *([["garbage collections started by Python (gen 0/1/2) and the longest",
              " / ".join(f"{n} ({m:.1f} ms)" for n, m in zip(g["automatic"], g["automatic_max_ms"],
                                                            strict=True))

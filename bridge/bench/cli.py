@@ -18,6 +18,7 @@ from typing import Any
 
 from rich.console import Console
 
+from bridge.bench.bridge_perf import BridgeProtocol
 from bridge.bench.common import choices, machine_info, numbers, round_sig, write_json
 from bridge.collector import GcMode
 from hilbo_core.benchmarks import FUNCTIONS, METHODS, NOISE_LEVELS, StoppingProtocol
@@ -297,7 +298,7 @@ def _cmd_perf(args: argparse.Namespace) -> int:
     cfg = PerfConfig(breaths=args.breaths, sizes=tuple(sizes), reps=args.reps, sessions=args.sessions,
                      seed=args.seed, bridge_minutes=args.bridge_minutes, bridge_speed=args.bridge_speed,
                      bridge_feedback_hz=args.bridge_feedback_hz, bridge_baseline_s=args.bridge_baseline_s,
-                     bridge_gc=args.bridge_gc)
+                     bridge_gc=args.bridge_gc, bridge_protocol=args.bridge_protocol)
     console = _console()
     console.print("hilbo bench perf: timing breath, proposal and session (in this process)"
                   + (f", then the bridge at real time for {cfg.bridge_minutes:g} min"
@@ -308,7 +309,8 @@ def _cmd_perf(args: argparse.Namespace) -> int:
                          f"--reps {cfg.reps} --sessions {cfg.sessions} --seed {cfg.seed}"
                          + (f" --bridge-minutes {cfg.bridge_minutes:g} --bridge-speed {cfg.bridge_speed:g} "
                             f"--bridge-feedback-hz {cfg.bridge_feedback_hz:g} "
-                            f"--bridge-baseline-s {cfg.bridge_baseline_s:g} --bridge-gc {cfg.bridge_gc}"
+                            f"--bridge-baseline-s {cfg.bridge_baseline_s:g} --bridge-gc {cfg.bridge_gc} "
+                            f"--bridge-protocol {cfg.bridge_protocol}"
                             if cfg.bridge_minutes > 0 else "")
                          + f" --out {args.out}")
     result["machine"] = machine_info()
@@ -436,7 +438,8 @@ def add_bench_parser(subparsers: Any) -> Any:
                          description="Latency of one breath, one proposal and a 60-minute simulated session. "
                                      "With --bridge-minutes M > 0 also the bridge at real time (issue 6): an "
                                      "M-minute hilbo-sim session at speed 1 (hip_6d, 2 actuators × 1 kHz "
-                                     "force feedback, 2 exploration points, N = 10, 20 s warm-ups) reporting "
+                                     "force feedback; --bridge-protocol quick: 2 exploration points, N = 10, "
+                                     "20 s warm-ups, or lab: 6, N = 45, 180 s) reporting "
                                      "stop decision → device ack latency, feedback frames sent / received / "
                                      "lost / logged, the achieved feedback rate and the process's CPU in "
                                      "cores (devices included: an upper bound); also written to "
@@ -461,6 +464,11 @@ def add_bench_parser(subparsers: Any) -> Any:
     pf.add_argument("--bridge-gc", choices=[m.value for m in GcMode], default=GcMode.FREEZE.value,
                     help="that session's [protocol] gc: full garbage collections at quiet points "
                          "(freeze, the default) or whenever Python decides (automatic)")
+    pf.add_argument("--bridge-protocol", choices=[p.value for p in BridgeProtocol],
+                    default=BridgeProtocol.QUICK.value,
+                    help="that session's protocol: quick (2 exploration points, N = 10, 20 s warm-ups: "
+                         "many stop decisions per minute; the default) or lab (the lab's own: 6, "
+                         "N = 45, 180 s warm-ups; needs --bridge-minutes of at least 20.5)")
     pf.add_argument("--out", default="runs/bench/perf", help="output directory")
     pf.set_defaults(func=_cmd_perf)
     return bsub

@@ -77,6 +77,8 @@ class PerfConfig:
         bridge_baseline_s: How long the virtual exosuit then runs alone, for the bridge's share of
             the CPU (wall s; 0 = skip).
         bridge_gc: That session's garbage-collection policy (``freeze`` or ``automatic``).
+        bridge_protocol: That session's protocol (:class:`~bridge.bench.bridge_perf.BridgeProtocol`:
+            ``quick``, many stop decisions per minute, or ``lab``, the lab's own).
     """
 
     breaths: int = 1500
@@ -90,6 +92,7 @@ class PerfConfig:
     bridge_feedback_hz: float = 1000.0
     bridge_baseline_s: float = 30.0
     bridge_gc: str = "freeze"
+    bridge_protocol: str = "quick"
 
     def __post_init__(self) -> None:
         for name, low in (("breaths", 10), ("reps", 1), ("sessions", 0), ("seed", 0)):
@@ -113,9 +116,10 @@ class PerfConfig:
 
     def bridge_config(self) -> BridgeRtConfig:
         """The real-time bridge session of this benchmark."""
-        return BridgeRtConfig(minutes=self.bridge_minutes, speed=self.bridge_speed,
-                              feedback_hz=self.bridge_feedback_hz, seed=self.seed,
-                              baseline_s=self.bridge_baseline_s, gc=self.bridge_gc)
+        return BridgeRtConfig.for_protocol(self.bridge_protocol, minutes=self.bridge_minutes,
+                                           speed=self.bridge_speed, feedback_hz=self.bridge_feedback_hz,
+                                           seed=self.seed, baseline_s=self.bridge_baseline_s,
+                                           gc=self.bridge_gc)
 
 
 def _quantiles_ms(samples_ns: Sequence[int], q: float, cpu_ns: Sequence[int] = ()) -> dict[str, float]:

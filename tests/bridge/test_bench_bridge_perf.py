@@ -10,7 +10,15 @@ import os
 
 import pytest
 
-from bridge.bench.bridge_perf import BRIDGE_TARGETS, BridgeRtConfig, bridge_realtime, bridge_table
+from bridge.bench.bridge_perf import (
+    BRIDGE_TARGETS,
+    BridgeProtocol,
+    BridgeRtConfig,
+    _Sample,
+    _steal_around,
+    bridge_realtime,
+    bridge_table,
+)
 from bridge.bench.cli import bench_main
 from bridge.bench.perf import PerfConfig
 from hilbo_core.errors import ConfigError
@@ -39,6 +47,11 @@ def _check(b: dict, cfg: BridgeRtConfig) -> None:
     assert [r["total"] for r in rows] == [round(x, 2) for x in b["stop_to_ack_samples_ms"]]
     for r in rows:
         assert r["ask"] + r["transfer"] + r["rest"] == pytest.approx(r["total"], abs=0.03)
+        assert r["steal_cores"] is None or r["steal_cores"] >= 0
+    slow = b["slow_stop_decisions"]
+    assert slow["of"] == len(rows) and slow["over_ms"] == BRIDGE_TARGETS["stop_to_ack_p99_ms"]
+    assert slow["n"] == sum(r["total"] > slow["over_ms"] for r in rows)
+    assert b["protocol"] == cfg.protocol
     assert bd["transfer_ms"]["median"] > 0 and 0 < bd["compute_ms"]["median"] <= bd["ask_ms"]["median"]
     assert bd["ask_ms"]["max"] + bd["transfer_ms"]["max"] + bd["rest_ms"]["max"] >= b["stop_to_ack_ms"]["max"]
     assert b["cpu"]["proposal_worker"] == "process" and b["cpu"]["worker_cpu_s"] >= 0
@@ -81,6 +94,8 @@ def test_toy_real_time_session_reports_latency_frames_and_cpu(tmp_path) -> None:
     assert summary["stop_to_ack_ms"]["n"] == b["stop_to_ack_ms"]["n"]
     table = bridge_table(b)
     assert "| stop decision → device ack of the next profile |" in table
+    assert "protocol custom (2 exploration points, N = 6, 5 s warm-ups)" in table
+    assert "stop decisions over 100 ms" in table
     assert "< 0.5 core" in table
     assert f"at quiet points {b['gc']['quiet_points']} " in table and "[freeze]" in table
 
@@ -90,7 +105,8 @@ def test_perf_cli_with_bridge_minutes_writes_perf_and_perf_bridge_json(tmp_path)
     out = tmp_path / "perf"
     code = bench_main(["perf", "--breaths", "10", "--sizes", "3", "--reps", "1", "--sessions", "0",
                        "--bridge-minutes", "2.7", "--bridge-speed", "60", "--bridge-feedback-hz", "500",
-                       "--bridge-baseline-s", "0", "--bridge-gc", "automatic", "--out", str(out)])
+                       "--bridge-baseline-s", "0", "--bridge-gc", "automatic", "--bridge-protocol", "quick",
+                       "--out", str(out)])
     assert code == 0
     perf = json.loads((out / "perf.json").read_text())
     for key in ("benchmark", "config", "load_average_at_start", "breath_latency_ms", "proposal_latency_ms",
@@ -98,11 +114,12 @@ def test_perf_cli_with_bridge_minutes_writes_perf_and_perf_bridge_json(tmp_path)
                 "machine", "bridge_realtime"):
         assert key in perf, key
     assert ("--bridge-minutes 2.7 --bridge-speed 60 --bridge-feedback-hz 500 --bridge-baseline-s 0 "
-            "--bridge-gc automatic") in perf["command"]
+            "--bridge-gc automatic --bridge-protocol quick") in perf["command"]
     small = json.loads((out / "perf_bridge.json").read_text())
     assert small["benchmark"] == "perf-bridge" and small["command"] == perf["command"]
     cfg = BridgeRtConfig(minutes=2.7, speed=60.0, feedback_hz=500.0, baseline_s=0.0, gc="automatic")
     _check(small, cfg)
+    assert small["protocol"] == "quick"
     assert small["cpu"]["device_alone"] is None and small["cpu"]["bridge_estimate_cores"] is None
     assert (out / "bridge_session" / "session.mcap").exists()
     assert "The bridge at real time" in (out / "perf_table.md").read_text()
@@ -119,6 +136,34 @@ def test_steal_is_read_from_the_cpu_line_of_proc_stat(tmp_path) -> None:
     stat.write_text("intr 1 2 3\n")
     assert _steal_s(stat) is None
     assert _steal_s(tmp_path / "missing") is None
+
+
+def _sample(wall_s: float, steal_s: float | None) -> _Sample:
+    return _Sample(wall_s, 0.0, 0, 0, 0, {}, 0.0, steal_s, unix_ns=round(1e9 * (1000 + wall_s)))
+
+
+def test_a_push_gets_the_worst_steal_of_the_sampling_intervals_it_overlaps() -> None:
+    # Intervals [0, 1] s: 0.1 cores, [1, 2]: 0.5, [2, 3]: 0.0.
+    samples = [_sample(0.0, 10.0), _sample(1.0, 10.1), _sample(2.0, 10.6), _sample(3.0, 10.6)]
+    ns = lambda t: round(1e9 * (1000 + t))  # noqa: E731
+    assert _steal_around(samples, ns(0.2), ns(0.3)) == pytest.approx(0.1)
+    assert _steal_around(samples, ns(0.9), ns(1.1)) == pytest.approx(0.5)  # spans two intervals
+    assert _steal_around(samples, ns(2.5), ns(2.6)) == pytest.approx(0.0)
+    assert _steal_around(samples, ns(5.0), ns(6.0)) is None  # after the last sample
+    assert _steal_around([_sample(0.0, None), _sample(1.0, None)], ns(0.2), ns(0.3)) is None
+
+
+def test_protocols_set_exploration_n_and_warm_ups() -> None:
+    lab = BridgeRtConfig.for_protocol("lab", minutes=60.0)
+    assert (lab.n_explore, lab.max_breaths, lab.warmup_s) == (6, 45, 180.0)  # seed 000 §IV.A.3
+    assert lab.protocol == "lab" and lab.minutes == 60.0
+    assert BridgeRtConfig().protocol == BridgeProtocol.QUICK.value
+    assert TOY.protocol == "custom"
+    assert PerfConfig(bridge_minutes=60.0, bridge_protocol="lab").bridge_config() == lab
+    with pytest.raises(ConfigError, match=r"protocol='lap'; expected one of \['quick', 'lab'\]"):
+        PerfConfig(bridge_minutes=60.0, bridge_protocol="lap")
+    with pytest.raises(ConfigError, match="minutes=10 leaves"):  # the lab's warm-ups + exploration
+        PerfConfig(bridge_minutes=10.0, bridge_protocol="lab")
 
 
 def test_perf_without_bridge_minutes_skips_it(tmp_path) -> None:
