@@ -11,6 +11,7 @@ import subprocess
 import sys
 import textwrap
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -68,6 +69,20 @@ async def test_the_process_worker_runs_in_another_process() -> None:
     async with ProposalWorker("thread") as worker:
         assert not worker.in_process and worker.pid is None
         assert await worker.worker_pid() == os.getpid()
+
+
+def _environ(pid: int) -> dict[str, str]:
+    raw = Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
+    return dict(item.decode().split("=", 1) for item in raw if b"=" in item)
+
+
+@pytest.mark.skipif(not Path("/proc/self/environ").exists(), reason="reads /proc/PID/environ")
+async def test_the_worker_process_runs_blas_single_threaded_unless_told_otherwise(monkeypatch) -> None:
+    monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
+    monkeypatch.setenv("OMP_NUM_THREADS", "2")  # the caller's explicit setting wins
+    async with ProposalWorker(WorkerKind.PROCESS) as worker:
+        env = _environ(await worker.worker_pid())
+    assert env["OPENBLAS_NUM_THREADS"] == "1" and env["OMP_NUM_THREADS"] == "2"
 
 
 async def test_errors_in_the_worker_are_raised_in_the_session() -> None:
