@@ -160,10 +160,15 @@ class BridgeRtConfig:
         """A session with ``protocol``'s exploration points, N and warm-ups; ``kwargs`` the rest.
 
         Raises:
-            ConfigError: An unknown protocol, or a bad value in ``kwargs``.
+            ConfigError: An unknown protocol, ``kwargs`` naming what the protocol sets, or a bad
+                value in ``kwargs``.
         """
         p = protocol if isinstance(protocol, BridgeProtocol) else BridgeProtocol.parse(protocol)
-        return cls(**(kwargs | p.settings()))
+        settings = p.settings()
+        if clash := sorted(set(kwargs) & set(settings)):
+            raise ConfigError(f"{clash} are set by the {p.value!r} protocol; leave them out or build "
+                              "BridgeRtConfig directly")
+        return cls(**kwargs, **settings)
 
     @property
     def protocol(self) -> str:

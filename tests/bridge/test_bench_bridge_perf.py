@@ -162,6 +162,8 @@ def test_protocols_set_exploration_n_and_warm_ups() -> None:
     assert PerfConfig(bridge_minutes=60.0, bridge_protocol="lab").bridge_config() == lab
     with pytest.raises(ConfigError, match=r"protocol='lap'; expected one of \['quick', 'lab'\]"):
         PerfConfig(bridge_minutes=60.0, bridge_protocol="lap")
+    with pytest.raises(ConfigError, match=r"\['max_breaths'\] are set by the 'lab' protocol"):
+        BridgeRtConfig.for_protocol("lab", minutes=60.0, max_breaths=30)
     with pytest.raises(ConfigError, match="minutes=10 leaves"):  # the lab's warm-ups + exploration
         PerfConfig(bridge_minutes=10.0, bridge_protocol="lab")
 
