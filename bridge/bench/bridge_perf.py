@@ -54,7 +54,7 @@ import tempfile
 import threading
 import time
 import uuid
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from enum import StrEnum
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -89,11 +89,11 @@ class BridgeProtocol(StrEnum):
     LAB = "lab"
 
     def settings(self) -> dict[str, Any]:
-        """``n_explore``, ``max_breaths`` and ``warmup_s`` of this protocol."""
-        if self is BridgeProtocol.QUICK:
-            return {"n_explore": 2, "max_breaths": 10, "warmup_s": 20.0}
-        lab = VirtualSimConfig()
-        return {"n_explore": lab.n_explore, "max_breaths": lab.max_breaths, "warmup_s": lab.warmup_s}
+        """``n_explore``, ``max_breaths`` and ``warmup_s`` of this protocol: :class:`BridgeRtConfig`'s
+        defaults for ``quick``, :class:`~bridge.sim.VirtualSimConfig`'s for ``lab``."""
+        source = BridgeRtConfig if self is BridgeProtocol.QUICK else VirtualSimConfig
+        keys = ("n_explore", "max_breaths", "warmup_s")
+        return {f.name: f.default for f in fields(source) if f.name in keys}
 
     @classmethod
     def parse(cls, value: str) -> BridgeProtocol:
