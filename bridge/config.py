@@ -524,8 +524,8 @@ class CanConfig:
             so at least two heartbeats fit in it).
         push_timeout_ms: Ack timeout per profile-push attempt, 10–5000 ms.
         push_retries: Push attempts after the first, 0–10.
-        segment_pace_ms: Gap between profile segments, 0–50 ms (1.5 ms keeps an AssistanceOff
-            from queueing behind a burst: on the wire within 2.93 ms in the worst case;
+        segment_pace_ms: Gap between profile segments, 0–50 ms (1 ms keeps an AssistanceOff
+            from queueing behind a burst: on the wire within 2.68 ms in the worst case;
             PROTOCOL.md, "Bus budget").
     """
 
@@ -533,7 +533,7 @@ class CanConfig:
     heartbeat_period_ms: float = 20.0
     push_timeout_ms: float = 250.0
     push_retries: int = 3
-    segment_pace_ms: float = 1.5
+    segment_pace_ms: float = 1.0
 
     @property
     def heartbeat_period_s(self) -> float:
@@ -578,7 +578,7 @@ def _parse_can(data: object) -> CanConfig:
         heartbeat_period_ms=t.number("heartbeat_period_ms", 20.0, lo=5.0, hi=50.0),
         push_timeout_ms=t.number("push_timeout_ms", 250.0, lo=10.0, hi=5000.0),
         push_retries=t.integer("push_retries", 3, lo=0, hi=10),
-        segment_pace_ms=t.number("segment_pace_ms", 1.5, lo=0.0, hi=50.0),
+        segment_pace_ms=t.number("segment_pace_ms", 1.0, lo=0.0, hi=50.0),
     )
 
 

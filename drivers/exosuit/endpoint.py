@@ -70,10 +70,10 @@ log = logging.getLogger(__name__)
 
 #: Bridge heartbeat period (the device's watchdog is 5 periods, 100 ms).
 HEARTBEAT_PERIOD_S = 0.020
-#: Gap between profile segments: one 135-bit frame per 1.5 ms is 9 % of a 1 Mbit/s bus, and an
-#: AssistanceOff queued behind segments is on the wire within 2.93 ms in the worst case
-#: (PROTOCOL.md, "Bus budget"; drivers/exosuit/busload.py).
-DEFAULT_PACE_S = 0.0015
+#: Gap between profile segments: one 135-bit frame per 1 ms is 13.5 % of a 1 Mbit/s bus while a
+#: push lasts (34 ms for 101 points), and an AssistanceOff queued behind segments is on the wire
+#: within 2.68 ms in the worst case (PROTOCOL.md, "Bus budget"; drivers/exosuit/busload.py).
+DEFAULT_PACE_S = 0.001
 #: How long to wait for the ack after the commit (the device answers within 10 ms).
 DEFAULT_ACK_TIMEOUT_S = 0.25
 #: Transfer attempts after the first one.

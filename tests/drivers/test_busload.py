@@ -20,10 +20,15 @@ def test_the_critical_instant_of_protocol_md() -> None:
 
 def test_the_default_pace_keeps_an_assistance_off_within_3_ms() -> None:
     r = segment_response(round(DEFAULT_PACE_S * 1e6))
-    assert (r.pace_us, r.jitter_us) == (1500, 750)
-    assert (r.busy_period_us, r.instances, r.response_us, r.assistance_off_us) == (3925, 4, 2730, 2930)
-    # ...no worse than 2 ms pacing with its catch-up rule (jitter 1 ms).
+    assert (r.pace_us, r.jitter_us) == (1000, 500)
+    # By hand: t = 135·ceil((t + 500)/1000) + 770·ceil(t/1000) + 305 converges at 4965 µs with 6
+    # segments (1210, 2115, 3020, 3925, 4060, 4830, 4965).
+    assert (r.busy_period_us, r.instances, r.response_us, r.assistance_off_us) == (4965, 6, 2480, 2680)
+    # ...no worse than the 1.5 ms default before it, nor 2 ms pacing with its catch-up rule.
+    assert r.assistance_off_us <= segment_response(1500).assistance_off_us == 2930
     assert r.assistance_off_us <= segment_response(2000).assistance_off_us == 3180
+    # The bus stays schedulable during a push: 92.0 % worst case.
+    assert r.utilisation == pytest.approx(0.78525 + 135 / 1000)
 
 
 def test_a_pace_that_saturates_the_bus_is_refused() -> None:

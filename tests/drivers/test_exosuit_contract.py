@@ -140,7 +140,7 @@ async def test_101_point_profile_pushes_commits_and_acks(rig: Rig) -> None:
     assert (result.version, result.n_points, result.attempts) == (17, 101, 1)
     assert result.crc32 == expected.crc32
     assert rig.responder.seen.acked == [(17, expected.forces_n)]
-    # Paced: the commit goes 34 paces after the first segment (1.5 ms each by default, ≈ 51 ms);
+    # Paced: the commit goes 34 paces after the first segment (1 ms each by default, ≈ 34 ms);
     # well under the 250 ms ack timeout.
     assert 34 * DEFAULT_PACE_S - 0.001 < result.elapsed_s < 1.0
 
