@@ -19,7 +19,10 @@ taken when the ask is started (:meth:`ProposalWorker.start_ask`), so the session
 evaluation that just ended while the worker computes; the worker returns the advanced optimizer,
 which replaces the session's copy (in a thread too: the thread works on its own copy). A worker
 that dies (killed, out of memory) costs nothing collected: the call is repeated in a thread and
-the session goes on there (:attr:`ProposalWorker.lost` says why).
+the session goes on there (:attr:`ProposalWorker.lost` says why). So does a worker that stops
+answering (stopped, stuck): a watchdog on each reply (``ask_timeout_s``, ``fit_timeout_s``, wall
+clock) kills it (SIGKILL) and repeats the call in a thread, so the person does not walk on at the
+last profile for the rest of the session.
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ import enum
 import gc
 import logging
 import math
+import numbers
 import os
 import pickle
 import struct
@@ -40,6 +44,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, BinaryIO
 
+from bridge.errors import BridgeConfigError
 from hilbo_core import HILOptimizer, HyperparameterFit, fit_hyperparameters
 from hilbo_core.gp import GPHyperparameters
 
@@ -50,6 +55,8 @@ logger = logging.getLogger(__name__)
 _HEADER = struct.Struct("<Q")  # payload length in bytes
 #: How long the session waits for the worker to exit at the end before killing it (s).
 _EXIT_TIMEOUT_S = 5.0
+#: How long the session waits for a killed worker to be reaped before going on without (s).
+_REAP_TIMEOUT_S = 5.0
 #: The worker's BLAS runs single-threaded unless the caller's environment says otherwise: the
 #: GP's matrices are small, and a second BLAS thread only takes CPU from the bridge's process
 #: (measured: a fitted-ahead ask at 60 observations, 20 reps beside a busy core, used 22 ms of
@@ -108,6 +115,15 @@ def _pid(_: object = None) -> int:
 _FUNCTIONS: dict[str, Callable[[Any], Any]] = {"ask": _ask, "fit": fit_hyperparameters, "pid": _pid}
 
 
+def _seconds(name: str, value: object) -> float:
+    """``value`` as a timeout in seconds, or :class:`BridgeConfigError` naming it."""
+    if (isinstance(value, bool) or not isinstance(value, numbers.Real)
+            or not math.isfinite(value) or value <= 0):
+        raise BridgeConfigError(
+            f"ProposalWorker: {name} must be a positive finite number of seconds, got {value!r}")
+    return float(value)
+
+
 def _read_message(stream: BinaryIO) -> bytes | None:
     header = stream.read(_HEADER.size)
     if len(header) < _HEADER.size:
@@ -140,12 +156,32 @@ class ProposalWorker:
     Use as an async context manager; entering starts the worker process (it imports numpy and
     scipy, about a second, while the session's warm-up walk goes on).
 
+    A worker process that does not answer a call in time (wall clock, from the request to the
+    reply) is killed (SIGKILL, which also ends a stopped process) and given up, like one that
+    died: the call is repeated in a thread, whose result is returned, and so is every later call.
+
     Args:
         kind: :class:`WorkerKind` (or its value).
+        ask_timeout_s: How long a worker process may take to answer an ask (s): an ask takes
+            10–40 ms, a cold one under a second. Also the limit of :meth:`worker_pid`.
+        fit_timeout_s: How long a worker process may take to answer a hyperparameter fit (s):
+            fits take up to a few seconds.
+        start_timeout_s: Allowed in addition for the worker's first reply, which also waits for
+            the process to start (importing numpy and scipy: about 1.5 s on an idle machine,
+            several on a busy one) (s).
+
+    Raises:
+        BridgeConfigError: A timeout is not a positive finite number of seconds (also a
+            ``ValueError``).
     """
 
-    def __init__(self, kind: WorkerKind | str = WorkerKind.PROCESS) -> None:
+    def __init__(self, kind: WorkerKind | str = WorkerKind.PROCESS, *, ask_timeout_s: float = 5.0,
+                 fit_timeout_s: float = 60.0, start_timeout_s: float = 60.0) -> None:
         self.kind = WorkerKind(kind)
+        self.ask_timeout_s = _seconds("ask_timeout_s", ask_timeout_s)
+        self.fit_timeout_s = _seconds("fit_timeout_s", fit_timeout_s)
+        self.start_timeout_s = _seconds("start_timeout_s", start_timeout_s)
+        self._answered = False  # the worker process has answered a call (it has started)
         self._proc: asyncio.subprocess.Process | None = None
         self._lock: asyncio.Lock | None = None
         self._threads: concurrent.futures.ThreadPoolExecutor | None = None
@@ -154,6 +190,7 @@ class ProposalWorker:
 
     async def __aenter__(self) -> ProposalWorker:
         self._lock = asyncio.Lock()  # also marks the worker as entered
+        self._answered = False  # a new process: its first reply also waits for it to start
         if self.kind is WorkerKind.PROCESS:
             try:
                 self._proc = await asyncio.create_subprocess_exec(
@@ -234,15 +271,40 @@ class ProposalWorker:
             self.lost = f"{why}; proposals continue in a thread"
             logger.error("%s", self.lost)
 
+    def _timeout(self, name: str) -> tuple[float, str]:
+        """The reply timeout of a ``name`` call now (s), and which arguments make it."""
+        timeout_s, what = ((self.fit_timeout_s, "fit_timeout_s") if name == "fit"
+                           else (self.ask_timeout_s, "ask_timeout_s"))
+        if not self._answered:
+            return timeout_s + self.start_timeout_s, f"{what} + start_timeout_s: its first reply"
+        return timeout_s, what
+
     async def _call(self, name: str, arg: Any) -> Any:
         async with self._check_entered():  # one request on the pipe at a time
             proc = self._proc
             if proc is not None and self.lost is None:
+                timeout_s, what = self._timeout(name)
+                watchdog = asyncio.timeout(timeout_s)  # one timer handle: no thread, no polling
                 try:
-                    status, value = await self._request(proc, name, arg)
+                    async with watchdog:
+                        status, value = await self._request(proc, name, arg)
                 except (BrokenPipeError, ConnectionResetError, asyncio.IncompleteReadError) as err:
                     code = proc.returncode
                     self._give_up(f"the proposal worker process died (exit status {code}, {err!r})")
+                except TimeoutError:
+                    if not watchdog.expired():
+                        raise
+                    # The reply may still come, out of step with the next request: nothing more
+                    # goes to this worker. Given up before the awaits below, so a cancellation
+                    # there leaves no half-state; __aexit__ no longer waits for it.
+                    self._proc = None
+                    with contextlib.suppress(ProcessLookupError):
+                        proc.kill()
+                    if proc.stdin is not None:
+                        proc.stdin.close()
+                    self._give_up(f"the proposal worker process {proc.pid} did not answer the "
+                                  f"{name!r} request within {timeout_s:g} s ({what}); killed it")
+                    await self._reap(proc)
                 except asyncio.CancelledError:
                     # Its reply is still on the way: the pipe is out of step, so nothing more goes
                     # to this worker (only at a session's end in practice).
@@ -251,6 +313,7 @@ class ProposalWorker:
                         proc.stdin.close()
                     raise
                 else:
+                    self._answered = True
                     if status == "error":
                         raise value
                     return value
@@ -259,6 +322,16 @@ class ProposalWorker:
                 self._threads = concurrent.futures.ThreadPoolExecutor(
                     max_workers=1, thread_name_prefix="hilbo-proposal")
             return await asyncio.get_running_loop().run_in_executor(self._threads, _FUNCTIONS[name], arg)
+
+    @staticmethod
+    async def _reap(proc: asyncio.subprocess.Process) -> None:
+        """Wait for a killed worker to be reaped; bounded, so a session never hangs on it."""
+        try:
+            async with asyncio.timeout(_REAP_TIMEOUT_S):
+                await proc.wait()
+        except TimeoutError:
+            logger.warning("killed proposal worker %d not reaped after %g s; going on without",
+                           proc.pid, _REAP_TIMEOUT_S)
 
     @staticmethod
     async def _request(proc: asyncio.subprocess.Process, name: str, arg: Any) -> tuple[str, Any]:
