@@ -55,7 +55,7 @@ logger = logging.getLogger(__name__)
 _HEADER = struct.Struct("<Q")  # payload length in bytes
 #: How long the session waits for the worker to exit at the end before killing it (s).
 _EXIT_TIMEOUT_S = 5.0
-#: How long the session waits for a killed worker to be reaped before going on without (s).
+#: How long the session waits for a killed worker to be reaped before going on without it (s).
 _REAP_TIMEOUT_S = 5.0
 #: The worker's BLAS runs single-threaded unless the caller's environment says otherwise: the
 #: GP's matrices are small, and a second BLAS thread only takes CPU from the bridge's process
@@ -211,9 +211,7 @@ class ProposalWorker:
                     await proc.wait()
             except TimeoutError:
                 logger.warning("proposal worker %d did not exit; killing it", proc.pid)
-                with contextlib.suppress(ProcessLookupError):
-                    proc.kill()
-                await proc.wait()
+                await self._kill(proc)
         if self._threads is not None:
             self._threads.shutdown(wait=True, cancel_futures=True)
             self._threads = None
@@ -298,13 +296,11 @@ class ProposalWorker:
                     # goes to this worker. Given up before the awaits below, so a cancellation
                     # there leaves no half-state; __aexit__ no longer waits for it.
                     self._proc = None
-                    with contextlib.suppress(ProcessLookupError):
-                        proc.kill()
                     if proc.stdin is not None:
                         proc.stdin.close()
                     self._give_up(f"the proposal worker process {proc.pid} did not answer the "
                                   f"{name!r} request within {timeout_s:g} s ({what}); killed it")
-                    await self._reap(proc)
+                    await self._kill(proc)
                 except asyncio.CancelledError:
                     # Its reply is still on the way: the pipe is out of step, so nothing more goes
                     # to this worker (only at a session's end in practice).
@@ -324,8 +320,11 @@ class ProposalWorker:
             return await asyncio.get_running_loop().run_in_executor(self._threads, _FUNCTIONS[name], arg)
 
     @staticmethod
-    async def _reap(proc: asyncio.subprocess.Process) -> None:
-        """Wait for a killed worker to be reaped; bounded, so a session never hangs on it."""
+    async def _kill(proc: asyncio.subprocess.Process) -> None:
+        """SIGKILL the worker (a stopped one too) and wait for it to be reaped; bounded, so a
+        session never hangs on it."""
+        with contextlib.suppress(ProcessLookupError):
+            proc.kill()
         try:
             async with asyncio.timeout(_REAP_TIMEOUT_S):
                 await proc.wait()
