@@ -22,6 +22,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import enum
 import logging
 import math
 import types
@@ -36,6 +37,7 @@ from drivers.errors import (
     DecodeError,
     DriverConfigError,
     DriverError,
+    ProfilePushAborted,
     ProfilePushError,
     TransportError,
 )
@@ -61,7 +63,9 @@ __all__ = [
     "CanBusConfig",
     "CanEndpoint",
     "ProfileNackError",
+    "PushPermit",
     "PushResult",
+    "PushStage",
     "Stamped",
     "Subscription",
 ]
@@ -199,6 +203,23 @@ class CanBusConfig:
             kwargs["bitrate"] = self.bitrate
         kwargs.update(self.options)
         return kwargs
+
+
+class PushStage(enum.StrEnum):
+    """The steps of a profile push at which :meth:`CanEndpoint.push_profile` asks ``permit``.
+
+    The values are plain strings (``"first_segment"``, ``"commit"``), so a permit callable may
+    compare its argument with either the enum or the string.
+    """
+
+    FIRST_SEGMENT = "first_segment"
+    """Right before the first segment of an attempt is sent."""
+    COMMIT = "commit"
+    """Right before the commit of an attempt is sent (nothing is awaited in between)."""
+
+
+#: ``permit(stage) -> bool``: whether the push may send the next step (see push_profile).
+PushPermit = Callable[[str], bool]
 
 
 @dataclass(frozen=True)
@@ -690,6 +711,7 @@ class CanEndpoint:
         timeout_s: float = DEFAULT_ACK_TIMEOUT_S,
         retries: int = DEFAULT_RETRIES,
         pace_s: float = DEFAULT_PACE_S,
+        permit: PushPermit | None = None,
     ) -> PushResult:
         """Send a force-profile table, commit it and wait for the device's ack.
 
@@ -698,18 +720,30 @@ class CanEndpoint:
         (:data:`RETRYABLE_NACKS`; after BUSY the endpoint first waits ``timeout_s``) starts the
         next attempt, up to ``retries`` more; other nacks fail at once. Pushes are serialised.
 
+        ``permit`` lets the caller (the bridge's supervisor) stop a push at the last moment: it
+        is called with :attr:`PushStage.FIRST_SEGMENT` right before the first segment of every
+        attempt and with :attr:`PushStage.COMMIT` right before every commit, synchronously,
+        with no await between its True and the frame going to the bus. When it returns False
+        the push sends nothing more (in particular not that commit) and raises
+        :class:`~drivers.errors.ProfilePushAborted`. An exception it raises propagates the same
+        way, unchanged.
+
         Args:
-            forces_n: the table, shape (n,), 2 ≤ n ≤ 768, newtons over 0..100 % gait cycle.
+            forces_n: the table, shape (n,), 2 ≤ n ≤ 768, newtons over 0..100 % gait cycle (a
+                multi-actuator table is built with :func:`~drivers.exosuit.profile.pack_tables`).
             version: profile version 1..255.
             timeout_s: ack timeout per attempt (s).
             retries: attempts after the first.
             pace_s: gap between segments (s); 0 sends them back to back.
+            permit: ``permit(stage) -> bool``, asked before each attempt's first segment and
+                before each commit; None always permits.
 
         Returns:
             A :class:`PushResult`.
 
         Raises:
             EncodeError: the table or version cannot be encoded (nothing is sent).
+            ProfilePushAborted: ``permit`` returned False (the refused step was not sent).
             ProfileNackError: nacked with a non-retryable reason, or the last attempt nacked.
             ProfilePushError: no ack after all attempts.
             TransportError: the bus failed.
@@ -718,6 +752,11 @@ class CanEndpoint:
             raise DriverConfigError(
                 f"push_profile: expected timeout_s > 0, pace_s >= 0, integer retries >= 0; got "
                 f"timeout_s={timeout_s}, pace_s={pace_s}, retries={retries}"
+            )
+        if permit is not None and not callable(permit):
+            raise DriverConfigError(
+                f"push_profile: permit must be a callable permit(stage) -> bool or None, got "
+                f"{permit!r}"
             )
         transfer = ProfileTransfer.from_forces(forces_n, version)
         segments = [s.to_frame() for s in transfer.segments()]
@@ -731,6 +770,14 @@ class CanEndpoint:
             nacks: list[NackReason] = []
             timeouts = 0
             last: ProfileAck | None = None
+            commits_sent = 0
+
+            def check(stage: PushStage, attempt: int) -> None:
+                if permit is not None and not permit(stage):
+                    log.info("profile v%d: push aborted before the %s (attempt %d)",
+                             version, stage.value, attempt)
+                    raise ProfilePushAborted(version, stage.value, attempt, commits_sent)
+
             with self.subscribe(ProfileAck) as acks:
                 for attempt in range(1, retries + 2):
                     # Paced against deadlines (frame k at start + k·pace_s), not by sleeping pace_s
@@ -745,7 +792,15 @@ class CanEndpoint:
                             delay = due - loop.time()
                             if delay > 0:
                                 await asyncio.sleep(delay)
+                        # Asked after the pacing sleep, so nothing is awaited between the
+                        # permission and the frame reaching the bus.
+                        if k == 0:
+                            check(PushStage.FIRST_SEGMENT, attempt)
+                        if frame is commit:
+                            check(PushStage.COMMIT, attempt)
                         await self.send(frame)
+                        if frame is commit:
+                            commits_sent += 1
                         sent_at = loop.time()
                     ack = await self._await_ack(acks, version, loop.time() + timeout_s)
                     if ack is None:
