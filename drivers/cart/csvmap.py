@@ -292,8 +292,10 @@ class CsvBreathParser:
     def _resolve(self, names: list[str]) -> dict[str, int]:
         absent = [c for c in self.mapping.mapped_columns if c not in names]
         if absent:
+            listed = ", ".join(repr(n) for n in names[:80] if n) + (" ..." if len(names) > 80 else "")
             raise DriverConfigError(
-                f"csv: header {shorten(str(names), 200)} lacks the mapped column(s) {absent!r}"
+                f"csv: no column {' or '.join(map(repr, absent))} in the header; the file's columns "
+                f"are: {listed or '(none)'}"
             )
         return {c: names.index(c) for c in self.mapping.mapped_columns}
 

@@ -25,6 +25,7 @@ __all__ = [
     "DEFAULT_MAX_LEADING_REJECTS",
     "BreathParser",
     "LeadingRejectGuard",
+    "describe_record",
     "iter_breaths",
     "process_line",
     "read_breath_file",
@@ -97,7 +98,8 @@ class LeadingRejectGuard:
             )
 
 
-def _describe(record: BreathRecord) -> str:
+def describe_record(record: BreathRecord) -> str:
+    """One breath as ``t = 9 s, VO2 = 117.1 ml/min, ...`` for messages and reports."""
     parts = [f"t = {record.t_s:g} s", f"VO2 = {record.vo2_ml_min:g} ml/min",
              f"VCO2 = {record.vco2_ml_min:g} ml/min"]
     for name, value in (("VE", record.ve_l_min), ("RER", record.rer), ("HR", record.hr_bpm)):
@@ -156,7 +158,7 @@ def process_line(
         guard.accepted()
         return record
     reason = next((k for k, v in validator.counters.items() if v != before.get(k, 0)), "rejected")
-    guard.rejected(reason, _describe(parsed.record))
+    guard.rejected(reason, describe_record(parsed.record))
     return None
 
 

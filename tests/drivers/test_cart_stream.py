@@ -275,7 +275,8 @@ def test_config_from_dict_full() -> None:
     [
         (
             {"transport": "tcp", "options": {"host": "h", "port": 1}, "speed": 2},
-            r"cart: unknown key 'speed' = 2; allowed keys: csv, format, limits, max_leading_rejects, options, transport",
+            r"cart: unknown key 'speed' = 2; allowed keys: csv, format, limits, max_leading_rejects, "
+            r"options, transport",
         ),
         ({"transport": "usb"}, r"cart.transport = 'usb': expected one of 'replay', 'serial', 'tcp', 'udp'"),
         ({"options": {}}, "cart: missing required key 'transport'"),
