@@ -87,7 +87,8 @@ def test_cortex_other_fields_and_cosmed_zero_hr_is_not_reported() -> None:
     assert EXPORTS is not None
     cortex, _, _ = _read(EXPORTS / "cortex_test.xml", "cortex")
     # Row 0:00:09: V'E 6.54588 L/min, RER 1.03359827188768, HF 53.
-    assert (cortex[0].ve_l_min, cortex[0].rer, cortex[0].hr_bpm) == pytest.approx((6.54588, 1.03359827188768, 53))
+    first = (cortex[0].ve_l_min, cortex[0].rer, cortex[0].hr_bpm)
+    assert first == pytest.approx((6.54588, 1.03359827188768, 53))
     cosmed, _, _ = _read(EXPORTS / "cosmed_test.xlsx", "cosmed")
     # HF is 0 in every row (no belt): read as not reported, not rejected as hr_range.
     assert all(r.hr_bpm is None for r in cosmed)
@@ -161,7 +162,8 @@ def test_text_preset_reads_a_live_line_stream_over_tcp() -> None:
 
 
 def test_file_presets_refuse_a_live_transport() -> None:
-    with pytest.raises(DriverConfigError, match="format = 'cosmed' is a file export.*needs transport = 'replay'"):
+    with pytest.raises(DriverConfigError,
+                       match=r"format = 'cosmed' is a file export.*needs transport = 'replay'"):
         CartConfig.from_dict({"transport": "tcp", "format": "cosmed",
                               "options": {"host": "127.0.0.1", "port": 5}})
 
