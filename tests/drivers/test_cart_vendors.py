@@ -11,7 +11,10 @@ import os
 from pathlib import Path
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
+from bridge import cli
 from drivers.cart import BreathStream, CartConfig
 from drivers.cart.inspect import inspect_file
 from drivers.cart.pipeline import iter_breaths
@@ -220,3 +223,47 @@ def test_inspect_renders_mapping_counts_and_toml() -> None:
     assert "vo2_ml_min   <- 'VO2' [L/min]" in text
     assert "breaths   4 read, 0 rejected" in text
     assert 'format = "parvo"' in text and 'transport = "replay"' in text
+
+
+@given(st.integers(min_value=0, max_value=100 * 3600 * 1000 - 1))
+def test_parse_clock_round_trip(ms: int) -> None:
+    minutes, rest = divmod(ms, 60_000)
+    hours, minutes = divmod(minutes, 60)
+    seconds = f"{rest // 1000:02d}.{rest % 1000:03d}"
+    assert parse_clock(f"{hours}:{minutes:02d}:{seconds}") == pytest.approx(ms / 1000.0, abs=1e-9)
+    assert parse_clock(f"{hours * 60 + minutes}:{seconds.replace('.', ',')}") == pytest.approx(ms / 1000.0,
+                                                                                                abs=1e-9)
+
+
+@given(st.floats(min_value=100.0, max_value=8000.0), st.floats(min_value=0.6, max_value=1.5),
+       st.booleans(), st.booleans())
+def test_decimal_mark_and_unit_do_not_change_the_breath(vo2: float, rer: float, comma: bool,
+                                                        litres: bool) -> None:
+    vco2 = vo2 * rer
+    unit, scale = ("L/min", 1000.0) if litres else ("mL/min", 1.0)
+
+    def num(v: float) -> str:
+        text = repr(v / scale)
+        return text.replace(".", ",") if comma else text
+
+    lines = [b"Tid\tV'O2\tV'CO2", f"min\t{unit}\t{unit}".encode(), f"01:00\t{num(vo2)}\t{num(vco2)}".encode()]
+    if "e" in num(vo2) or "e" in num(vco2):
+        return  # exponent notation is not what carts write
+    records = list(iter_breaths(lines, TableParser(VENDORS["vyntus"]), BreathValidator()))
+    assert len(records) == 1
+    assert (records[0].vo2_ml_min, records[0].vco2_ml_min) == pytest.approx((vo2, vco2), rel=1e-12)
+
+
+def test_cli_cart_inspect(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    assert cli.main(["cart", "inspect", str(DATA / "cosmed_k5.csv")]) == 0
+    out = capsys.readouterr().out
+    assert "format    cosmed-csv (COSMED K5/Quark CSV export)" in out
+    assert "breaths   4 read, 0 rejected" in out and 'format = "cosmed-csv"' in out
+    assert "metadata  body_mass_kg = 72.5" in out
+    other = tmp_path / "x.dat"
+    other.write_text("hello\n")
+    assert cli.main(["cart", "inspect", str(other)]) == 1
+    err = capsys.readouterr().err
+    assert "unknown cart format" in err and "Traceback" not in err
+    assert cli.main(["cart", "inspect", str(tmp_path / "missing.csv")]) == 1
+    assert "cannot read" in capsys.readouterr().err

@@ -25,6 +25,6 @@ VYNTUS = VendorSpec(
         "hr_bpm": ("hf", "hr", "fc"),
     },
     default_units={"t_s": "s", "vo2_ml_min": "ml/min", "vco2_ml_min": "ml/min"},
-    delimiters=("\t",),
+    delimiters=("\t", ";"),
     markers=("id-nummer", "sentrysuite", "vyntus", "v'o2"),
 )
