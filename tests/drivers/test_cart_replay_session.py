@@ -28,8 +28,9 @@ REPO = Path(__file__).resolve().parents[2]
 
 def _exports_dir() -> Path | None:
     candidates = []
-    if os.environ.get("HILBO_SHARED_DIR"):
-        candidates.append(Path(os.environ["HILBO_SHARED_DIR"]) / "data" / "cart-exports")
+    if os.environ.get("HILBO_SHARED_DIR"):  # the shared/ folder, or the exports folder itself
+        shared = Path(os.environ["HILBO_SHARED_DIR"])
+        candidates += [shared / "data" / "cart-exports", shared]
     candidates += [p / "shared" / "data" / "cart-exports" for p in REPO.parents]
     return next((c for c in candidates if (c / "cosmed_test.xlsx").is_file()), None)
 
