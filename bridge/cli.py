@@ -231,6 +231,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_log_parser(sub)
 
+    from bridge.cli_cart import add_cart_parser
+
+    add_cart_parser(sub)
+
     from bridge.review import add_review_parser
 
     add_review_parser(sub)
@@ -269,6 +273,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(args.func(args))
     except (HilboError, BridgeError, DriverError) as err:
         print(f"hilbo {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    except BaseExceptionGroup as group:
+        # A session's task group wraps the error of the task that failed (the cart stream's
+        # CartError or a column map's DriverConfigError): report that error, not a traceback.
+        known = group.subgroup(lambda e: isinstance(e, HilboError | BridgeError | DriverError))
+        if known is None:
+            raise
+        leaf: BaseException = known
+        while isinstance(leaf, BaseExceptionGroup):
+            leaf = leaf.exceptions[0]
+        print(f"hilbo {args.command}: error: {leaf}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"hilbo {args.command}: interrupted", file=sys.stderr)

@@ -57,6 +57,7 @@ from bridge.safety import (
     preflight,
 )
 from drivers.cart import CartConfig
+from drivers.cart.pipeline import describe_record
 from drivers.errors import DriverConfigError
 from drivers.exosuit.endpoint import INTERFACE_OPTIONS, CanBusConfig
 from hilbo_core.errors import ConfigError, InfeasibleError
@@ -1126,6 +1127,8 @@ def _cmd_check(args: argparse.Namespace, out: TextIO | None = None, err: TextIO 
         err.write(f"hilbo config check: invalid config: {exc}\n")
         return 2
     out.write(f"config OK: {cfg.source}\n{summarize(cfg)}\n")
+    if _check_cart_file(cfg, out, err) != 0:
+        return 2
     if args.samples > 0:
         report = preflight(cfg.space.space, cfg.limits, body_mass_kg=cfg.session.body_mass_kg,
                            n=args.samples)
@@ -1140,6 +1143,35 @@ def _cmd_check(args: argparse.Namespace, out: TextIO | None = None, err: TextIO 
             err.write(f"hilbo config check: warning: {report.n_rejected} of {report.n_checked} "
                       f"settings would be refused (each refusal cancels the setting), e.g. "
                       f"{report.example}\n")
+    return 0
+
+
+def _check_cart_file(cfg: HilboConfig, out: TextIO, err: TextIO) -> int:
+    """A replay config: open the file as the session would; show its first records and rejects."""
+    from drivers.cart.inspect import inspect_config
+
+    try:
+        report = inspect_config(cfg.cart)
+    except DriverConfigError as exc:
+        err.write(f"hilbo config check: [cart] file does not fit the config: {exc}\n")
+        return 1
+    except OSError as exc:
+        err.write(f"hilbo config check: cannot read cart.options.path {cfg.cart.options.path}: "
+                  f"{exc.strerror or exc}\n")
+        return 1
+    if report is None:
+        return 0
+    by_reason = ", ".join(f"{k} {v}" for k, v in report.rejects.most_common())
+    out.write(f"cart file {report.path}: {len(report.records)} breaths read, {report.n_rejected} "
+              f"rejected{f' ({by_reason})' if by_reason else ''}\n")
+    for rec in report.records[:3]:
+        out.write(f"          {describe_record(rec)}\n")
+    for reason, examples in report.reject_examples.items():
+        out.write(f"          reject {reason}: {examples[0]}\n")
+    if not report.records:
+        err.write(f"hilbo config check: every record of {report.path} is rejected; check [cart] "
+                  "format and the [cart.csv] units and time format\n")
+        return 1
     return 0
 
 

@@ -2,10 +2,12 @@
 
 The pieces, in the order a breath passes through them:
 
-- transports (:mod:`.transport`, :mod:`.serial_port`, :mod:`.net`, :mod:`.replay`), chosen by
-  name through :mod:`.registry`: ``"serial"``, ``"tcp"``, ``"udp"``, ``"replay"``;
-- parsers: the hilbo-line format (:mod:`.line`, specified in ``FORMAT.md``) and column-mapped
-  vendor CSV (:mod:`.csvmap`);
+- transports (:mod:`.transport`, :mod:`.serial_port`, :mod:`.net`, :mod:`.replay`, :mod:`.lsl`),
+  chosen by name through :mod:`.registry`: ``"serial"``, ``"tcp"``, ``"udp"``, ``"lsl"``,
+  ``"replay"``;
+- parsers: the hilbo-line format (:mod:`.line`, specified in ``FORMAT.md``), column-mapped
+  vendor CSV (:mod:`.csvmap`) and the vendor presets (:mod:`.vendors`: COSMED, CORTEX, Vyntus,
+  Parvo exports); :mod:`.inspect` reports what a file holds (``hilbo cart inspect``);
 - :class:`BreathValidator` (:mod:`.validate`): rejects with a counted :class:`RejectReason`;
 - :class:`BreathStream` (:mod:`.stream`): all of it behind ``async for breath in stream``,
   configured by :class:`CartConfig`.
@@ -21,9 +23,10 @@ from drivers.cart.csvmap import (
     encode_csv_header,
     encode_csv_row,
 )
-from drivers.cart.errors import EncodeError
+from drivers.cart.errors import CartError, EncodeError
 from drivers.cart.framing import LineFramer
 from drivers.cart.line import HbrLineParser, ParsedBreath, crc16, encode_line, parse_line
+from drivers.cart.lsl import LslOptions, LslTransport
 from drivers.cart.net import TcpOptions, TcpTransport, UdpOptions, UdpTransport
 from drivers.cart.pipeline import BreathParser, iter_breaths, process_line, read_breath_file
 from drivers.cart.reasons import RejectReason
@@ -41,6 +44,7 @@ __all__ = [
     "BreathStream",
     "BreathValidator",
     "CartConfig",
+    "CartError",
     "CartFormat",
     "CartTransport",
     "CsvBreathParser",
@@ -49,6 +53,8 @@ __all__ = [
     "GasUnit",
     "HbrLineParser",
     "LineFramer",
+    "LslOptions",
+    "LslTransport",
     "ParsedBreath",
     "PhysioLimits",
     "RejectReason",

@@ -217,6 +217,8 @@ class CsvBreathParser:
         self._skip_left = 0
         self._header: list[str] | None = None
         self._index: dict[str, int] | None = None
+        self._best_hits = 0
+        self._best_row: list[str] = []
         if mapping.columns is not None:
             self._index = self._resolve(list(mapping.columns))
 
@@ -262,9 +264,11 @@ class CsvBreathParser:
     def _count_preamble(self, line: str | bytes) -> None:
         self._lines_seen += 1
         if self._lines_seen > self.mapping.max_preamble_lines:
+            best = (f"; the line most like a header has the columns {_listed(self._best_row)}"
+                    if self._best_row else "")
             raise DriverConfigError(
                 f"csv: no header with columns {list(self.mapping.mapped_columns)!r} in the first "
-                f"{self.mapping.max_preamble_lines} lines; last line: {shorten(line)!r}"
+                f"{self.mapping.max_preamble_lines} lines{best}; last line: {shorten(line)!r}"
             )
 
     def _find_header(self, decoded: str) -> None:
@@ -282,7 +286,13 @@ class CsvBreathParser:
                 self._skip_left = m.skip_rows
             self._lines_seen += 1
             return
-        if all(c in row for c in m.mapped_columns):
+        required = m.mapped_columns[:3]
+        hits = sum(c in row for c in m.mapped_columns)
+        if hits > self._best_hits:
+            self._best_hits, self._best_row = hits, row
+        # A row with the time, VO2 and VCO2 names is the header even if an optional mapped
+        # column is absent: then say which one, instead of searching on for 200 lines.
+        if all(c in row for c in required):
             self._index = self._resolve(row)
             self._header = row
             self._skip_left = m.skip_rows
@@ -293,7 +303,8 @@ class CsvBreathParser:
         absent = [c for c in self.mapping.mapped_columns if c not in names]
         if absent:
             raise DriverConfigError(
-                f"csv: header {shorten(str(names), 200)} lacks the mapped column(s) {absent!r}"
+                f"csv: no column {' or '.join(map(repr, absent))} in the header; the file's columns "
+                f"are: {_listed(names)}"
             )
         return {c: names.index(c) for c in self.mapping.mapped_columns}
 
@@ -339,6 +350,9 @@ class CsvBreathParser:
 
     def _time(self, value: str) -> float:
         fmt = self.mapping.time_format
+        if fmt in (TimeFormat.SECONDS, TimeFormat.MINUTES) and ":" in value:
+            raise DecodeError(RejectReason.BAD_TIME, f"time {shorten(value)!r} is a clock time, not "
+                              f"{fmt.value} (time_format = 'hh:mm:ss' or 'mm:ss'?)")
         if fmt is TimeFormat.SECONDS:
             return self._number(value, self.mapping.time_column)
         if fmt is TimeFormat.MINUTES:
@@ -352,6 +366,11 @@ class CsvBreathParser:
         if fmt is TimeFormat.HMS:
             return parts[0] * 3600.0 + parts[1] * 60.0 + parts[2]
         return parts[0] * 60.0 + parts[1]
+
+
+def _listed(names: list[str]) -> str:
+    listed = ", ".join(repr(n) for n in names[:80] if n) + (" ..." if len(names) > 80 else "")
+    return listed or "(none)"
 
 
 def _write_row(mapping: CsvMapping, row: list[str]) -> bytes:

@@ -8,17 +8,104 @@ async :class:`~drivers.cart.stream.BreathStream` and the whole-file reader
 from __future__ import annotations
 
 import logging
+from collections import Counter
 from collections.abc import Iterable, Iterator
 from os import PathLike
 from typing import Protocol
 
+from drivers.cart._numbers import shorten
+from drivers.cart.errors import CartError
 from drivers.cart.framing import DEFAULT_MAX_LINE_BYTES, LineFramer
 from drivers.cart.line import ParsedBreath
 from drivers.cart.validate import BreathValidator
 from drivers.errors import DecodeError
 from hilbo_core.types import BreathRecord
 
-__all__ = ["BreathParser", "iter_breaths", "process_line", "read_breath_file"]
+__all__ = [
+    "DEFAULT_MAX_LEADING_REJECTS",
+    "BreathParser",
+    "LeadingRejectGuard",
+    "describe_record",
+    "iter_breaths",
+    "process_line",
+    "read_breath_file",
+]
+
+DEFAULT_MAX_LEADING_REJECTS = 20
+"""Records rejected before the first accepted one after which a stream stops (``[cart]
+max_leading_rejects``): a wrong unit, time format or column map rejects *every* breath, and a
+session that waits on such a stream only ever says "0 evaluations"."""
+
+# What to look at in the config for the reason that rejected every record.
+_HINTS = {
+    "bad_time": "the time format ([cart.csv] time_format, or the preset)",
+    "bad_number": "the decimal mark ([cart.csv] decimal) and delimiter",
+    "missing_field": "the column map ([cart.csv] *_column) and delimiter",
+    "field_count": "the delimiter and the column map",
+    "garbage": "[cart] format (hilbo-line, csv or a vendor preset)",
+    "bad_checksum": "[cart] format (hilbo-line, csv or a vendor preset)",
+    "truncated": "[cart] format (hilbo-line, csv or a vendor preset)",
+    "vo2_range": "the gas units ([cart.csv] vo2_unit / vco2_unit: ml/min or l/min) and [cart.limits]",
+    "vco2_range": "the gas units ([cart.csv] vo2_unit / vco2_unit: ml/min or l/min) and [cart.limits]",
+    "rer_range": "the VO2 and VCO2 columns and units (swapped? one in l/min?) and [cart.limits]",
+    "negative_time": "the time column ([cart.csv] time_column, time_format)",
+    "hr_range": "the heart-rate column ([cart.csv] hr_column) and [cart.limits] hr_bpm",
+    "ve_range": "the ventilation column ([cart.csv] ve_column) and [cart.limits] ve_l_min",
+}
+
+
+class LeadingRejectGuard:
+    """Stops a stream whose first ``limit`` records are all rejected (see the constant above).
+
+    Only the records *before the first accepted breath* count: once one breath is accepted the
+    configuration is shown to work, and later silence is the bridge's cart watchdog's business.
+
+    Attributes:
+        limit: Rejected records, none accepted, after which :meth:`rejected` raises.
+        active: False once a breath was accepted.
+    """
+
+    def __init__(self, limit: int = DEFAULT_MAX_LEADING_REJECTS, *, source: str = "cart") -> None:
+        self.limit = limit
+        self.source = source
+        self.active = True
+        self.reasons: Counter[str] = Counter()
+        self.examples: dict[str, str] = {}
+
+    def accepted(self) -> None:
+        """A breath passed: stop watching."""
+        self.active = False
+
+    def rejected(self, reason: str, example: str) -> None:
+        """Count one rejected record.
+
+        Raises:
+            CartError: The ``limit``-th rejected record with none accepted: names the dominant
+                reason, an offending value and what to check in the config.
+        """
+        if not self.active:
+            return
+        key = str(reason)
+        self.reasons[key] += 1
+        self.examples.setdefault(key, example)
+        if self.reasons.total() >= self.limit:
+            top, n = self.reasons.most_common(1)[0]
+            others = ", ".join(f"{k} {v}" for k, v in self.reasons.most_common()[1:])
+            raise CartError(
+                f"{self.source}: the first {self.reasons.total()} records were all rejected, none "
+                f"accepted: {n} x {top}{f' (also {others})' if others else ''}; e.g. "
+                f"{self.examples[top]}. Check {_HINTS.get(top, 'the [cart] table')}"
+            )
+
+
+def describe_record(record: BreathRecord) -> str:
+    """One breath as ``t = 9 s, VO2 = 117.1 ml/min, ...`` for messages and reports."""
+    parts = [f"t = {record.t_s:g} s", f"VO2 = {record.vo2_ml_min:g} ml/min",
+             f"VCO2 = {record.vco2_ml_min:g} ml/min"]
+    for name, value in (("VE", record.ve_l_min), ("RER", record.rer), ("HR", record.hr_bpm)):
+        if value is not None:
+            parts.append(f"{name} = {value:g}")
+    return ", ".join(parts)
 
 _log = logging.getLogger(__name__)
 
@@ -38,22 +125,41 @@ class BreathParser(Protocol):
         ...
 
 
-def process_line(line: bytes, parser: BreathParser, validator: BreathValidator) -> BreathRecord | None:
+def process_line(
+    line: bytes,
+    parser: BreathParser,
+    validator: BreathValidator,
+    guard: LeadingRejectGuard | None = None,
+) -> BreathRecord | None:
     """Parse and validate one line; return the breath, or None (a reject is counted).
 
     Only :class:`DecodeError` is a reject; any other exception (e.g. a CSV header that does not
     match the mapping, :class:`~drivers.errors.DriverConfigError`) propagates, because it means
     the configuration is wrong, not the data.
+
+    Raises:
+        CartError: From ``guard``, when its first records are all rejected.
     """
     try:
         parsed = parser.parse(line)
     except DecodeError as err:
         validator.reject(err.reason)
         _log.debug("rejected line (%s): %s", err.reason, err)
+        if guard is not None:
+            guard.rejected(str(err.reason), f"{err} in line {shorten(line)!r}")
         return None
     if parsed is None:
         return None
-    return validator.check(parsed.record, parsed.seq)
+    if guard is None or not guard.active:
+        return validator.check(parsed.record, parsed.seq)
+    before = Counter(validator.counters)
+    record = validator.check(parsed.record, parsed.seq)
+    if record is not None:
+        guard.accepted()
+        return record
+    reason = next((k for k, v in validator.counters.items() if v != before.get(k, 0)), "rejected")
+    guard.rejected(reason, describe_record(parsed.record))
+    return None
 
 
 def iter_breaths(

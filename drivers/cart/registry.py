@@ -11,6 +11,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from drivers.cart.lsl import LslOptions, LslTransport
 from drivers.cart.net import TcpOptions, TcpTransport, UdpOptions, UdpTransport
 from drivers.cart.replay import ReplayOptions, ReplayTransport
 from drivers.cart.serial_port import SerialOptions, SerialTransport
@@ -41,6 +42,7 @@ TRANSPORTS: dict[str, TransportSpec] = {
     "tcp": TransportSpec("tcp", TcpOptions, TcpTransport),
     "udp": TransportSpec("udp", UdpOptions, UdpTransport),
     "replay": TransportSpec("replay", ReplayOptions, ReplayTransport),
+    "lsl": TransportSpec("lsl", LslOptions, LslTransport),
 }
 
 

@@ -15,7 +15,9 @@ simulated clock.
 from __future__ import annotations
 
 import asyncio
+import io
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from os import PathLike, fspath
 from typing import BinaryIO
@@ -71,9 +73,24 @@ class ReplayTransport(CartTransport):
 
     name = "replay"
 
-    def __init__(self, options: ReplayOptions, hooks: TransportHooks | None = None) -> None:
+    def __init__(
+        self,
+        options: ReplayOptions,
+        hooks: TransportHooks | None = None,
+        *,
+        loader: Callable[[str], bytes] | None = None,
+    ) -> None:
+        """Create the transport.
+
+        Args:
+            options: Path and speed.
+            hooks: Injectable sleep and clock.
+            loader: Turns the file into the lines to replay (a vendor preset's xlsx or XML
+                reader, :mod:`drivers.cart.vendors`); None reads the file's own bytes.
+        """
         super().__init__(max_line_bytes=options.max_line_bytes, backoff=None, hooks=hooks)
         self.options = options
+        self.loader = loader
         self._file: BinaryIO | None = None
         self._t0_s: float | None = None
         self._wall0_s = 0.0
@@ -84,7 +101,10 @@ class ReplayTransport(CartTransport):
 
     async def _open_link(self) -> None:
         # A local file: opening and reading are fast enough to do on the loop.
-        self._file = open(self.options.path, "rb")  # closed in _close_link
+        if self.loader is not None:
+            self._file = io.BytesIO(self.loader(self.options.path))
+        else:
+            self._file = open(self.options.path, "rb")  # closed in _close_link
         self._t0_s = None
 
     async def _read_chunk(self) -> bytes | None:

@@ -8,10 +8,12 @@
             ...
     stream.counters                          # rejects by reason (framing, decoding, validation)
 
-The stream never raises for bad data. It raises :class:`~drivers.errors.TransportError` when the
-link is gone for good (after the backoff's ``max_attempts``) and
-:class:`~drivers.errors.DriverConfigError` when a CSV header does not match the mapping; it ends
-(``StopAsyncIteration``) when a replayed file is exhausted.
+The stream never raises for bad data *once it has delivered a breath*. It raises
+:class:`~drivers.errors.TransportError` when the link is gone for good (after the backoff's
+``max_attempts``), :class:`~drivers.errors.DriverConfigError` when a CSV header does not match
+the mapping (or a preset finds no header), and :class:`~drivers.cart.errors.CartError` when the
+first ``max_leading_rejects`` records are all rejected (wrong units, time format or preset); it
+ends (``StopAsyncIteration``) when a replayed file is exhausted.
 """
 
 from __future__ import annotations
@@ -23,13 +25,20 @@ from enum import StrEnum
 from types import TracebackType
 from typing import Any, Self
 
-from drivers.cart._options import check_keys, check_mapping, enum_value
+from drivers.cart._options import check_keys, check_mapping, enum_value, int_value
 from drivers.cart.csvmap import CsvBreathParser, CsvMapping
 from drivers.cart.line import HbrLineParser
-from drivers.cart.pipeline import BreathParser, process_line
+from drivers.cart.pipeline import (
+    DEFAULT_MAX_LEADING_REJECTS,
+    BreathParser,
+    LeadingRejectGuard,
+    process_line,
+)
 from drivers.cart.registry import make_transport, transport_options_from_dict, transport_spec
+from drivers.cart.replay import ReplayTransport
 from drivers.cart.transport import CartTransport, TransportHooks
 from drivers.cart.validate import BreathValidator, PhysioLimits
+from drivers.cart.vendors import TableParser, VendorSpec, vendor_spec
 from drivers.errors import DriverConfigError
 from hilbo_core.types import BreathRecord
 
@@ -43,9 +52,26 @@ class CartFormat(StrEnum):
     """Our line format with sequence number and CRC-16 (``drivers/cart/FORMAT.md``)."""
     CSV = "csv"
     """A vendor's CSV, read through a :class:`~drivers.cart.csvmap.CsvMapping`."""
+    COSMED = "cosmed"
+    """COSMED Omnia/PFT Suite xlsx export (replay only)."""
+    COSMED_CSV = "cosmed-csv"
+    """COSMED K5/Quark CSV export (file or live lines)."""
+    CORTEX = "cortex"
+    """CORTEX MetaSoft Studio Excel-2003 XML export (replay only)."""
+    VYNTUS = "vyntus"
+    """Vyntus CPX SentrySuite tab-separated text export (file or live lines)."""
+    PARVO = "parvo"
+    """Parvo Medics TrueOne 2400 CSV export (file or live lines)."""
+
+    @property
+    def vendor(self) -> VendorSpec | None:
+        """The vendor preset of this format (:mod:`drivers.cart.vendors`), None for ours and csv."""
+        if self in (CartFormat.HILBO_LINE, CartFormat.CSV):
+            return None
+        return vendor_spec(self.value)
 
 
-_CONFIG_KEYS = ("transport", "options", "format", "csv", "limits")
+_CONFIG_KEYS = ("transport", "options", "format", "csv", "limits", "max_leading_rejects")
 
 
 @dataclass(frozen=True, slots=True)
@@ -56,7 +82,9 @@ class CartConfig:
 
         [cart]
         transport = "tcp"              # "serial" | "tcp" | "udp" | "replay"
-        format = "hilbo-line"          # or "csv" (then [cart.csv] is required)
+        format = "hilbo-line"          # "csv" (then [cart.csv] is required), or a vendor preset:
+                                       # "cosmed", "cosmed-csv", "cortex", "vyntus", "parvo"
+        max_leading_rejects = 20       # stop if the first 20 records are all rejected
         [cart.options]                 # the transport's options
         host = "192.168.10.20"
         port = 5000
@@ -71,6 +99,9 @@ class CartConfig:
         format: Line format (:class:`CartFormat`).
         csv: The column mapping; required for ``format = "csv"``, refused otherwise.
         limits: Physiological limits for the validator.
+        max_leading_rejects: Stop with :class:`~drivers.cart.errors.CartError` when this many
+            records are rejected before the first accepted one (a wrong unit, time format or
+            preset rejects every breath; the error names the reason and a value).
     """
 
     transport: str
@@ -78,6 +109,7 @@ class CartConfig:
     format: CartFormat = CartFormat.HILBO_LINE
     csv: CsvMapping | None = None
     limits: PhysioLimits = field(default_factory=PhysioLimits)
+    max_leading_rejects: int = DEFAULT_MAX_LEADING_REJECTS
 
     def __post_init__(self) -> None:
         spec = transport_spec(self.transport)
@@ -96,6 +128,18 @@ class CartConfig:
             )
         if not isinstance(self.limits, PhysioLimits):
             raise DriverConfigError(f"limits = {self.limits!r}: expected PhysioLimits")
+        int_value(self.max_leading_rejects, "max_leading_rejects", lo=1, hi=100_000)
+        vendor = fmt.vendor
+        if vendor is not None and not vendor.is_live_capable and self.transport != "replay":
+            raise DriverConfigError(
+                f"format = {fmt.value!r} is a file export ({vendor.title}); it needs "
+                f"transport = 'replay', not {self.transport!r}"
+            )
+        if self.transport == "lsl" and fmt is not CartFormat.HILBO_LINE:
+            raise DriverConfigError(
+                f"format = {fmt.value!r} with transport = 'lsl': LSL carries samples, not lines; "
+                "leave format out (the channels are mapped in [cart.options])"
+            )
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any], where: str = "cart") -> CartConfig:
@@ -117,8 +161,9 @@ class CartConfig:
         limits = (
             PhysioLimits.from_dict(data["limits"], f"{where}.limits") if "limits" in data else PhysioLimits()
         )
+        extra = {"max_leading_rejects": data["max_leading_rejects"]} if "max_leading_rejects" in data else {}
         try:
-            return cls(transport=name, options=options, format=fmt, csv=csv, limits=limits)
+            return cls(transport=name, options=options, format=fmt, csv=csv, limits=limits, **extra)
         except DriverConfigError as err:
             raise DriverConfigError(f"{where}.{err}") from err
 
@@ -126,6 +171,9 @@ class CartConfig:
         """A fresh parser for this format (CSV parsers are stateful: one per stream)."""
         if self.format is CartFormat.CSV and self.csv is not None:
             return CsvBreathParser(self.csv)
+        vendor = self.format.vendor
+        if vendor is not None:
+            return TableParser(vendor)
         return HbrLineParser()
 
 
@@ -147,6 +195,7 @@ class BreathStream:
         self.transport = transport
         self.parser = parser
         self.validator = validator if validator is not None else BreathValidator()
+        self.guard: LeadingRejectGuard | None = None
 
     @classmethod
     def from_config(cls, config: CartConfig, hooks: TransportHooks | None = None) -> BreathStream:
@@ -156,11 +205,15 @@ class BreathStream:
             config: The cart config.
             hooks: Injectable sleep/clock for backoff and replay pacing (tests, simulation).
         """
-        return cls(
-            make_transport(config.transport, config.options, hooks),
-            config.make_parser(),
-            BreathValidator(config.limits),
+        transport = make_transport(config.transport, config.options, hooks)
+        vendor = config.format.vendor
+        if vendor is not None and isinstance(transport, ReplayTransport):
+            transport.loader = vendor.loader  # xlsx/XML presets replay their line image
+        stream = cls(transport, config.make_parser(), BreathValidator(config.limits))
+        stream.guard = LeadingRejectGuard(
+            config.max_leading_rejects, source=f"cart ({transport.describe()}, format {config.format.value})"
         )
+        return stream
 
     @property
     def counters(self) -> Counter[str]:
@@ -197,7 +250,7 @@ class BreathStream:
     async def __anext__(self) -> BreathRecord:
         """The next valid breath (paced by the transport when it replays a file)."""
         async for line in self.transport:
-            record = process_line(line, self.parser, self.validator)
+            record = process_line(line, self.parser, self.validator, self.guard)
             if record is not None:
                 await self.transport.pace(record.t_s)
                 return record

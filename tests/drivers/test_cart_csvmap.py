@@ -195,7 +195,8 @@ def test_missing_header_fails_loudly() -> None:
 def test_header_at_row_without_mapped_column_fails_loudly() -> None:
     parser = CsvBreathParser(CsvMapping("t", "VO2", "VCO2", header_row=1))
     assert parser.parse(b"Cart export v2") is None
-    with pytest.raises(DriverConfigError, match=r"lacks the mapped column\(s\) \['VCO2'\]"):
+    with pytest.raises(DriverConfigError,
+                       match=r"no column 'VCO2' in the header; the file's columns are: 't', 'VO2', 'CO2'"):
         parser.parse(b"t,VO2,CO2")
 
 

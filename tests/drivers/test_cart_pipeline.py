@@ -56,5 +56,5 @@ def test_read_breath_file_keeps_a_last_line_without_newline(tmp_path: Path) -> N
 def test_config_errors_propagate(tmp_path: Path) -> None:
     path = tmp_path / "wrong.csv"
     path.write_text("time,oxygen,co2\n1,500,400\n")
-    with pytest.raises(DriverConfigError, match="lacks the mapped column"):
+    with pytest.raises(DriverConfigError, match=r"no column .VO2. or .VCO2. in the header"):
         read_breath_file(path, CsvBreathParser(CsvMapping("time", "VO2", "VCO2", header_row=0)))

@@ -275,9 +275,11 @@ def test_config_from_dict_full() -> None:
     [
         (
             {"transport": "tcp", "options": {"host": "h", "port": 1}, "speed": 2},
-            r"cart: unknown key 'speed' = 2; allowed keys: csv, format, limits, options, transport",
+            r"cart: unknown key 'speed' = 2; allowed keys: csv, format, limits, max_leading_rejects, "
+            r"options, transport",
         ),
-        ({"transport": "usb"}, r"cart.transport = 'usb': expected one of 'replay', 'serial', 'tcp', 'udp'"),
+        ({"transport": "usb"},
+         r"cart.transport = 'usb': expected one of 'lsl', 'replay', 'serial', 'tcp', 'udp'"),
         ({"options": {}}, "cart: missing required key 'transport'"),
         (
             {"transport": "tcp", "options": {"host": "h"}},
@@ -320,7 +322,7 @@ def test_config_refuses_options_of_another_transport() -> None:
 
 
 def test_registry() -> None:
-    assert sorted(TRANSPORTS) == ["replay", "serial", "tcp", "udp"]
+    assert sorted(TRANSPORTS) == ["lsl", "replay", "serial", "tcp", "udp"]
     t = make_transport("udp", {"port": 0})
     assert isinstance(t, UdpTransport) and t.name == "udp"
     with pytest.raises(DriverConfigError, match=r"options\.port = -1"):

@@ -1,0 +1,146 @@
+"""A stream whose breaths are all rejected stops at once with the reason; a missing column is one line.
+
+Reproductions of issue 19 part 3: a CSV replayed with the wrong ``vo2_unit`` or ``time_format``
+used to end "0 evaluations" with all 400 breaths rejected (visible only in /rejects); a column map
+naming a missing column used to end in a 51-line ExceptionGroup traceback.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import re
+from pathlib import Path
+
+import pytest
+
+from bridge import cli
+from drivers.cart import BreathStream, CartConfig
+from drivers.cart.errors import CartError
+from drivers.errors import DriverError
+
+pytestmark = pytest.mark.timeout(60)
+
+N_ROWS = 400
+
+
+def _write_csv(path: Path, n: int = N_ROWS) -> Path:
+    # COSMED-like: clock times, VO2/VCO2 in ml/min.
+    rows = ["t,VO2,VCO2,R", "s,mL/min,mL/min,---"]
+    for i in range(n):
+        t = 3 * i + 3
+        rows.append(f"0:{t // 60:02d}:{t % 60:02d},{1000 + i % 7},{850 + i % 5},0.85")
+    path.write_text("\n".join(rows) + "\n")
+    return path
+
+
+def _cart(path: Path, **csv: object) -> dict[str, object]:
+    mapping = {"time_column": "t", "vo2_column": "VO2", "vco2_column": "VCO2", "time_format": "hh:mm:ss",
+               "skip_rows": 1, **csv}
+    return {"transport": "replay", "format": "csv", "options": {"path": str(path), "speed": "max"},
+            "csv": mapping}
+
+
+async def _drain(config: CartConfig) -> tuple[int, BreathStream]:
+    n = 0
+    async with BreathStream.from_config(config) as stream:
+        async for _ in stream:
+            n += 1
+    return n, stream
+
+
+def test_right_map_reads_every_row(tmp_path: Path) -> None:
+    n, stream = asyncio.run(_drain(CartConfig.from_dict(_cart(_write_csv(tmp_path / "a.csv")))))
+    assert n == N_ROWS and stream.counters == {}
+
+
+@pytest.mark.parametrize(("csv", "reason", "value"), [
+    ({"vo2_unit": "l/min", "vco2_unit": "l/min"}, "vo2_range", "VO2 = 1e+06 ml/min"),
+    ({"time_format": "s"}, "bad_time", "time '0:00:03' is a clock time, not s"),
+])
+def test_all_rejected_stops_after_the_first_k(tmp_path: Path, csv: dict[str, object], reason: str,
+                                              value: str) -> None:
+    config = CartConfig.from_dict({**_cart(_write_csv(tmp_path / "a.csv"), **csv), "max_leading_rejects": 15})
+    stream_box: list[BreathStream] = []
+
+    async def run() -> None:
+        async with BreathStream.from_config(config) as stream:
+            stream_box.append(stream)
+            async for _ in stream:
+                pass
+
+    with pytest.raises(CartError) as info:
+        asyncio.run(run())
+    msg = str(info.value)
+    assert f"the first 15 records were all rejected, none accepted: 15 x {reason}" in msg
+    assert value in msg
+    assert "Check " in msg
+    assert stream_box[0].validator.rejected == 15  # stopped at once, not after 400
+
+
+def test_default_limit_and_accepted_breath_disarms(tmp_path: Path) -> None:
+    assert CartConfig.from_dict(_cart(tmp_path / "x.csv")).max_leading_rejects == 20
+    path = _write_csv(tmp_path / "a.csv", n=60)
+    text = path.read_text().splitlines()
+    # One good row first, then 50 rows out of range: accepted once, so the stream does not stop.
+    bad = [re.sub(r",\d+,", ",5,", row, count=1) for row in text[3:53]]
+    path.write_text("\n".join(text[:3] + bad + text[53:]) + "\n")
+    n, stream = asyncio.run(_drain(CartConfig.from_dict(_cart(path))))
+    assert n == 60 - 50 and stream.counters == {"vo2_range": 50}
+
+
+def test_max_leading_rejects_is_validated(tmp_path: Path) -> None:
+    with pytest.raises(DriverError, match="max_leading_rejects = 0: expected an integer in"):
+        CartConfig.from_dict({**_cart(tmp_path / "x.csv"), "max_leading_rejects": 0})
+
+
+def _config_toml(tmp_path: Path, cart_path: Path, csv_extra: str = "") -> Path:
+    text = cli.__loader__ and Path(cli.__file__).with_name("config_example.toml").read_text()
+    start, end = text.index("[cart]"), text.index("[can]")
+    cart = (f'[cart]\ntransport = "replay"\nformat = "csv"\n[cart.options]\npath = "{cart_path}"\n'
+            'speed = "max"\n[cart.csv]\ntime_column = "t"\nvo2_column = "VO2"\nvco2_column = "VCO2"\n'
+            f'time_format = "hh:mm:ss"\nskip_rows = 1\n{csv_extra}\n')
+    text = text[:start] + cart + text[end:]
+    text = text.replace('interface = "socketcan"', 'interface = "virtual"')
+    text = text.replace('out_dir = "sessions"', f'out_dir = "{tmp_path / "out"}"')
+    path = tmp_path / "s.toml"
+    path.write_text(text)
+    return path
+
+
+def test_config_check_shows_first_breaths_and_rejects(tmp_path: Path,
+                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    good = _config_toml(tmp_path, _write_csv(tmp_path / "a.csv"))
+    assert cli.main(["config", "check", str(good), "--samples", "0"]) == 0
+    out = capsys.readouterr().out
+    assert f"cart file {tmp_path / 'a.csv'}: 400 breaths read, 0 rejected" in out
+    assert "t = 3 s, VO2 = 1000 ml/min, VCO2 = 850 ml/min" in out
+    bad = _config_toml(tmp_path, tmp_path / "a.csv", 'vo2_unit = "l/min"\nvco2_unit = "l/min"')
+    assert cli.main(["config", "check", str(bad), "--samples", "0"]) == 2
+    cap = capsys.readouterr()
+    assert "0 breaths read, 400 rejected (vo2_range 400)" in cap.out
+    assert "reject vo2_range: t = 3 s, VO2 = 1e+06 ml/min" in cap.out
+    assert "every record of" in cap.err
+
+
+def test_missing_column_is_one_line_naming_it_and_the_columns(tmp_path: Path,
+                                                              capsys: pytest.CaptureFixture[str]) -> None:
+    cfg = _config_toml(tmp_path, _write_csv(tmp_path / "a.csv"), 'hr_column = "HR"')
+    assert cli.main(["config", "check", str(cfg), "--samples", "0"]) == 2
+    err = capsys.readouterr().err
+    assert "no column 'HR' in the header; the file's columns are: 't', 'VO2', 'VCO2', 'R'" in err
+    assert "Traceback" not in err
+
+
+@pytest.mark.parametrize(("extra", "expected"), [
+    ('hr_column = "HR"', "no column 'HR' in the header; the file's columns are: 't', 'VO2', 'VCO2', 'R'"),
+    ('vo2_unit = "l/min"\nvco2_unit = "l/min"', "the first 20 records were all rejected"),
+])
+def test_hilbo_run_stops_with_the_cart_message_no_traceback(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], extra: str, expected: str) -> None:
+    """A whole `hilbo run` (python-can virtual bus, no exosuit): the cart task ends the session."""
+    cfg = _config_toml(tmp_path, _write_csv(tmp_path / "a.csv"), extra)
+    rc = cli.main(["run", str(cfg), "--no-view"])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert expected in err
+    assert "Traceback" not in err and "ExceptionGroup" not in err

@@ -1,0 +1,67 @@
+"""A whole bridge session (:func:`bridge.run.run_session`, as ``hilbo run``) replaying each real
+export through its vendor preset, with the virtual exosuit on a python-can virtual bus: the
+session reads every breath of the file and ends when the replay does.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import os
+import uuid
+from pathlib import Path
+
+import pytest
+
+from bridge.config import parse_config
+from bridge.run import run_session
+from bridge.sim import VirtualSimConfig, sim_config_text
+from drivers.cart import CartConfig
+from drivers.exosuit import CanBusConfig
+from virtual_hw.clock import ScaledClock
+from virtual_hw.exosuit import SUIT_JOINTS, VirtualExosuit
+
+pytestmark = pytest.mark.timeout(60)
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _exports_dir() -> Path | None:
+    candidates = []
+    if os.environ.get("HILBO_SHARED_DIR"):  # the shared/ folder, or the exports folder itself
+        shared = Path(os.environ["HILBO_SHARED_DIR"])
+        candidates += [shared / "data" / "cart-exports", shared]
+    candidates += [p / "shared" / "data" / "cart-exports" for p in REPO.parents]
+    return next((c for c in candidates if (c / "cosmed_test.xlsx").is_file()), None)
+
+
+EXPORTS = _exports_dir()
+
+
+@pytest.mark.skipif(EXPORTS is None, reason="shared/data/cart-exports not found (beside the repo, "
+                                            "above it, or at $HILBO_SHARED_DIR/data/cart-exports)")
+@pytest.mark.parametrize(("name", "fmt", "n_breaths"), [
+    ("cosmed_test.xlsx", "cosmed", 10), ("cortex_test.xml", "cortex", 13), ("vyntus_test.txt", "vyntus", 7),
+])
+def test_session_replays_the_export_to_its_end(tmp_path: Path, name: str, fmt: str, n_breaths: int) -> None:
+    assert EXPORTS is not None
+    sim = VirtualSimConfig(minutes=30.0, seed=1)
+    cfg = parse_config(sim_config_text(sim, tmp_path), source="<test>")
+    channel = f"hilbo-replay-{uuid.uuid4().hex[:8]}"
+    cfg = dataclasses.replace(
+        cfg,
+        cart=CartConfig.from_dict({"transport": "replay", "format": fmt,
+                                   "options": {"path": str(EXPORTS / name), "speed": "max"}}),
+        can=dataclasses.replace(cfg.can, bus=CanBusConfig("virtual", channel)),
+    )
+
+    async def run() -> dict[str, object]:
+        async with VirtualExosuit(CanBusConfig("virtual", channel), ScaledClock(1.0),
+                                  joints=SUIT_JOINTS[sim.preset], seed=1):
+            result = await run_session(cfg, log_path=tmp_path / "s.mcap", auto_resume_s=0.0,
+                                       operator_view=False, n_actuators=len(SUIT_JOINTS[sim.preset]))
+        return result.summary
+
+    summary = asyncio.run(run())
+    assert summary["n_breaths"] == n_breaths
+    assert (tmp_path / "s.mcap").stat().st_size > 0
