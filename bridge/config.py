@@ -636,11 +636,21 @@ class WatchdogConfig:
         cart_data_timeout_s: No valid breath for this long (wall clock) → assistance-off and pause;
             shorter gaps only pause estimation. 2–300 s (breaths come every 2–6 s).
         bus_error: :class:`BusErrorPolicy`.
+        auto_resume_s: The resume policy of headless runs (issue 15): a pause that the operator
+            did not ask for (the pause between the bouts, a lost device heartbeat, silent cart,
+            a failed push) ends by itself once the device and the cart have been healthy for
+            this long (wall s, 0-3600; device faults that the bridge may clear are cleared
+            first); None (the default): only the operator's ``r`` ends a pause.
+            ``hilbo run --auto-resume S`` sets it, ``hilbo sim`` always uses it.
+        max_auto_resumes: At most this many automatic resumes per session (1-1000); the next
+            pause that would need one stops the session instead of waiting for nobody.
     """
 
     device_heartbeat_timeout_ms: float = 100.0
     cart_data_timeout_s: float = 15.0
     bus_error: BusErrorPolicy = BusErrorPolicy.PAUSE
+    auto_resume_s: float | None = None
+    max_auto_resumes: int = 10
 
     def to_json(self) -> dict[str, Any]:
         """JSON-able form."""
@@ -653,6 +663,9 @@ def _parse_watchdog(data: object) -> WatchdogConfig:
         device_heartbeat_timeout_ms=t.number("device_heartbeat_timeout_ms", 100.0, lo=40.0, hi=1000.0),
         cart_data_timeout_s=t.number("cart_data_timeout_s", 15.0, lo=2.0, hi=300.0),
         bus_error=t.choice("bus_error", BusErrorPolicy, BusErrorPolicy.PAUSE),
+        auto_resume_s=(t.number("auto_resume_s", lo=0.0, hi=3600.0)
+                       if t.has("auto_resume_s") else None),
+        max_auto_resumes=t.integer("max_auto_resumes", 10, lo=1, hi=1000),
     )
 
 

@@ -49,7 +49,8 @@ def runtime_settings(cfg: HilboConfig, *, auto_resume_s: float | None = None,
     return RuntimeSettings(
         warmup_s=cfg.protocol.warmup_s,
         pause_between_bouts=cfg.protocol.pause_between_bouts,
-        auto_resume_s=auto_resume_s,
+        auto_resume_s=cfg.watchdog.auto_resume_s if auto_resume_s is None else auto_resume_s,
+        max_auto_resumes=cfg.watchdog.max_auto_resumes,
         device_timeout_s=cfg.watchdog.device_heartbeat_timeout_ms / 1000.0,
         cart_timeout_s=cfg.watchdog.cart_data_timeout_s,
         push_timeout_s=cfg.can.push_timeout_ms / 1000.0,
@@ -100,8 +101,9 @@ async def run_session(
         resume: A previous session's log (possibly cut off by a crash) to continue.
         out_dir: Overrides ``[session] out_dir``.
         log_path: Exact log path (else ``OUT_DIR/<subject>_<time>.mcap``).
-        auto_resume_s: End the pause between the bouts by itself after this long (wall s;
-            simulations, and ``hilbo run --auto-resume`` without a keyboard).
+        auto_resume_s: The resume policy (``[watchdog] auto_resume_s``, which this overrides):
+            end a pause the operator did not ask for after this long of a healthy device and
+            cart (wall s; simulations, and ``hilbo run --auto-resume`` without a keyboard).
         operator_view: Show the live terminal view (when stderr is a terminal).
         n_actuators: Actuators whose heartbeat the watchdog requires.
         on_session: Called with the session before it runs (tests, simulation wiring).
