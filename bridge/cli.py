@@ -104,11 +104,11 @@ def _cmd_run(args: argparse.Namespace) -> int:
     resume = Path(args.resume) if args.resume else None
     console.print(f"hilbo run: {cfg.source} (subject {cfg.session.subject})"
                   + (f", resuming {resume}" if resume else ""))
-    if (cfg.protocol.pause_between_bouts and args.auto_resume is None
+    if (args.auto_resume is None and cfg.watchdog.auto_resume_s is None
             and (args.no_view or not sys.stdin.isatty())):
-        console.print("hilbo run: note: no keyboard (--no-view, or stdin is not a terminal): the pause "
-                      "between the bouts lasts until SIGTERM/Ctrl-C; give --auto-resume S, or set "
-                      "[protocol] pause_between_bouts = false")
+        console.print("hilbo run: note: no keyboard (--no-view, or stdin is not a terminal): any pause "
+                      "(the one between the bouts too) lasts until SIGTERM/Ctrl-C; give "
+                      "--auto-resume S or set [watchdog] auto_resume_s")
     result = asyncio.run(run_session(cfg, resume=resume, out_dir=Path(args.out) if args.out else None,
                                      operator_view=not args.no_view, auto_resume_s=args.auto_resume))
     s = result.summary
@@ -211,10 +211,14 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--resume", metavar="LOG.mcap", default=None,
                      help="continue the session of this log (also one cut off by a crash) in a new log")
     run.add_argument("--out", default=None, help="output directory (default: [session] out_dir)")
-    run.add_argument("--no-view", action="store_true", help="no live terminal view")
+    run.add_argument("--no-view", action="store_true",
+                     help="no live terminal view: one line per evaluation and per pause, resume "
+                          "or refusal on stderr")
     run.add_argument("--auto-resume", type=_seconds, default=None, metavar="S",
-                     help="end the pause between the bouts by itself after S seconds (for a run "
-                          "without keyboard, e.g. --no-view; default: wait for the operator's r)")
+                     help="the resume policy: end any pause the operator did not ask for (between "
+                          "the bouts, lost heartbeat, silent cart) once the device and the cart "
+                          "have been healthy for S seconds, at most [watchdog] max_auto_resumes "
+                          "times, then stop (default: [watchdog] auto_resume_s, else wait for r)")
     run.set_defaults(func=_cmd_run)
 
     from bridge.config import add_config_parser

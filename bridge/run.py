@@ -20,6 +20,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from rich.console import Console
+
 from bridge.config import HilboConfig
 from bridge.log import SessionLog, new_session_id
 from bridge.operator_view import run_operator_view
@@ -62,6 +64,17 @@ def runtime_settings(cfg: HilboConfig, *, auto_resume_s: float | None = None,
         proposal_worker=cfg.protocol.proposal_worker,
         gc=cfg.protocol.gc,
     )
+
+
+def _headless_line(session: BridgeSession) -> Callable[[str], None]:
+    """A printer of the session's event lines on stderr, with the session's breath time and
+    state, for runs without the live view."""
+    console = Console(stderr=True, highlight=False, soft_wrap=True)
+
+    def line(text: str) -> None:
+        st = session.status
+        console.print(f"[{st.breath_time_s / 60:6.1f} min | {st.state}] {text}", markup=False)
+    return line
 
 
 def write_json_atomic(path: Path, data: Any) -> None:
@@ -147,6 +160,9 @@ async def run_session(
                     installed.append(sig)
             view = asyncio.create_task(run_operator_view(session), name="operator-view") \
                 if operator_view else None
+            if not operator_view:
+                # Headless (issue 15): one line per evaluation and per pause, resume or refusal.
+                session.status.listeners.append(_headless_line(session))
             try:
                 summary = await session.run()
             finally:

@@ -168,6 +168,8 @@ class SessionStatus:
     """
 
     supervisor: Supervisor | None = field(default=None, repr=False)
+    #: Called with every event line as it happens (``hilbo run --no-view`` prints them).
+    listeners: list[Callable[[str], None]] = field(default_factory=list, repr=False)
     bout: str = "warm-up"
     evaluation: int = 0
     params: dict[str, float] | None = None
@@ -192,6 +194,8 @@ class SessionStatus:
         """Remember a recent event for the display."""
         self.events.append(text)
         del self.events[:-6]
+        for listener in self.listeners:
+            listener(text)
 
 
 class _Paused(Exception):
