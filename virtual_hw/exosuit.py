@@ -51,7 +51,10 @@ Joints and the two-table convention
 -----------------------------------
 ``joints`` names the load path of each actuator, in actuator order. A profile push carries ONE
 table of ``n`` points; the device splits it into one equal chunk per *distinct* joint, in order of
-first appearance, and each actuator executes its joint's chunk:
+first appearance, and each actuator executes its joint's chunk. The layout is the protocol's,
+defined once in :mod:`drivers.exosuit.profile` (:func:`~drivers.exosuit.profile.table_order`,
+:func:`~drivers.exosuit.profile.pack_tables`, :func:`~drivers.exosuit.profile.unpack_tables`)
+and in PROTOCOL.md:
 
 * hip suit, ``joints=("hip", "hip")`` (:data:`SUIT_JOINTS` ``["hip_6d"]``): one 101-point table,
   executed by both legs; ``on_applied`` gets ``(ForceProfile("hip", ...),)``.
@@ -105,6 +108,7 @@ from drivers.exosuit.codec import (
     DeviceFault,
     DeviceMode,
     DeviceStatus,
+    EncodeError,
     ForceFeedback,
     NackReason,
     ProfileAck,
@@ -123,6 +127,8 @@ from drivers.exosuit.profile import (
     profile_crc32,
     raw_to_forces,
     segment_count,
+    table_order,
+    unpack_tables,
 )
 from hilbo_core.profiles import ForceProfile
 from virtual_hw.clock import SimClock
@@ -440,7 +446,10 @@ class AppliedTable:
 
 
 def _distinct(joints: Sequence[str]) -> tuple[str, ...]:
-    return tuple(dict.fromkeys(joints))
+    try:
+        return table_order(joints)
+    except EncodeError as err:
+        raise VirtualConfigError(str(err)) from err
 
 
 def split_table(forces_raw: Sequence[int], joints: Sequence[str]) -> tuple[ForceProfile, ...]:
@@ -453,33 +462,28 @@ def split_table(forces_raw: Sequence[int], joints: Sequence[str]) -> tuple[Force
 
     Returns:
         One profile per distinct joint in order of first appearance, each over 0..100 %GC with
-        ``n / len(distinct joints)`` points.
+        ``n / len(distinct joints)`` points (:func:`~drivers.exosuit.profile.unpack_tables`).
 
     Raises:
         VirtualConfigError: ``n`` is not a multiple of the number of joints, or a chunk has fewer than
             2 points.
     """
     names = _distinct(joints)
-    n = len(forces_raw)
-    m, rest = divmod(n, len(names))
-    if rest or m < MIN_PROFILE_POINTS:
-        raise VirtualConfigError(
-            f"a table of {n} points does not split into {len(names)} tables of >= "
-            f"{MIN_PROFILE_POINTS} points for joints {names}"
-        )
-    forces = np.asarray(raw_to_forces(forces_raw), dtype=float)
-    grid = np.linspace(0.0, 100.0, m)
-    return tuple(ForceProfile(name, grid, forces[i * m:(i + 1) * m]) for i, name in enumerate(names))
+    try:
+        chunks = unpack_tables(np.asarray(raw_to_forces(forces_raw), dtype=float), len(names))
+    except EncodeError as err:
+        raise VirtualConfigError(f"{err} for joints {names}") from err
+    grid = np.linspace(0.0, 100.0, chunks[0].size)
+    return tuple(ForceProfile(name, grid, chunk) for name, chunk in zip(names, chunks, strict=True))
 
 
 def _first_slope_violation(forces_raw: Sequence[int], n_tables: int,
                            max_slope_n_per_pct: float) -> int | None:
     """Index of the first point whose step from its neighbour in the same table is too steep."""
-    forces = np.asarray(raw_to_forces(forces_raw), dtype=float)
-    m = len(forces) // n_tables
+    chunks = unpack_tables(np.asarray(raw_to_forces(forces_raw), dtype=float), n_tables)
+    m = chunks[0].size
     max_step = max_slope_n_per_pct * 100.0 / (m - 1)
-    for i in range(n_tables):
-        chunk = forces[i * m:(i + 1) * m]
+    for i, chunk in enumerate(chunks):
         bad = np.flatnonzero(np.abs(np.diff(chunk)) > max_step)
         if bad.size:
             return i * m + int(bad[0]) + 1

@@ -45,7 +45,10 @@ from drivers.exosuit.profile import (
     POINTS_PER_SEGMENT,
     ProfileAssembler,
     ProfileTransfer,
+    pack_tables,
     profile_crc32,
+    table_order,
+    unpack_tables,
 )
 from drivers.exosuit.vcan_setup import (
     can_setup_commands,
@@ -95,8 +98,11 @@ __all__ = [
     "database",
     "decode_frame",
     "frame_id",
+    "pack_tables",
     "persistent_vcan_files",
     "profile_crc32",
     "setup_script",
+    "table_order",
+    "unpack_tables",
     "vcan_setup_commands",
 ]

@@ -51,7 +51,7 @@ from drivers.exosuit.codec import (
     ProfileAck,
     decode_frame,
 )
-from drivers.exosuit.profile import ProfileTransfer
+from drivers.exosuit.profile import ProfileTransfer, pack_tables
 
 __all__ = [
     "DEFAULT_ACK_TIMEOUT_S",
@@ -828,6 +828,33 @@ class CanEndpoint:
                 f"profile version {version}: no ack after {retries + 1} attempt(s) of "
                 f"{timeout_s} s each"
             )
+
+    async def push_tables(
+        self,
+        tables: Sequence[Sequence[float] | np.ndarray],
+        version: int,
+        *,
+        timeout_s: float = DEFAULT_ACK_TIMEOUT_S,
+        retries: int = DEFAULT_RETRIES,
+        pace_s: float = DEFAULT_PACE_S,
+        permit: PushPermit | None = None,
+    ) -> PushResult:
+        """Push one table per joint of a multi-actuator device as one profile.
+
+        The tables are packed with :func:`~drivers.exosuit.profile.pack_tables` (the layout of
+        PROTOCOL.md, "Force profile tables") and sent with :meth:`push_profile`, whose
+        arguments and errors apply.
+
+        Args:
+            tables: ``k`` tables in the device's table order, each shape ``(m,)``, newtons.
+            version: profile version 1..255.
+            timeout_s: ack timeout per attempt (s).
+            retries: attempts after the first.
+            pace_s: gap between segments (s).
+            permit: see :meth:`push_profile`.
+        """
+        return await self.push_profile(pack_tables(tables), version, timeout_s=timeout_s,
+                                       retries=retries, pace_s=pace_s, permit=permit)
 
     async def _await_ack(
         self, acks: Subscription, version: int, deadline: float

@@ -31,7 +31,7 @@ from drivers.exosuit.codec import (
     ProfileCommit,
 )
 from drivers.exosuit.endpoint import CanBusConfig, CanEndpoint, ProfileNackError, Subscription
-from drivers.exosuit.profile import ProfileTransfer, forces_to_raw
+from drivers.exosuit.profile import ProfileTransfer, forces_to_raw, pack_tables
 from hilbo_core.profiles import ForceProfile, hip_ankle_profiles
 from virtual_hw.clock import ScaledClock, SimClock, VirtualClock
 from virtual_hw.exosuit import DeviceLimits, VirtualExosuit
@@ -181,9 +181,12 @@ async def test_tables_outside_the_device_limits_are_nacked_out_of_limits() -> No
 async def test_hip_ankle_suit_splits_the_concatenated_table_hip_first() -> None:
     hip, ankle = hip_ankle_profiles(
         {"hip_t_peak": 25.0, "hip_t_offset": 45.0, "ankle_t1": 35.0, "ankle_t2": 55.0})
-    table = np.r_[hip.force_n, ankle.force_n]
+    table = pack_tables([hip.force_n, ankle.force_n])
+    assert np.array_equal(table, np.r_[hip.force_n, ankle.force_n])
     async with rig(joints=("hip", "ankle")) as r:
-        await push_and_assist(r, table, 10)
+        with r.ep.subscribe(DeviceStatus) as sub:
+            await r.ep.push_tables([hip.force_n, ankle.force_n], 10)  # the bridge's path
+            await until_all(sub, assisting(10))
         with pytest.raises(ProfileNackError) as odd:
             await r.ep.push_profile(table[:-1], 11)
     ((profiles, _),) = r.applied
