@@ -105,6 +105,15 @@ async def push_and_assist(r: Rig, table: np.ndarray, version: int) -> None:
         await until_all(sub, assisting(version))
 
 
+async def heartbeat_back(r: Rig, timeout_s: float = 5.0) -> None:
+    """Wait until the device has seen the bridge heartbeat back for its clear period."""
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout_s
+    while r.exo.heartbeat_back_s() < r.exo.heartbeat_clear_s:
+        assert loop.time() < deadline, "the bridge heartbeat did not come back"
+        await asyncio.sleep(0.01)
+
+
 async def test_profile_is_pending_then_active_at_a_gait_boundary_and_applied_bit_for_bit() -> None:
     async with rig() as r:
         t_before = r.clock.now()
@@ -273,6 +282,8 @@ async def test_lost_bridge_heartbeat_stops_assistance_even_if_a_stale_counter_re
         assert DeviceFault.HEARTBEAT_LOST in off.faults
         assert 0.07 <= elapsed <= 0.6
         r.ep.start_heartbeat()
+        await heartbeat_back(r)
+        assert (await r.ep.clear_faults()).ok  # the fault-clear step (PROTOCOL.md)
         await push_and_assist(r, TABLE, 17)
         with r.ep.subscribe(DeviceStatus) as sub:
             back = await asyncio.wait_for(sub.get(), 1.0)
