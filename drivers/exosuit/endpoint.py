@@ -42,16 +42,21 @@ from drivers.errors import (
     TransportError,
 )
 from drivers.exosuit.codec import (
+    N_ACTUATORS,
     AssistanceOff,
     AssistanceOffReason,
     BridgeHeartbeat,
     BridgeState,
+    ClearFaults,
+    ClearFaultsAck,
+    DeviceFault,
     ExosuitMessage,
     NackReason,
     ProfileAck,
     decode_frame,
 )
-from drivers.exosuit.profile import ProfileTransfer
+from drivers.exosuit.faults import CLEARABLE_FAULTS, describe_faults, fault_names
+from drivers.exosuit.profile import ProfileTransfer, pack_tables
 
 __all__ = [
     "DEFAULT_ACK_TIMEOUT_S",
@@ -62,6 +67,7 @@ __all__ = [
     "RETRYABLE_NACKS",
     "CanBusConfig",
     "CanEndpoint",
+    "ClearFaultsResult",
     "ProfileNackError",
     "PushPermit",
     "PushResult",
@@ -245,6 +251,55 @@ class PushResult:
     timeouts: int = 0
 
 
+@dataclass(frozen=True)
+class ClearFaultsResult:
+    """Outcome of :meth:`CanEndpoint.clear_faults`.
+
+    Attributes:
+        sequence: the request's sequence number.
+        mask: the faults asked to be cleared.
+        answers: each answering actuator's :class:`~drivers.exosuit.codec.ClearFaultsAck`.
+        missing: addressed actuators that did not answer within the timeout.
+    """
+
+    sequence: int
+    mask: DeviceFault
+    answers: Mapping[int, ClearFaultsAck]
+    missing: tuple[int, ...] = ()
+
+    @property
+    def cleared(self) -> DeviceFault:
+        """Faults cleared on any actuator."""
+        out = DeviceFault(0)
+        for a in self.answers.values():
+            out |= a.cleared
+        return out
+
+    @property
+    def held(self) -> DeviceFault:
+        """Faults still set on any answering actuator."""
+        out = DeviceFault(0)
+        for a in self.answers.values():
+            out |= a.held
+        return out
+
+    @property
+    def ok(self) -> bool:
+        """Every addressed actuator answered and none holds a fault any more."""
+        return not self.missing and not self.held
+
+    def describe(self) -> str:
+        """One line for the operator, e.g. ``"cleared heartbeat_lost; still held: force_limit
+        (cleared by the bridge once the measured force is back under the limit)"``."""
+        parts = [f"cleared {', '.join(fault_names(self.cleared))}" if self.cleared
+                 else "cleared nothing"]
+        if self.held:
+            parts.append(f"still held: {'; '.join(describe_faults(self.held))}")
+        if self.missing:
+            parts.append(f"no answer from actuator(s) {', '.join(map(str, self.missing))}")
+        return "; ".join(parts)
+
+
 class ProfileNackError(ProfilePushError):
     """The device refused a profile (after the retries, or at once for a non-retryable reason).
 
@@ -419,6 +474,7 @@ class CanEndpoint:
         self._rx_task: asyncio.Task[None] | None = None
         self._hb_task: asyncio.Task[None] | None = None
         self._hb_counter = 0
+        self._clear_sequence = 0
         self._subs: list[Subscription] = []
         self._counters: collections.Counter[str] = collections.Counter()
         self._received: collections.Counter[str] = collections.Counter()
@@ -507,7 +563,8 @@ class CanEndpoint:
     def counters(self) -> Mapping[str, int]:
         """Frames that did not decode, by reason (``unknown_id``, ``bad_length``, ``bad_value``,
         ``extended_id``, ``remote_frame``, ``error_frame``, ``fd_frame``), plus
-        ``subscriber_overflow``, ``stale_ack``, ``send_retry`` and ``heartbeat_overrun``."""
+        ``subscriber_overflow``, ``stale_ack``, ``send_retry``, ``heartbeat_overrun`` and
+        ``clear_ack_stale``."""
         return types.MappingProxyType(self._counters)
 
     @property
@@ -656,6 +713,82 @@ class CanEndpoint:
         if self.bridge_state == BridgeState.RUNNING:
             self.bridge_state = BridgeState.PAUSED
         await self.send(AssistanceOff(AssistanceOffReason(reason)))
+
+    async def clear_faults(
+        self,
+        mask: DeviceFault | int = CLEARABLE_FAULTS,
+        actuator: int | None = None,
+        *,
+        timeout_s: float = DEFAULT_ACK_TIMEOUT_S,
+        n_actuators: int = N_ACTUATORS,
+    ) -> ClearFaultsResult:
+        """Ask the device to clear latched faults, and wait for its answers.
+
+        Sends one ClearFaults (PROTOCOL.md, "Clearing a latched fault") and waits up to
+        ``timeout_s`` for the ClearFaultsAck of every addressed actuator with this request's
+        sequence; answers to earlier requests are ignored and counted (``clear_ack_stale``).
+        The device clears a fault only once its cause is gone and never restarts assistance by
+        itself: it assists again only after a new profile commit is acked while the heartbeat
+        says RUNNING. The request is serialised with :meth:`push_profile` (it waits for a
+        running push and holds pushes back until it is answered), so it never lands among the
+        segments.
+
+        Args:
+            mask: the faults to clear (default every fault a request can clear); 0 only asks
+                for the answer.
+            actuator: 0 or 1, or None for every actuator.
+            timeout_s: how long to wait for the answers (s).
+            n_actuators: actuators the device has (the answers awaited when ``actuator`` is
+                None).
+
+        Returns:
+            A :class:`ClearFaultsResult` (``ok`` when nothing is held and every actuator
+            answered; ``missing`` lists those that did not).
+
+        Raises:
+            DriverConfigError: bad timeout or actuator count.
+            EncodeError: bad mask or actuator.
+            TransportError: the bus failed.
+        """
+        if not timeout_s > 0 or isinstance(n_actuators, bool) or n_actuators not in range(
+            1, N_ACTUATORS + 1
+        ):
+            raise DriverConfigError(
+                f"clear_faults: expected timeout_s > 0 and n_actuators 1..{N_ACTUATORS}; got "
+                f"timeout_s={timeout_s}, n_actuators={n_actuators}"
+            )
+        sequence = self._clear_sequence
+        request = ClearFaults(sequence, mask, actuator)  # type: ignore[arg-type]
+        frame = request.to_frame()  # validates mask and actuator before anything is sent
+        expected = set(range(n_actuators)) if actuator is None else {actuator}
+        self._check_usable()
+        if self._push_lock is None:
+            raise DriverError("endpoint is not open")
+        loop = asyncio.get_running_loop()
+        async with self._push_lock:
+            self._clear_sequence = (sequence + 1) % 256
+            answers: dict[int, ClearFaultsAck] = {}
+            with self.subscribe(ClearFaultsAck) as sub:
+                await self.send(frame)
+                deadline = loop.time() + timeout_s
+                while expected - answers.keys():
+                    remaining = deadline - loop.time()
+                    if remaining <= 0:
+                        break
+                    try:
+                        async with asyncio.timeout(remaining):
+                            answer = await sub.get()
+                    except TimeoutError:
+                        break
+                    if answer.sequence != sequence or answer.actuator not in expected:
+                        self._counters["clear_ack_stale"] += 1
+                        continue
+                    answers[answer.actuator] = answer
+        result = ClearFaultsResult(sequence, DeviceFault(int(request.mask)),
+                                   types.MappingProxyType(answers),
+                                   tuple(sorted(expected - answers.keys())))
+        log.info("clear faults %s: %s", fault_names(request.mask) or "(query)", result.describe())
+        return result
 
     # --- heartbeat --------------------------------------------------------------------------
 
@@ -828,6 +961,33 @@ class CanEndpoint:
                 f"profile version {version}: no ack after {retries + 1} attempt(s) of "
                 f"{timeout_s} s each"
             )
+
+    async def push_tables(
+        self,
+        tables: Sequence[Sequence[float] | np.ndarray],
+        version: int,
+        *,
+        timeout_s: float = DEFAULT_ACK_TIMEOUT_S,
+        retries: int = DEFAULT_RETRIES,
+        pace_s: float = DEFAULT_PACE_S,
+        permit: PushPermit | None = None,
+    ) -> PushResult:
+        """Push one table per joint of a multi-actuator device as one profile.
+
+        The tables are packed with :func:`~drivers.exosuit.profile.pack_tables` (the layout of
+        PROTOCOL.md, "Force profile tables") and sent with :meth:`push_profile`, whose
+        arguments and errors apply.
+
+        Args:
+            tables: ``k`` tables in the device's table order, each shape ``(m,)``, newtons.
+            version: profile version 1..255.
+            timeout_s: ack timeout per attempt (s).
+            retries: attempts after the first.
+            pace_s: gap between segments (s).
+            permit: see :meth:`push_profile`.
+        """
+        return await self.push_profile(pack_tables(tables), version, timeout_s=timeout_s,
+                                       retries=retries, pace_s=pace_s, permit=permit)
 
     async def _await_ack(
         self, acks: Subscription, version: int, deadline: float
