@@ -41,12 +41,17 @@ from bridge.safety import AdmittedProfile
 from bridge.supervisor import PushRefused, Supervisor
 from drivers.errors import DriverError, ProfilePushAborted, ProfilePushError
 from drivers.exosuit import (
+    CLEARABLE_FAULTS,
     DEFAULT_PACE_S,
     AssistanceOffReason,
     CanEndpoint,
+    DeviceFault,
     DeviceMode,
     DeviceStatus,
     ForceFeedback,
+    describe_faults,
+    fault_names,
+    pack_tables,
 )
 from hilbo_core import HILOptimizer, HyperparameterFit, brockway_watts
 from hilbo_core.optimizer import Phase
@@ -152,6 +157,14 @@ class DeviceView:
         if len(versions) != 1 or len(self.status) < n_actuators:
             return None
         return versions.pop()
+
+    def faults(self, n_actuators: int) -> DeviceFault:
+        """The faults any actuator reports now (the union of their last statuses)."""
+        out = DeviceFault(0)
+        for a, st in self.status.items():
+            if a < n_actuators:
+                out |= DeviceFault(int(st.faults))
+        return out
 
     def silent_for(self, now: float, n_actuators: int) -> float:
         """Seconds since the stalest actuator's last status (inf before any)."""
@@ -529,7 +542,7 @@ class BridgeSession:
             if log_first is not None:
                 log_first()
             raise _Paused from err
-        table = np.concatenate([p.force_n for p in admitted.profiles])
+        table = pack_tables([p.force_n for p in admitted.profiles])
         push = asyncio.ensure_future(self.endpoint.push_profile(
             table, version, timeout_s=s.push_timeout_s, retries=s.push_retries, pace_s=s.pace_s,
             permit=lambda stage: self.supervisor.permit(ticket, stage)))
@@ -725,8 +738,9 @@ class BridgeSession:
                     await self.supervisor.pause(AssistanceOffReason.DEVICE_HEARTBEAT_LOST,
                                       f"device heartbeat lost for {silent * 1e3:.0f} ms")
             elif silent <= s.device_timeout_s:
-                faults = [int(st.faults) for st in self.device.status.values() if int(st.faults)]
-                self.status.device = "ok" if not faults else f"faults {faults}"
+                faults = self.device.faults(s.n_actuators)
+                self.status.device = "ok" if not faults else \
+                    "faults: " + "; ".join(describe_faults(faults))
             b = self._breaths
             if b.last_wall is not None and now - b.last_wall > s.cart_timeout_s:
                 if self.status.cart == "ok":
@@ -747,7 +761,7 @@ class BridgeSession:
             while sup.paused and not sup.stopped:
                 if sup.pause_cause is not AssistanceOffReason.OPERATOR_STOP:
                     now = self._clock()
-                    if self._health() is not None:
+                    if self._health(clearable_ok=True) is not None:
                         healthy_since = None
                     elif healthy_since is None:
                         healthy_since = now
@@ -763,7 +777,7 @@ class BridgeSession:
                 await sup.stop(AssistanceOffReason.SESSION_END, text)
                 return
             n = self._auto_resumes + 1
-            if sup.resume(f"resume policy ({n} of {s.max_auto_resumes})") is None:
+            if await self._resume(f"resume policy ({n} of {s.max_auto_resumes})"):
                 self._auto_resumes = n
 
     def _log_counters(self) -> None:
@@ -786,19 +800,54 @@ class BridgeSession:
             if cmd is Command.PAUSE:
                 await self.supervisor.pause(AssistanceOffReason.OPERATOR_STOP, "operator pause")
             elif cmd is Command.RESUME:
-                self.supervisor.resume("operator")
+                await self._resume("operator")
             elif cmd is Command.STOP:
                 await self.supervisor.stop(AssistanceOffReason.OPERATOR_STOP, "operator stop")
                 raise _Stopped
 
     # ------------------------------------------------------------------ helpers
-    def _health(self) -> str | None:
-        """Why the session may not resume now, or None (the supervisor's resume condition)."""
-        if self.status.device != "ok":
-            return f"device {self.status.device}"
+    def _health(self, *, clearable_ok: bool = False) -> str | None:
+        """Why the session may not resume now, or None (the supervisor's resume condition).
+
+        Args:
+            clearable_ok: Latched device faults that a ClearFaults request may clear do not
+                count (the resume clears them first: :meth:`_resume`).
+        """
+        s = self.settings
+        silent = self.device.silent_for(self._clock(), s.n_actuators)
+        if silent > s.device_timeout_s:
+            return f"device heartbeat lost ({silent * 1e3:.0f} ms)" if math.isfinite(silent) \
+                else "no device status yet"
+        faults = self.device.faults(s.n_actuators)
+        if clearable_ok:
+            faults &= ~CLEARABLE_FAULTS
+        if faults:
+            return "device faults: " + "; ".join(describe_faults(faults))
         if self.status.cart == "SILENT":
             return "no breaths from the cart"
         return None
+
+    async def _resume(self, source: str) -> bool:
+        """Resume the session: first ask the device to clear its latched faults that a request
+        may clear (PROTOCOL.md, "Clearing a latched fault": it clears one only once its cause is
+        gone), wait for a status that shows them gone, then ask the supervisor."""
+        s = self.settings
+        faults = self.device.faults(s.n_actuators)
+        if faults and self.supervisor.paused and self._health(clearable_ok=True) is None:
+            try:
+                result = await self.endpoint.clear_faults(faults & CLEARABLE_FAULTS,
+                                                          n_actuators=s.n_actuators)
+            except DriverError as err:
+                self._event("clear_faults_failed", f"clearing {', '.join(fault_names(faults))} failed: {err}")
+            else:
+                self.log.log_event("clear_faults", f"asked the device to clear "
+                                   f"{', '.join(fault_names(faults))}; cleared "
+                                   f"{', '.join(fault_names(result.cleared)) or 'none'}")
+            # The cleared bits show in the next DeviceStatus (every 20 ms).
+            deadline = self._clock() + 0.2
+            while self.device.faults(s.n_actuators) & CLEARABLE_FAULTS and self._clock() < deadline:
+                await asyncio.sleep(s.watchdog_period_s)
+        return self.supervisor.resume(source) is None
 
     def _session_time(self, t_cart: float) -> float:
         return t_cart - (self._t_session0 if self._t_session0 is not None else t_cart)
