@@ -42,13 +42,22 @@ def _seconds(text: str) -> float:
     return value
 
 
+def _version() -> str:
+    from importlib import metadata
+
+    try:
+        return metadata.version("hilbo")
+    except metadata.PackageNotFoundError:  # a checkout on PYTHONPATH, not installed
+        return "unknown (not installed)"
+
+
 def _cmd_sim(args: argparse.Namespace) -> int:
-    from bridge.errors import BridgeConfigError
+    from bridge.errors import UsageError
 
     if args.processes and args.engine == "core":
-        raise BridgeConfigError("--processes runs the virtual devices as processes; --engine core has none")
+        raise UsageError("--processes runs the virtual devices as processes; --engine core has none")
     if args.bus is not None and not args.processes:
-        raise BridgeConfigError("--bus goes with --processes (in one process the devices share "
+        raise UsageError("--bus goes with --processes (in one process the devices share "
                                 "python-can's virtual bus)")
     if args.engine == "core":
         return _cmd_sim_core(args)
@@ -56,12 +65,13 @@ def _cmd_sim(args: argparse.Namespace) -> int:
 
     from rich.console import Console
 
+    from bridge.config import check_out_dir
     from bridge.sim import MAX_SPEED, VirtualSimConfig, run_virtual_sim
 
     console = Console(stderr=True)
     cfg = VirtualSimConfig(minutes=args.minutes, seed=args.seed, speed=args.speed,
                            preset=args.preset, stopping=args.stopping)
-    out = Path(args.out)
+    out = check_out_dir(args.out, "--out")
     speed = cfg.speed or MAX_SPEED
     where = "the virtual exosuit and cart"
     if args.processes:
@@ -96,11 +106,17 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
     from rich.console import Console
 
-    from bridge.config import load_config
+    from bridge.config import check_out_dir, config_warnings, load_config
     from bridge.run import run_session
 
     console = Console(stderr=True)
     cfg = load_config(args.config)
+    for warning in config_warnings(cfg):
+        print(f"hilbo run: warning: {warning}", file=sys.stderr)
+    if args.out:
+        check_out_dir(args.out, "--out")
+    else:
+        check_out_dir(cfg.session.out_dir)
     resume = Path(args.resume) if args.resume else None
     console.print(f"hilbo run: {cfg.source} (subject {cfg.session.subject})"
                   + (f", resuming {resume}" if resume else ""))
@@ -130,7 +146,9 @@ def _cmd_sim_core(args: argparse.Namespace) -> int:
     console = Console(stderr=True)
     cfg = SimConfig(minutes=args.minutes, seed=args.seed, speed=args.speed, preset=args.preset,
                     stopping=args.stopping)
-    out = Path(args.out)
+    from bridge.config import check_out_dir
+
+    out = check_out_dir(args.out, "--out")
     out.mkdir(parents=True, exist_ok=True)
 
     def progress(rec: SimEvaluation, opt: HILOptimizer) -> None:
@@ -170,6 +188,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Human-in-the-loop Bayesian optimisation of soft-exosuit assistance.",
     )
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
+    parser.add_argument("--version", action="version", version=f"hilbo {_version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     sim = sub.add_parser("sim", help="run a whole session on the virtual exosuit and cart",
@@ -265,7 +284,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``hilbo`` console script."""
-    from bridge.errors import BridgeError
+    from bridge.errors import BridgeError, UsageError
     from drivers.errors import DriverError
     from hilbo_core.errors import HilboError
 
@@ -275,9 +294,13 @@ def main(argv: Sequence[str] | None = None) -> int:
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
         return int(args.func(args))
-    except (HilboError, BridgeError, DriverError) as err:
+    except UsageError as err:
         print(f"hilbo {args.command}: error: {err}", file=sys.stderr)
         return 2
+    except (HilboError, BridgeError, DriverError) as err:
+        # Bad input or a failure at run time: 1. Only argparse's usage errors are 2.
+        print(f"hilbo {args.command}: error: {err}", file=sys.stderr)
+        return 1
     except BaseExceptionGroup as group:
         # A session's task group wraps the error of the task that failed (the cart stream's
         # CartError or a column map's DriverConfigError): report that error, not a traceback.
@@ -288,7 +311,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         while isinstance(leaf, BaseExceptionGroup):
             leaf = leaf.exceptions[0]
         print(f"hilbo {args.command}: error: {leaf}", file=sys.stderr)
-        return 2
+        return 1
     except KeyboardInterrupt:
         print(f"hilbo {args.command}: interrupted", file=sys.stderr)
         return 130
@@ -298,6 +321,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         with contextlib.suppress(OSError):
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141
+    except OSError as err:  # a file that cannot be written or read: its name, no traceback
+        print(f"hilbo {args.command}: error: {err}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

@@ -8,7 +8,7 @@
     (default ``IN.recovered.mcap``) that Foxglove and any MCAP reader open.
 
 Errors (not an MCAP file, an empty file, another program's MCAP, an unwritable output) print
-one line naming the file and the problem and exit with status 2; no traceback.
+one line naming the file and the problem and exit with status 1; no traceback.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from bridge.logread import LogContents, read_log, recover
 
 __all__ = ["add_log_parser", "default_recovered_path", "log_info"]
 
-_EXIT_ERROR = 2
+_EXIT_ERROR = 1  # bad input; 2 is argparse's, for a wrong command line
 
 
 def add_log_parser(subparsers: Any) -> argparse.ArgumentParser:

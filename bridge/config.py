@@ -60,6 +60,7 @@ from drivers.cart import CartConfig
 from drivers.cart.pipeline import describe_record
 from drivers.errors import DriverConfigError
 from drivers.exosuit.endpoint import INTERFACE_OPTIONS, CanBusConfig
+from drivers.exosuit.rating import RATED_FORCE_N
 from hilbo_core.errors import ConfigError, InfeasibleError
 from hilbo_core.gp import KernelKind
 from hilbo_core.optimizer import OptimizerConfig, PriorObservation, StoppingKind
@@ -88,6 +89,8 @@ __all__ = [
     "SpaceConfig",
     "WatchdogConfig",
     "add_config_parser",
+    "check_out_dir",
+    "config_warnings",
     "example_config_text",
     "load_config",
     "parse_config",
@@ -1071,6 +1074,49 @@ def load_config(path: str | Path) -> HilboConfig:
     return parse_config(text, source=str(path))
 
 
+def check_out_dir(path: str | Path, what: str = "session.out_dir") -> Path:
+    """Refuse an output directory that cannot be created: it, or a parent, is not a directory.
+
+    Args:
+        path: The directory the session's log and summary go to (need not exist yet).
+        what: How to name it in the error (``session.out_dir`` or ``--out``).
+
+    Returns:
+        ``path`` as a :class:`~pathlib.Path`.
+
+    Raises:
+        BridgeConfigError: ``path`` or one of its parents exists and is not a directory.
+    """
+    path = Path(path)
+    for p in (path, *path.parents):
+        if p.exists():
+            if not p.is_dir():
+                where = "" if p == path else f" (its parent {p} is not a directory)"
+                raise BridgeConfigError(
+                    f"{what} = {str(path)!r}: expected a directory (existing or to be created), "
+                    f"but {p} is a file{where}"
+                )
+            break
+    return path
+
+
+def config_warnings(cfg: HilboConfig) -> list[str]:
+    """What is valid but probably wrong: one line each (``hilbo config check``, ``hilbo run``).
+
+    Today: a force limit above the exosuit's rated force
+    (:data:`drivers.exosuit.rating.RATED_FORCE_N`).
+    """
+    out: list[str] = []
+    for name, lim in [("limits", cfg.limits.default),
+                      *((f"limits.actuators.{k}", v) for k, v in cfg.limits.actuators.items()
+                        if v.max_force_n != cfg.limits.default.max_force_n)]:
+        if lim.max_force_n > RATED_FORCE_N:
+            out.append(f"{name}.max_force_n = {lim.max_force_n:g} N is above the exosuit's rated "
+                       f"force, {RATED_FORCE_N:g} N (drivers/exosuit/rating.py): the device may "
+                       "refuse such profiles, or be driven beyond its rating")
+    return out
+
+
 def example_config_text() -> str:
     """The complete commented example config (``bridge/config_example.toml``)."""
     return resources.files("bridge").joinpath("config_example.toml").read_text(encoding="utf-8")
@@ -1136,12 +1182,15 @@ def _cmd_check(args: argparse.Namespace, out: TextIO | None = None, err: TextIO 
             cfg = parse_config(sys.stdin.read(), source="<stdin>")
         else:
             cfg = load_config(args.config)
+        check_out_dir(cfg.session.out_dir)
     except BridgeConfigError as exc:
         err.write(f"hilbo config check: invalid config: {exc}\n")
-        return 2
+        return 1
     out.write(f"config OK: {cfg.source}\n{summarize(cfg)}\n")
+    for warning in config_warnings(cfg):
+        err.write(f"hilbo config check: warning: {warning}\n")
     if _check_cart_file(cfg, out, err) != 0:
-        return 2
+        return 1
     if args.samples > 0:
         report = preflight(cfg.space.space, cfg.limits, body_mass_kg=cfg.session.body_mass_kg,
                            n=args.samples)
@@ -1151,7 +1200,7 @@ def _cmd_check(args: argparse.Namespace, out: TextIO | None = None, err: TextIO 
         if report.n_rejected == report.n_checked:
             err.write(f"hilbo config check: the limits refuse every sampled setting, e.g. "
                       f"{report.example}\n")
-            return 2
+            return 1
         if report.n_rejected:
             err.write(f"hilbo config check: warning: {report.n_rejected} of {report.n_checked} "
                       f"settings would be refused (each refusal cancels the setting), e.g. "
@@ -1195,7 +1244,8 @@ def add_config_parser(subparsers: Any) -> argparse.ArgumentParser:
         subparsers: The ``add_subparsers()`` object of the ``hilbo`` parser.
 
     Returns:
-        The ``config`` parser. Each action sets ``func(args) -> exit code`` (0 ok, 2 invalid).
+        The ``config`` parser. Each action sets ``func(args) -> exit code`` (0 ok, 1 invalid;
+        argparse's 2 is for a wrong command line).
     """
     parser = subparsers.add_parser(
         "config", help="print an example session config, or check one",
@@ -1207,9 +1257,9 @@ def add_config_parser(subparsers: Any) -> argparse.ArgumentParser:
                                  description="Print a complete commented config to standard output.")
     example.set_defaults(func=_cmd_example)
     check = actions.add_parser(
-        "check", help="validate a config and print a summary (exit 0 ok, 2 invalid)",
+        "check", help="validate a config and print a summary (exit 0 ok, 1 invalid)",
         description="Validate a config, print a summary, and check how many sampled settings of "
-                    "the space the limits refuse. Exit status 0 if valid, 2 if not.",
+                    "the space the limits refuse. Exit status 0 if valid, 1 if not.",
     )
     check.add_argument("config", help="CONFIG.toml, or - to read standard input")
     check.add_argument("--samples", type=int, default=256,

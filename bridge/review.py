@@ -37,7 +37,7 @@ when evaluations completed after that snapshot; failing both, the lowest estimat
 
 Bad input (a missing file, not MCAP, empty, another program's MCAP, a hilbo log with nothing
 in it, files of different sessions) raises a :class:`~bridge.errors.BridgeError` whose one-line
-message names the file and what was expected; ``hilbo`` turns it into exit status 2.
+message names the file and what was expected; ``hilbo`` turns it into exit status 1.
 """
 
 from __future__ import annotations
@@ -54,7 +54,7 @@ from typing import Any
 
 import numpy as np
 
-from bridge.errors import ReviewError
+from bridge.errors import ReviewError, UsageError
 from bridge.log import LogError, LogFormatError, Topic
 from bridge.logread import LogContents, read_log
 
@@ -1098,7 +1098,7 @@ def add_review_parser(subparsers: Any) -> argparse.ArgumentParser:
 def _cmd_review(args: argparse.Namespace) -> int:
     if args.compare:
         if len(args.logs) != 2:
-            raise ReviewError(f"--compare takes exactly two logs (A.mcap B.mcap), got {len(args.logs)}")
+            raise UsageError(f"--compare takes exactly two logs (A.mcap B.mcap), got {len(args.logs)}")
         files = compare_sessions(args.logs[0], args.logs[1], args.out).files
     else:
         files = review_session(args.logs, args.out).files

@@ -12,9 +12,10 @@ and ``DIR/summary.json`` as the in-process simulation does.
 The bus (``--bus``):
 
 * ``vcan``: SocketCAN ``vcan0`` (a Linux PC after ``hilbo vcan-setup | sudo sh``);
-* ``remote``: a python-can-remote server (``python -m can_remote --interface virtual``) started
-  here as a third child on 127.0.0.1 and a free port; every process is a websocket client of it
-  (the path for a PC without SocketCAN);
+* ``remote``: a python-can-remote server (``python -m can_remote --interface virtual --host
+  127.0.0.1``; never its default 0.0.0.0, an open bus on the network) started here as a third
+  child on 127.0.0.1 and a free port; every process is a websocket client of it (the path for a
+  PC without SocketCAN);
 * ``auto`` (default): ``vcan`` where a raw CAN socket can bind ``vcan0``, else ``remote``.
 
 Clock: the devices share one :class:`~virtual_hw.clock.ScaledClock` through ``--speed`` and

@@ -796,9 +796,10 @@ class VirtualExosuit:
         tasks, self._tasks = self._tasks, []
         for task in tasks:
             task.cancel()
-        for task in tasks:
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
+        # A task that failed has its error recorded (_on_task_done -> _fail, returned below);
+        # awaiting it here must not raise it before the bus is closed (it leaked the bus's
+        # receive thread).
+        await asyncio.gather(*tasks, return_exceptions=True)
         if self._hb_timer is not None:
             self._hb_timer.cancel()
             self._hb_timer = None

@@ -16,6 +16,7 @@ Both show a rich progress bar on stderr when it is a terminal.
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import multiprocessing
 import os
@@ -149,31 +150,39 @@ class DaskExecutor:
     def map(self, fn: Callable[[T], R], tasks: Sequence[T], *, label: str = "tasks",
             on_result: Callable[[int, R], None] | None = None) -> list[R]:
         """See :meth:`Executor.map`."""
-        from distributed import Client, as_completed
-
         tasks = list(tasks)
         results: list[Any] = [None] * len(tasks)
+        # An asynchronous client on an event loop of this call: a synchronous Client runs its own
+        # "IO loop" thread, which it leaves running when it cannot connect (distributed 2026.8).
+        asyncio.run(self._map(fn, tasks, label, on_result, results))
+        return results
+
+    async def _map(self, fn: Callable[[T], R], tasks: list[T], label: str,
+                   on_result: Callable[[int, R], None] | None, results: list[Any]) -> None:
+        from distributed import Client, as_completed
+
         try:
-            client = Client(self.address, timeout=self.timeout_s, set_as_default=False)
+            client = await Client(self.address, timeout=self.timeout_s, set_as_default=False,
+                                  asynchronous=True)
         except OSError as err:
             raise ConfigError(f"cannot reach the Dask scheduler at {self.address!r}: {err}") from err
-        with client, _progress(len(tasks), label, self.progress) as advance:
-            # pure=False: identical tasks are still separate runs; the result depends only on
-            # the task's own seeds, never on which worker runs it.
-            futures = client.map(fn, tasks, pure=False)
-            index = {f.key: i for i, f in enumerate(futures)}
-            try:
-                with client.as_current():  # as_completed finds the client by context
-                    for fut in as_completed(futures):
-                        i = index[fut.key]
-                        results[i] = fut.result()  # re-raises the task's exception here
-                        if on_result is not None:
-                            on_result(i, results[i])
-                        advance()
-            except BaseException:
-                client.cancel(futures)
-                raise
-        return results
+        async with client:
+            with _progress(len(tasks), label, self.progress) as advance:
+                # pure=False: identical tasks are still separate runs; the result depends only
+                # on the task's own seeds, never on which worker runs it.
+                futures = client.map(fn, tasks, pure=False)
+                index = {f.key: i for i, f in enumerate(futures)}
+                try:
+                    with client.as_current():  # as_completed finds the client by context
+                        async for fut in as_completed(futures):
+                            i = index[fut.key]
+                            results[i] = await fut  # re-raises the task's exception here
+                            if on_result is not None:
+                                on_result(i, results[i])
+                            advance()
+                except BaseException:
+                    await client.cancel(futures)
+                    raise
 
 
 def make_executor(workers: int | None = None, scheduler: str | None = None,
