@@ -215,6 +215,11 @@ class _Paused(Exception):
     """Raised inside the measurement loop when the session pauses (internal control flow)."""
 
 
+class _Remeasure(Exception):
+    """Raised inside the measurement loop when the cart's clock was re-anchored (a cart restart
+    or a time jump): the breaths of the setting being measured are not one series any more."""
+
+
 class _Stopped(Exception):
     """Raised when the operator or a signal stops the session (internal control flow)."""
 
@@ -228,6 +233,8 @@ class _Breaths:
     last_t: float | None = None
     count: int = 0
     ended: bool = False
+    #: The validator's re-anchors seen so far (drivers/cart/validate.py, BreathValidator.reanchors).
+    reanchors: int = 0
 
 
 class BridgeSession:
@@ -380,13 +387,13 @@ class BridgeSession:
                 continue
             try:
                 await self._evaluate_one()
-            except _Paused:
+            except (_Paused, _Remeasure) as err:
+                why = (f"the pause ({self.supervisor.pause_reason})" if isinstance(err, _Paused)
+                       else "the cart's clock re-anchoring")
                 dropped = self.opt.cancel_current()
                 if dropped is not None:
                     self.log.log_optimizer_state(self.opt, reason="cancel")
-                    self._event("evaluation_cancelled",
-                                f"setting abandoned by the pause ({self.supervisor.pause_reason}); "
-                                "it is re-measured")
+                    self._event("evaluation_cancelled", f"setting abandoned by {why}; it is re-measured")
         self._event("budget_spent", "optimisation budget spent")
 
     async def _evaluate_one(self) -> None:
@@ -446,8 +453,11 @@ class BridgeSession:
         t0_session = self._session_time(t0)
         self.status.evaluation, self.status.params = index + 1, params
         self.status.breaths_in_setting, self.status.mean_w, self.status.sd_w = 0, None, None
+        reanchors = self._breaths.reanchors
         while True:
             rec = await self._next_breath()
+            if self._breaths.reanchors != reanchors:
+                raise _Remeasure
             t = rec.t_s - t0
             if t <= 0:
                 continue  # a breath that arrived before the switch: it belongs to the old setting
@@ -644,7 +654,15 @@ class BridgeSession:
     # ------------------------------------------------------------------ background tasks
     async def _cart_task(self) -> None:
         b = self._breaths
+        validator = getattr(self._stream, "validator", None)
         async for rec in self._stream:
+            if validator is not None and validator.reanchors != b.reanchors:
+                b.reanchors = validator.reanchors
+                ra = validator.last_reanchor
+                self._event("cart_reanchor",
+                            f"cart clock {ra.kind.value} (cart t = {ra.raw_t_s:.1f} s -> session "
+                            f"t = {ra.t_s:.1f} s, {ra.dropped} breaths dropped): the setting being "
+                            "measured starts again")
             b.last_wall, b.last_t = self._clock(), rec.t_s
             b.count += 1
             if self._t_session0 is None:

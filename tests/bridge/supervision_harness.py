@@ -30,6 +30,7 @@ from bridge.log import SessionLog
 from bridge.proposals import Asked
 from bridge.runtime import BridgeSession, Command, RuntimeSettings
 from bridge.safety import ProfileLimits, SafeProfileGate
+from drivers.cart.validate import BreathValidator
 from drivers.errors import ProfilePushAborted, TransportError
 from drivers.exosuit import (
     AssistanceOffReason,
@@ -215,12 +216,31 @@ class InlineWorker:
         raise NotImplementedError
 
 
-async def breaths(n: int = 10_000) -> AsyncIterator[BreathRecord]:
-    rng = np.random.default_rng(3)
-    for i in range(n):
-        await asyncio.sleep(BREATH_S)
-        vo2 = 1200.0 * (1 + 0.05 * rng.standard_normal())
-        yield BreathRecord(t_s=(i + 1) * BREATH_S, vo2_ml_min=vo2, vco2_ml_min=0.85 * vo2)
+class Cart:
+    """A breath every ``BREATH_S`` through the real validator; ``restart_at_s`` restarts the
+    cart's clock (it starts again near 0) at that loop time."""
+
+    def __init__(self, restart_at_s: float | None = None, n: int = 10_000) -> None:
+        self.validator = BreathValidator()
+        self.restart_at_s = restart_at_s
+        self.n = n
+
+    def __aiter__(self) -> AsyncIterator[BreathRecord]:
+        return self._breaths()
+
+    async def _breaths(self) -> AsyncIterator[BreathRecord]:
+        rng = np.random.default_rng(3)
+        offset = 0.0
+        loop = asyncio.get_running_loop()
+        for i in range(self.n):
+            await asyncio.sleep(BREATH_S)
+            if self.restart_at_s is not None and offset == 0.0 and loop.time() >= self.restart_at_s:
+                offset = loop.time() - 1.0
+            vo2 = 1200.0 * (1 + 0.05 * rng.standard_normal())
+            raw = BreathRecord(t_s=(i + 1) * BREATH_S - offset, vo2_ml_min=vo2, vco2_ml_min=0.85 * vo2)
+            rec = self.validator.check(raw)
+            if rec is not None:
+                yield rec
 
 
 class Injector:
@@ -274,6 +294,9 @@ class Outcome:
     device: FakeExosuit
     session: BridgeSession
     injector: Injector
+    cart: Cart
+    #: Every event line of the session, in order.
+    events: list[str]
 
 
 FAULTS = ("pause", "stop", "heartbeat_loss", "bus_error")
@@ -282,7 +305,8 @@ _RUNS = itertools.count()
 
 def run_session(tmp: Path, *, at: int | None = None, at_time_s: float | None = None,
                 fault: str = "pause", n_evaluations: int = 4, resume_after_s: float = 5.0,
-                end_after_s: float | None = None, **settings_kw: Any) -> Outcome:
+                end_after_s: float | None = None, cart_restart_at_s: float | None = None,
+                **settings_kw: Any) -> Outcome:
     """One short session (warm-ups 0, 2 exploration points of 3 breaths, then optimisation).
 
     Args:
@@ -295,6 +319,7 @@ def run_session(tmp: Path, *, at: int | None = None, at_time_s: float | None = N
             after the device is healthy again (loop time).
         end_after_s: The operator stops the session this long after the fault (None: the
             session runs to its budget's end).
+        cart_restart_at_s: The cart's clock restarts near 0 at this loop time.
         settings_kw: :class:`RuntimeSettings` fields to override.
     """
     device = FakeExosuit()
@@ -329,14 +354,17 @@ def run_session(tmp: Path, *, at: int | None = None, at_time_s: float | None = N
             loop.call_later(end_after_s, s.command, Command.STOP)
 
     inj = Injector(device, at, fire if at is not None else None)
+    cart = Cart(restart_at_s=cart_restart_at_s)
+    events: list[str] = []
 
     async def main() -> dict[str, Any]:
         loop = asyncio.get_running_loop()
         loop.set_task_factory(inj.factory)
         with SessionLog(tmp / f"s{next(_RUNS)}.mcap", session_id="t", config_json={}) as log:
-            session = BridgeSession(opt, gate, device, breaths(), log, settings,  # type: ignore[arg-type]
+            session = BridgeSession(opt, gate, device, cart, log, settings,  # type: ignore[arg-type]
                                     clock=loop.time)
             holder["session"] = session
+            session.status.listeners.append(events.append)
             session._worker = InlineWorker()  # type: ignore[assignment]
             device.is_paused = lambda: session.supervisor.paused
             if at_time_s is not None:
@@ -349,4 +377,4 @@ def run_session(tmp: Path, *, at: int | None = None, at_time_s: float | None = N
     finally:
         loop.run_until_complete(loop.shutdown_asyncgens())
         loop.close()
-    return Outcome(summary, device, holder["session"], inj)
+    return Outcome(summary, device, holder["session"], inj, cart, events)

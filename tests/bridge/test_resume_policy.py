@@ -49,3 +49,19 @@ def test_when_the_automatic_resumes_are_used_up_the_session_stops(tmp_path: Path
     assert out.session._auto_resumes == 1
     assert out.session.supervisor.state is SupervisorState.STOPPED
     assert any("automatic resumes used" in e for e in out.session.status.events)
+
+
+def test_a_cart_restart_costs_at_most_the_evaluation_in_progress(tmp_path: Path) -> None:
+    out = run_session(tmp_path, n_evaluations=8, cart_restart_at_s=16.0)
+    assert out.session._breaths.reanchors == 1
+    # Only the breaths that confirmed the new clock were rejected; the rest reached the session.
+    assert out.cart.validator.rejected == 2
+    reanchor = [e for e in out.events if e.startswith("cart clock clock_reset")]
+    assert len(reanchor) == 1
+    after = out.events[out.events.index(reanchor[0]):]
+    # The evaluation in progress is measured again, the session never pauses, and it ends
+    # with its budget spent like a session without the restart.
+    assert sum("abandoned by the cart's clock re-anchoring" in e for e in out.events) == 1
+    assert not any(e.startswith("pause") or "paused" in e for e in out.events)
+    assert any(e.startswith("eval ") for e in after)
+    assert "optimisation budget spent" in out.events
