@@ -146,6 +146,10 @@ channel = "hilbo-sim"
 [watchdog]
 device_heartbeat_timeout_ms = {device_timeout_ms}
 cart_data_timeout_s = 15.0
+# Nobody presses "r" in a simulation: every pause ends by the resume policy (issue 15), which
+# a busy machine may need often (a stalled loop loses the heartbeat).
+auto_resume_s = 0.0
+max_auto_resumes = 1000
 """
 
 
