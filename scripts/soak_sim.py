@@ -81,13 +81,15 @@ def main(argv: list[str] | None = None) -> int:
                 out = base / f"{'p' if processes else 'i'}{i + 1}"
                 row = _run(out, args.minutes, i + 1, processes, args.timeout_s)
                 rows.append(row)
-                print(f"[{k}/{len(plan)}] {json.dumps(row)}", flush=True)
+                sys.stdout.write(f"[{k}/{len(plan)}] {json.dumps(row)}\n")
+                sys.stdout.flush()
     finally:
         for b in burners:
             b.terminate()
             b.join()
     bad = [r for r in rows if r["rc"] != 0 or not r.get("ended") or not r.get("optimisation")]
-    print(f"{len(rows) - len(bad)} of {len(rows)} runs reached their end with optimisation evaluations")
+    sys.stdout.write(f"{len(rows) - len(bad)} of {len(rows)} runs reached their end with optimisation "
+                     "evaluations\n")
     return 1 if bad else 0
 
 
