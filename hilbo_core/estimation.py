@@ -22,8 +22,13 @@ other three requirements of issue 16 direct:
 * **The transition starts from the body's level.** b0 ~ N(level, var + inflation²), the previous
   setting's fitted level at its last breath with its variance (:meth:`TransitionEstimator.start_from`).
 * **τ has a physiological prior:** log-normal, median 42 s (Selinger & Donelan 2014's step
-  response in walking), log-SD 0.3 (≈ 31–57 s at ±1 SD, the 30–60 s between-person range of
-  issue 16), on a log grid 12–150 s.
+  response in walking), log-SD 0.2 (95 % of the prior in ≈ 28–62 s: issue 16 and
+  shared/DESIGN.md give 30–60 s as the range of time constants between people), on a log grid
+  12–150 s (wide enough that a person outside the range is still found). τ is a trait of the person (issue 16: it varies *between
+  people*), so each setting hands its posterior of τ to the next one as that setting's prior,
+  widened by a random walk of log-SD 0.1 per setting (within-person test–retest variation of
+  the VO2 time constant is ≈ 10 %; e.g. Lamarra et al. 1987, J Appl Physiol 62:2003): after a
+  few large steps the person's τ is known to ≈ ±10 %, never better.
 * **Robust, online breath noise.** ε_i is Student-t (ν = 4) with a relative scale (the CV)
   estimated from the breaths by iteratively reweighted least squares (the EM of the t model), with
   a scaled-inverse-χ² prior of median CV 11 % (issue 16's median steady-state CV of real breaths)
@@ -59,6 +64,7 @@ from hilbo_core.metabolic import divide_gaussian
 
 __all__ = [
     "EstimatorKind",
+    "StartState",
     "TransitionConfig",
     "TransitionEstimator",
 ]
@@ -95,12 +101,48 @@ def _t_constants(nu: float) -> tuple[float, float]:
 
 
 @dataclass(frozen=True)
+class StartState:
+    """What one setting's estimator hands to the next: where the body is and what is known.
+
+    Attributes:
+        level_w: Fitted body level at the last breath (W).
+        level_var_w2: Its variance (W²).
+        noise_cv: Estimated breath noise CV (the next setting's prior median), or None.
+        tau_log_prior: Log prior weights of τ on the estimator's grid for the next setting, or
+            None for the population prior.
+    """
+
+    level_w: float
+    level_var_w2: float
+    noise_cv: float | None = None
+    tau_log_prior: tuple[float, ...] | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        """JSON-able form."""
+        return {"level_w": self.level_w, "level_var_w2": self.level_var_w2, "noise_cv": self.noise_cv,
+                "tau_log_prior": None if self.tau_log_prior is None else list(self.tau_log_prior)}
+
+    @classmethod
+    def from_json(cls, data: Any) -> StartState:
+        """Inverse of :meth:`to_json`."""
+        try:
+            tau = data.get("tau_log_prior")
+            cv = data.get("noise_cv")
+            return cls(float(data["level_w"]), float(data["level_var_w2"]),
+                       None if cv is None else float(cv),
+                       None if tau is None else tuple(float(v) for v in tau))
+        except (AttributeError, KeyError, TypeError, ValueError) as err:
+            raise ConfigError(f"invalid estimator start state {data!r}: {err!r}") from err
+
+
+@dataclass(frozen=True)
 class TransitionConfig:
     """Priors and numerics of :class:`TransitionEstimator`.
 
     Attributes:
         tau_median_s: Median of the log-normal prior of τ in s (Selinger & Donelan 2014: ≈ 42 s).
-        tau_log_sd: Its log-SD; 0.3 puts ±1 SD at ≈ 31–57 s (issue 16: 30–60 s between people).
+        tau_log_sd: Its log-SD; 0.2 puts 95 % of the prior in ≈ 28–62 s (issue 16: 30–60 s
+            between people).
         tau_min_s: Smallest τ of the grid in s.
         tau_max_s: Largest τ of the grid in s.
         n_tau: Grid points (log-spaced).
@@ -113,13 +155,15 @@ class TransitionConfig:
         start_inflation_rel: Added SD of b0 relative to the starting level when one is given:
             the body moves a little between the previous setting's last breath and this
             setting's start (switching time, a breath or two).
+        tau_walk_log_sd: Random walk of log τ from one setting to the next (within-person
+            variation of τ, ≈ 10 %); the widening of the τ posterior handed over.
         irls_passes: Reweighting passes per breath (the previous breath's weights warm-start).
         min_level_w: Floor in W on the level that scales the noise.
         max_watts: Breaths above this power in W are rejected as absurd.
     """
 
     tau_median_s: float = 42.0
-    tau_log_sd: float = 0.3
+    tau_log_sd: float = 0.2
     tau_min_s: float = 12.0
     tau_max_s: float = 150.0
     n_tau: int = 25
@@ -129,6 +173,7 @@ class TransitionConfig:
     c_rel_sd: float = 1.0
     start_rel_sd: float = 1.0
     start_inflation_rel: float = 0.05
+    tau_walk_log_sd: float = 0.1
     irls_passes: int = 2
     min_level_w: float = 10.0
     max_watts: float = 5000.0
@@ -147,6 +192,7 @@ class TransitionConfig:
             "c_rel_sd": (0.01, 100.0),
             "start_rel_sd": (0.01, 100.0),
             "start_inflation_rel": (0.0, 10.0),
+            "tau_walk_log_sd": (0.0, 10.0),
             "irls_passes": (1, 50),
             "min_level_w": (1e-3, 1e4),
             "max_watts": (1.0, 1e5),
@@ -202,6 +248,15 @@ class TransitionEstimator:
         self._var = math.nan
         self._level = (math.nan, math.nan)
         self._prior_c = (math.nan, math.nan)
+        self._pi = np.exp(self._log_prior_tau - self._log_prior_tau.max())
+        self._pi /= self._pi.sum()
+        # Random-walk kernel of log τ on the grid (handover to the next setting).
+        dlog = np.log(self._tau)[:, None] - np.log(self._tau)[None, :]
+        if cfg.tau_walk_log_sd > 0.0:
+            kern = np.exp(-0.5 * (dlog / cfg.tau_walk_log_sd) ** 2)
+            self._walk = kern / kern.sum(axis=1, keepdims=True)
+        else:
+            self._walk = np.eye(cfg.n_tau)
 
     # ------------------------------------------------------------------ views
     @property
@@ -247,6 +302,28 @@ class TransitionEstimator:
         self._require_started()
         return self._level
 
+    def tau_posterior(self) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """(τ grid in s, posterior weights) — the prior's before the first breath."""
+        return self._tau.copy(), self._pi.copy()
+
+    def handover(self) -> StartState:
+        """What the next setting's estimator starts from (:meth:`start_from_state`).
+
+        The body level at the last breath, the noise CV, and this setting's τ posterior
+        widened by the within-person random walk.
+
+        Raises:
+            EstimatorError: No breath has been fused yet.
+        """
+        level, var = self.level()
+        prior = self._walk @ self._pi
+        log_prior = np.log(np.maximum(prior, 1e-300))
+        return StartState(level, var, self.noise_cv, tuple(float(v) for v in log_prior - log_prior.max()))
+
+    def start_from_state(self, state: StartState) -> None:
+        """:meth:`start_from` with a :class:`StartState` (e.g. the previous :meth:`handover`)."""
+        self.start_from(state.level_w, state.level_var_w2, state.noise_cv, state.tau_log_prior)
+
     def data_only(self) -> tuple[float, float]:
         """The information about c the breaths carry, without the prior on c (for the GP).
 
@@ -261,7 +338,8 @@ class TransitionEstimator:
         return divide_gaussian(self._mean, self._var, *self._prior_c)
 
     # ------------------------------------------------------------------ inputs
-    def start_from(self, level_w: float, level_var_w2: float, noise_cv: float | None = None) -> None:
+    def start_from(self, level_w: float, level_var_w2: float, noise_cv: float | None = None,
+                   tau_log_prior: Any = None) -> None:
         """Start the transition from the level the body is at when the setting begins.
 
         Args:
@@ -269,6 +347,8 @@ class TransitionEstimator:
             level_var_w2: Its variance in W² (>= 0).
             noise_cv: The previous setting's noise CV estimate, used as this setting's prior
                 median (same person, same cart); None keeps the configured one.
+            tau_log_prior: Log prior weights of τ on this estimator's grid (shape (n_tau,),
+                e.g. from the previous :meth:`handover`); None keeps the population prior.
 
         Raises:
             MeasurementError: A bad level, variance or CV (the estimator is unchanged).
@@ -287,8 +367,22 @@ class TransitionEstimator:
             cv = _finite(noise_cv, "noise_cv")
             if not 0.001 <= cv <= 2.0:
                 raise MeasurementError(f"noise_cv={noise_cv!r} must be in [0.001, 2]")
+        lp = None
+        if tau_log_prior is not None:
+            try:
+                lp = np.asarray(tau_log_prior, dtype=float).reshape(self._config.n_tau)
+            except (TypeError, ValueError) as err:
+                raise MeasurementError(
+                    f"tau_log_prior must be {self._config.n_tau} log weights on the τ grid") from err
+            if not np.isfinite(lp).all():
+                raise MeasurementError("tau_log_prior must be finite log weights")
+        if noise_cv is not None:
             self._noise_prior_cv = cv
             self._cv2 = cv**2
+        if lp is not None:
+            self._log_prior_tau = lp - lp.max()
+            self._pi = np.exp(self._log_prior_tau)
+            self._pi /= self._pi.sum()
         self._start = (level, var)
 
     def update(self, t_s: float, watts: float) -> tuple[float, float]:
@@ -321,7 +415,8 @@ class TransitionEstimator:
                 f"watts={watts!r} at t_s={t_s!r} must be a finite power in "
                 f"(0, {self._config.max_watts:g}] W"
             )
-        snapshot = (self._cv2, self._m_ref, self._w, self._mean, self._var, self._level, self._prior_c)
+        snapshot = (self._cv2, self._m_ref, self._w, self._mean, self._var, self._level,
+                    self._prior_c, self._pi)
         self._t.append(t)
         self._y.append(z)
         try:
@@ -330,7 +425,7 @@ class TransitionEstimator:
             self._t.pop()
             self._y.pop()
             (self._cv2, self._m_ref, self._w, self._mean, self._var, self._level,
-             self._prior_c) = snapshot
+             self._prior_c, self._pi) = snapshot
             raise EstimatorError(f"transition fit at t_s={t!r} with watts={z!r} failed: {err}") from err
         return self._mean, self._var
 
@@ -434,6 +529,7 @@ class TransitionEstimator:
         if not all(math.isfinite(v) for v in (mean, var, level_mean, level_var, cv2)) or var <= 0.0:
             raise EstimatorError(f"non-finite estimate (mean {mean!r}, var {var!r})")
         self._cv2 = cv2
+        self._pi = pi
         self._m_ref = m_ref
         self._w = w
         self._mean, self._var = mean, var
