@@ -24,10 +24,11 @@ other three requirements of issue 16 direct:
 * **τ has a physiological prior:** log-normal, median 42 s (Selinger & Donelan 2014's step
   response in walking), log-SD 0.2 (95 % of the prior in ≈ 28–62 s: issue 16 and
   shared/DESIGN.md give 30–60 s as the range of time constants between people), on a log grid
-  12–150 s (wide enough that a person outside the range is still found). τ is a trait of the person (issue 16: it varies *between
-  people*), so each setting hands its posterior of τ to the next one as that setting's prior,
-  widened by a random walk of log-SD 0.1 per setting (within-person test–retest variation of
-  the VO2 time constant is ≈ 10 %; e.g. Lamarra et al. 1987, J Appl Physiol 62:2003): after a
+  12–150 s (wide enough that a person outside the range is still found). τ is a trait of the
+  person (issue 16: it varies *between people*), so each setting hands its posterior of τ to
+  the next one as that setting's prior, widened by a random walk of log-SD 0.1 per setting (an
+  assumed ≈ 10 % within-person variation between transitions, e.g. up- vs down-steps; one
+  transition alone pins τ far less well, Lamarra et al. 1987, J Appl Physiol 62:2003): after a
   few large steps the person's τ is known to ≈ ±10 %, never better.
 * **Robust, online breath noise.** ε_i is Student-t (ν = 4) with a relative scale (the CV)
   estimated from the breaths by iteratively reweighted least squares (the EM of the t model), with

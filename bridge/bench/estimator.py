@@ -35,6 +35,7 @@ Data:
 from __future__ import annotations
 
 import argparse
+import itertools
 import math
 import time
 from collections.abc import Callable, Iterable, Sequence
@@ -170,7 +171,7 @@ def replay_people(path: str | Path, transitions_s: Sequence[float],
     from drivers.errors import DriverError
 
     ts = [float(t) for t in transitions_s]
-    if not ts or any(not math.isfinite(t) for t in ts) or any(b <= a for a, b in zip(ts, ts[1:], strict=False)):
+    if not ts or any(not math.isfinite(t) for t in ts) or any(b <= a for a, b in itertools.pairwise(ts)):
         raise ConfigError(f"--transitions {ts}: expected increasing finite times in s")
     try:
         if csv_columns is not None:
@@ -337,7 +338,8 @@ def summarize(rows: Sequence[dict[str, Any]], estimators: Sequence[str] = ESTIMA
     return out
 
 
-def estimator_table(summary: Sequence[dict[str, Any]], steps: Sequence[str] = ("all", "small", "large")) -> str:
+def estimator_table(summary: Sequence[dict[str, Any]],
+                    steps: Sequence[str] = ("all", "small", "large")) -> str:
     """Markdown: one row per estimator × horizon × step."""
     def f(v: float, fmt: str) -> str:
         return "–" if not math.isfinite(v) else format(v, fmt)
@@ -375,7 +377,8 @@ def _cmd_estimator(args: argparse.Namespace) -> int:
         try:
             trans = [float(x) for x in args.transitions.split(",") if x.strip()]
         except ValueError as err:
-            raise ConfigError(f"--transitions {args.transitions!r}: expected comma-separated seconds") from err
+            raise ConfigError(
+                f"--transitions {args.transitions!r}: expected comma-separated seconds") from err
         cols = args.csv_columns.split(",") if args.csv_columns else None
         people = replay_people(args.replay, trans, cols)
         source = f"--replay {args.replay} --transitions {args.transitions}" + (
