@@ -20,8 +20,8 @@ Estimators: ``OptimizerConfig.estimator`` picks the default
 :class:`~hilbo_core.estimation.TransitionEstimator` (issue 16) or the seed's
 :class:`~hilbo_core.metabolic.MetabolicUKF`; an explicit ``estimator_factory`` overrides both.
 Each setting's estimator starts from the body level the previous setting's estimator ended at
-(when both support it: ``level()`` / ``start_from()``), since the body does not reset between
-settings.
+(when both support it: ``handover()`` / ``start_from_state()``: the level, the noise CV and the
+person's τ), since the body does not reset between settings.
 
 Budget: like Algorithm 1's counter t, the budget counts only the optimisation phase (the
 exploration bout is a separate walking bout). It may be given in breaths, in seconds of breath
@@ -58,7 +58,7 @@ import numpy as np
 
 from hilbo_core.acquisition import maximize_ei
 from hilbo_core.errors import ConfigError, MeasurementError, OptimizerStateError
-from hilbo_core.estimation import EstimatorKind, TransitionEstimator
+from hilbo_core.estimation import EstimatorKind, StartState, TransitionEstimator
 from hilbo_core.gp import GaussianProcess, GPHyperparameters, KernelKind
 from hilbo_core.metabolic import DataOnlyEstimator, Estimator, MetabolicUKF
 from hilbo_core.space import ParameterSpace
@@ -396,9 +396,9 @@ class HILOptimizer:
         self.config = config
         self._estimator_factory: Callable[[], Estimator] = (
             estimator_factory if estimator_factory is not None else _ESTIMATORS[config.estimator])
-        # (mean W, var W², noise CV or None): the body level the last setting's estimator ended
-        # at, which the next setting's transition starts from (issue 16).
-        self._body_level: tuple[float, float, float | None] | None = None
+        # What the last setting's estimator handed over (body level, noise CV, τ), which the
+        # next setting's transition starts from (issue 16).
+        self._handover: StartState | None = None
         self._priors: list[PriorObservation] = []
         for p in prior_observations:
             self.add_prior(p)
@@ -626,20 +626,18 @@ class HILOptimizer:
     def _new_estimator(self) -> Estimator:
         """A fresh estimator for the next setting, started from the body level when it can be."""
         est = self._estimator_factory()
-        start = getattr(est, "start_from", None)
-        if self._body_level is not None and callable(start):
-            start(*self._body_level)
+        start = getattr(est, "start_from_state", None)
+        if self._handover is not None and callable(start):
+            start(self._handover)
         return est
 
     def _keep_body_level(self) -> None:
         """Remember where the current estimator leaves the body (for the next setting)."""
         est = self._estimator
-        level = getattr(est, "level", None)
-        if est is None or not callable(level) or est.n_updates == 0:
+        handover = getattr(est, "handover", None)
+        if est is None or not callable(handover) or est.n_updates == 0:
             return
-        mean, var = level()
-        cv = getattr(est, "noise_cv", None)
-        self._body_level = (float(mean), float(var), None if cv is None else float(cv))
+        self._handover = handover()
 
     def hyperparameter_fit(self) -> HyperparameterFit | None:
         """The hyperparameter fit on every observation so far, to run ahead of the next proposal.
@@ -830,7 +828,7 @@ class HILOptimizer:
             "incumbent": None if self._incumbent is None else list(self._incumbent),
             "opt_breaths": self._opt_breaths,
             "opt_seconds": self._opt_seconds,
-            "body_level": None if self._body_level is None else list(self._body_level),
+            "handover": None if self._handover is None else self._handover.to_json(),
         }
 
     @classmethod
@@ -869,10 +867,9 @@ class HILOptimizer:
                 opt._incumbent = (dict(p), float(m), float(v))
             opt._opt_breaths = int(data["opt_breaths"])
             opt._opt_seconds = float(data["opt_seconds"])
-            body = data.get("body_level")
-            if body is not None:
-                m, v, cv = body
-                opt._body_level = (float(m), float(v), None if cv is None else float(cv))
+            handover = data.get("handover")  # absent in states written before issue 16
+            if handover is not None:
+                opt._handover = StartState.from_json(handover)
             cur = data["current"]
         except (KeyError, TypeError, ValueError) as err:
             raise ConfigError(f"invalid optimizer state: {err!r}") from err
