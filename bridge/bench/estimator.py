@@ -56,6 +56,7 @@ __all__ = [
     "WEARERS",
     "Bout",
     "add_estimator_bench_parser",
+    "comparison_table",
     "evaluate",
     "replay_people",
     "run_estimator_bench",
@@ -352,6 +353,26 @@ def estimator_table(summary: Sequence[dict[str, Any]],
                            "95 % cov. %"], rows)
 
 
+def comparison_table(summary: Sequence[dict[str, Any]]) -> str:
+    """Markdown: the default estimator's accuracy and calibration, with every estimator's MAPE.
+
+    Needs ``transition`` in the summary; the other MAPE columns show "–" when not run.
+    """
+    by = {(s["estimator"], s["horizon_s"], s["step"]): s for s in summary}
+    others = [e for e in ESTIMATORS if e != "transition"]
+    rows = []
+    for h in HORIZONS_S:
+        for step in ("all", "small", "large"):
+            t = by.get(("transition", h, step))
+            if t is None:
+                continue
+            mape = [f"{by[(e, h, step)]['mape_pct']:.1f}" if (e, h, step) in by else "–" for e in others]
+            rows.append([f"{h:g} s", step, t["n"], f"{t['mape_pct']:.1f}", *mape, f"{t['bias_pct']:+.1f}",
+                         f"{t['z_mean']:+.2f}", f"{t['z_sd']:.2f}", f"{t['coverage95_pct']:.1f}"])
+    return markdown_table(["horizon", "step", "n", "MAPE % transition", *(f"MAPE % {e}" for e in others),
+                           "bias %", "z mean", "z SD", "95 % cov. %"], rows)
+
+
 # ------------------------------------------------------------------------------ command
 def run_estimator_bench(people: Sequence[list[Bout]], estimators: Sequence[str] = ESTIMATORS,
                         progress: Callable[[int], None] | None = None) -> dict[str, Any]:
@@ -411,6 +432,10 @@ def _cmd_estimator(args: argparse.Namespace) -> int:
     table = estimator_table(doc["summary"])
     (out / "estimator_table.md").write_text(table)
     console.print(table)
+    if "transition" in estimators:
+        compare = comparison_table(doc["summary"])
+        (out / "estimator_compare.md").write_text(compare)
+        console.print(compare)
     console.print(str(out / "estimator.json"))
     return 0
 
