@@ -25,11 +25,14 @@ other three requirements of issue 16 direct:
   response in walking), log-SD 0.2 (95 % of the prior in ≈ 28–62 s: issue 16 and
   shared/DESIGN.md give 30–60 s as the range of time constants between people), on a log grid
   12–150 s (wide enough that a person outside the range is still found). τ is a trait of the
-  person (issue 16: it varies *between people*), so each setting hands its posterior of τ to
-  the next one as that setting's prior, widened by a random walk of log-SD 0.1 per setting (an
-  assumed ≈ 10 % within-person variation between transitions, e.g. up- vs down-steps; one
-  transition alone pins τ far less well, Lamarra et al. 1987, J Appl Physiol 62:2003): after a
-  few large steps the person's τ is known to ≈ ±10 %, never better.
+  person (issue 16: it varies *between people*), so the settings of one person share it
+  hierarchically: each setting's τ is the person's τ times e^δ, δ ~ N(0, 0.1²) (an assumed
+  ≈ 10 % within-person variation between transitions, e.g. up- vs down-steps), and each setting
+  hands on the accumulated likelihood of the person's τ (its data's τ evidence, convolved with
+  that kernel). A setting's τ prior is the population prior times that likelihood, convolved
+  again. Settings too short to say anything about τ leave the prior at the population's; after
+  a few large steps the person's τ is known to ≈ ±10 %, never better. (A random walk of τ from
+  setting to setting, tried first, drifted away on long runs of early-stopped settings.)
 * **Robust, online breath noise.** ε_i is Student-t (ν = 4) with a relative scale (the CV)
   estimated from the breaths by iteratively reweighted least squares (the EM of the t model), with
   a scaled-inverse-χ² prior of median CV 11 % (issue 16's median steady-state CV of real breaths)
@@ -109,25 +112,25 @@ class StartState:
         level_w: Fitted body level at the last breath (W).
         level_var_w2: Its variance (W²).
         noise_cv: Estimated breath noise CV (the next setting's prior median), or None.
-        tau_log_prior: Log prior weights of τ on the estimator's grid for the next setting, or
-            None for the population prior.
+        tau_log_lik: Accumulated log-likelihood of the person's τ on the estimator's grid
+            (from every earlier setting), or None for none yet.
     """
 
     level_w: float
     level_var_w2: float
     noise_cv: float | None = None
-    tau_log_prior: tuple[float, ...] | None = None
+    tau_log_lik: tuple[float, ...] | None = None
 
     def to_json(self) -> dict[str, Any]:
         """JSON-able form."""
         return {"level_w": self.level_w, "level_var_w2": self.level_var_w2, "noise_cv": self.noise_cv,
-                "tau_log_prior": None if self.tau_log_prior is None else list(self.tau_log_prior)}
+                "tau_log_lik": None if self.tau_log_lik is None else list(self.tau_log_lik)}
 
     @classmethod
     def from_json(cls, data: Any) -> StartState:
         """Inverse of :meth:`to_json`."""
         try:
-            tau = data.get("tau_log_prior")
+            tau = data.get("tau_log_lik")
             cv = data.get("noise_cv")
             return cls(float(data["level_w"]), float(data["level_var_w2"]),
                        None if cv is None else float(cv),
@@ -156,8 +159,8 @@ class TransitionConfig:
         start_inflation_rel: Added SD of b0 relative to the starting level when one is given:
             the body moves a little between the previous setting's last breath and this
             setting's start (switching time, a breath or two).
-        tau_walk_log_sd: Random walk of log τ from one setting to the next (within-person
-            variation of τ, ≈ 10 %); the widening of the τ posterior handed over.
+        tau_person_log_sd: SD of a setting's log τ around the person's (within-person
+            variation of τ, assumed ≈ 10 %).
         irls_passes: Reweighting passes per breath (the previous breath's weights warm-start).
         min_level_w: Floor in W on the level that scales the noise.
         max_watts: Breaths above this power in W are rejected as absurd.
@@ -174,7 +177,7 @@ class TransitionConfig:
     c_rel_sd: float = 1.0
     start_rel_sd: float = 1.0
     start_inflation_rel: float = 0.05
-    tau_walk_log_sd: float = 0.1
+    tau_person_log_sd: float = 0.1
     irls_passes: int = 2
     min_level_w: float = 10.0
     max_watts: float = 5000.0
@@ -193,7 +196,7 @@ class TransitionConfig:
             "c_rel_sd": (0.01, 100.0),
             "start_rel_sd": (0.01, 100.0),
             "start_inflation_rel": (0.0, 10.0),
-            "tau_walk_log_sd": (0.0, 10.0),
+            "tau_person_log_sd": (0.0, 10.0),
             "irls_passes": (1, 50),
             "min_level_w": (1e-3, 1e4),
             "max_watts": (1.0, 1e5),
@@ -236,7 +239,10 @@ class TransitionEstimator:
         cfg = self._config
         self._tau = np.geomspace(cfg.tau_min_s, cfg.tau_max_s, cfg.n_tau)
         z = (np.log(self._tau) - math.log(cfg.tau_median_s)) / cfg.tau_log_sd
-        self._log_prior_tau = -0.5 * z**2
+        self._log_pop_tau = -0.5 * z**2  # population prior of τ (log weights on the grid)
+        self._log_prior_tau = self._log_pop_tau.copy()
+        self._person_ll = np.zeros(cfg.n_tau)  # log-likelihood of the person's τ, earlier settings
+        self._log_ev = np.zeros(cfg.n_tau)  # this setting's τ evidence (log, max 0)
         self._a, self._b = _t_constants(cfg.t_dof)
         self._t: list[float] = []
         self._y: list[float] = []
@@ -251,13 +257,13 @@ class TransitionEstimator:
         self._prior_c = (math.nan, math.nan)
         self._pi = np.exp(self._log_prior_tau - self._log_prior_tau.max())
         self._pi /= self._pi.sum()
-        # Random-walk kernel of log τ on the grid (handover to the next setting).
+        # K[i, p]: weight of a setting's τ_i given the person's τ_p (columns sum to 1).
         dlog = np.log(self._tau)[:, None] - np.log(self._tau)[None, :]
-        if cfg.tau_walk_log_sd > 0.0:
-            kern = np.exp(-0.5 * (dlog / cfg.tau_walk_log_sd) ** 2)
-            self._walk = kern / kern.sum(axis=1, keepdims=True)
+        if cfg.tau_person_log_sd > 0.0:
+            kern = np.exp(-0.5 * (dlog / cfg.tau_person_log_sd) ** 2)
+            self._kern = kern / kern.sum(axis=0, keepdims=True)
         else:
-            self._walk = np.eye(cfg.n_tau)
+            self._kern = np.eye(cfg.n_tau)
 
     # ------------------------------------------------------------------ views
     @property
@@ -310,20 +316,20 @@ class TransitionEstimator:
     def handover(self) -> StartState:
         """What the next setting's estimator starts from (:meth:`start_from_state`).
 
-        The body level at the last breath, the noise CV, and this setting's τ posterior
-        widened by the within-person random walk.
+        The body level at the last breath, the noise CV, and the person's τ log-likelihood with
+        this setting's evidence added (convolved with the within-person kernel).
 
         Raises:
             EstimatorError: No breath has been fused yet.
         """
         level, var = self.level()
-        prior = self._walk @ self._pi
-        log_prior = np.log(np.maximum(prior, 1e-300))
-        return StartState(level, var, self.noise_cv, tuple(float(v) for v in log_prior - log_prior.max()))
+        own = np.log(np.maximum(self._kern.T @ np.exp(self._log_ev), 1e-300))
+        ll = self._person_ll + own
+        return StartState(level, var, self.noise_cv, tuple(float(v) for v in ll - ll.max()))
 
     def start_from_state(self, state: StartState) -> None:
         """:meth:`start_from` with a :class:`StartState` (e.g. the previous :meth:`handover`)."""
-        self.start_from(state.level_w, state.level_var_w2, state.noise_cv, state.tau_log_prior)
+        self.start_from(state.level_w, state.level_var_w2, state.noise_cv, state.tau_log_lik)
 
     def data_only(self) -> tuple[float, float]:
         """The information about c the breaths carry, without the prior on c (for the GP).
@@ -340,7 +346,7 @@ class TransitionEstimator:
 
     # ------------------------------------------------------------------ inputs
     def start_from(self, level_w: float, level_var_w2: float, noise_cv: float | None = None,
-                   tau_log_prior: Any = None) -> None:
+                   tau_log_lik: Any = None) -> None:
         """Start the transition from the level the body is at when the setting begins.
 
         Args:
@@ -348,8 +354,9 @@ class TransitionEstimator:
             level_var_w2: Its variance in W² (>= 0).
             noise_cv: The previous setting's noise CV estimate, used as this setting's prior
                 median (same person, same cart); None keeps the configured one.
-            tau_log_prior: Log prior weights of τ on this estimator's grid (shape (n_tau,),
-                e.g. from the previous :meth:`handover`); None keeps the population prior.
+            tau_log_lik: Log-likelihood of the person's τ from earlier settings on this
+                estimator's grid (shape (n_tau,), from the previous :meth:`handover`); None:
+                nothing known yet (the population prior).
 
         Raises:
             MeasurementError: A bad level, variance or CV (the estimator is unchanged).
@@ -369,19 +376,23 @@ class TransitionEstimator:
             if not 0.001 <= cv <= 2.0:
                 raise MeasurementError(f"noise_cv={noise_cv!r} must be in [0.001, 2]")
         lp = None
-        if tau_log_prior is not None:
+        if tau_log_lik is not None:
             try:
-                lp = np.asarray(tau_log_prior, dtype=float).reshape(self._config.n_tau)
+                lp = np.asarray(tau_log_lik, dtype=float).reshape(self._config.n_tau)
             except (TypeError, ValueError) as err:
                 raise MeasurementError(
-                    f"tau_log_prior must be {self._config.n_tau} log weights on the τ grid") from err
+                    f"tau_log_lik must be {self._config.n_tau} log weights on the τ grid") from err
             if not np.isfinite(lp).all():
-                raise MeasurementError("tau_log_prior must be finite log weights")
+                raise MeasurementError("tau_log_lik must be finite log weights")
         if noise_cv is not None:
             self._noise_prior_cv = cv
             self._cv2 = cv**2
         if lp is not None:
-            self._log_prior_tau = lp - lp.max()
+            self._person_ll = lp - lp.max()
+            person = self._log_pop_tau + self._person_ll
+            prior = self._kern @ np.exp(person - person.max())
+            self._log_prior_tau = np.log(np.maximum(prior, 1e-300))
+            self._log_prior_tau -= self._log_prior_tau.max()
             self._pi = np.exp(self._log_prior_tau)
             self._pi /= self._pi.sum()
         self._start = (level, var)
@@ -417,7 +428,7 @@ class TransitionEstimator:
                 f"(0, {self._config.max_watts:g}] W"
             )
         snapshot = (self._cv2, self._m_ref, self._w, self._mean, self._var, self._level,
-                    self._prior_c, self._pi)
+                    self._prior_c, self._pi, self._log_ev)
         self._t.append(t)
         self._y.append(z)
         try:
@@ -426,7 +437,7 @@ class TransitionEstimator:
             self._t.pop()
             self._y.pop()
             (self._cv2, self._m_ref, self._w, self._mean, self._var, self._level,
-             self._prior_c, self._pi) = snapshot
+             self._prior_c, self._pi, self._log_ev) = snapshot
             raise EstimatorError(f"transition fit at t_s={t!r} with watts={z!r} failed: {err}") from err
         return self._mean, self._var
 
@@ -516,6 +527,15 @@ class TransitionEstimator:
             w = (nu + 1.0) / (nu + zres**2 / (a * cv2))
             cv2 = (nu0 * cv0_2 + float(np.sum(w * zres**2)) / a) / (nu0 + n_eff)
             w = (nu + 1.0) / (nu + zres**2 / (a * cv2))
+        # What this setting says about τ for the person (handover): the profile likelihood with
+        # c free (no prior on c, and no log-det term). The marginal evidence would favour long
+        # τ whenever the data say little (a long τ makes c's likelihood wider, so more of c's
+        # broad prior fits): summed over many short, early-stopped settings, that drifted τ.
+        det_f = s00 * l11 - l01 * l01
+        e0_f = r0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            quad_f = (l11 * e0_f**2 - 2.0 * l01 * e0_f * e1 + s00 * e1**2) / det_f
+        quad_f = np.where(det_f > 0.0, quad_f, -np.inf)
         mean = float(pi @ mc)
         var = float(pi @ (pcc + mc**2)) - mean**2
         var = max(var, float(pi @ pcc) * 1e-9)
@@ -531,6 +551,7 @@ class TransitionEstimator:
             raise EstimatorError(f"non-finite estimate (mean {mean!r}, var {var!r})")
         self._cv2 = cv2
         self._pi = pi
+        self._log_ev = 0.5 * (quad_f - quad_f.max()) if np.isfinite(quad_f).any() else np.zeros(cfg.n_tau)
         self._m_ref = m_ref
         self._w = w
         self._mean, self._var = mean, var

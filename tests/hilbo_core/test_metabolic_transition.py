@@ -297,3 +297,27 @@ def test_states_from_before_issue_16_keep_the_seed_ukf() -> None:
     del state["config"]["estimator"]
     del state["handover"]
     assert HILOptimizer.from_json(state).config.estimator is EstimatorKind.SEED_UKF
+
+
+def test_many_early_stopped_settings_do_not_drift_the_persons_tau() -> None:
+    # 30 settings of 6 breaths each (≈ 15 s) say almost nothing about τ: the τ prior they hand
+    # on must stay near the population's (a random walk of τ, or the marginal evidence, drifted
+    # it to > 80 s here).
+    rng = np.random.default_rng(0)
+    level, state = 400.0, None
+    for _ in range(30):
+        c = rng.uniform(350.0, 800.0)
+        est = TransitionEstimator()
+        if state is not None:
+            est.start_from_state(state)
+        t = rng.uniform(0.5, 3.0)
+        for _ in range(6):
+            m = c + (level - c) * math.exp(-t / 45.0)
+            est.update(t, m * (1.0 + 0.1 * rng.normal()))
+            t += rng.uniform(2.0, 3.5)
+        level = m
+        state = est.handover()
+    nxt = TransitionEstimator()
+    nxt.start_from_state(state)
+    tau, prior = nxt.tau_posterior()
+    assert 38.0 < math.exp(float(prior @ np.log(tau))) < 50.0
