@@ -471,6 +471,10 @@ def add_bench_parser(subparsers: Any) -> Any:
                          "N = 45, 180 s warm-ups; needs --bridge-minutes of at least 20.5)")
     pf.add_argument("--out", default="runs/bench/perf", help="output directory")
     pf.set_defaults(func=_cmd_perf)
+
+    from bridge.bench.estimator import add_estimator_bench_parser
+
+    add_estimator_bench_parser(bsub)  # hilbo bench estimator (issue 16)
     return bsub
 
 
