@@ -759,6 +759,14 @@ class BridgeSession:
                 faults = self.device.faults(s.n_actuators)
                 self.status.device = "ok" if not faults else \
                     "faults: " + "; ".join(describe_faults(faults))
+                if faults and not self.supervisor.paused:
+                    # The device latched a fault (its own heartbeat watchdog, a limit): it is
+                    # slack, so the setting being measured is not what the wearer feels. Pause;
+                    # the resume clears what a request may clear (_resume).
+                    await self.supervisor.pause(
+                        AssistanceOffReason.DEVICE_HEARTBEAT_LOST if faults & DeviceFault.HEARTBEAT_LOST
+                        else AssistanceOffReason.INTERNAL_ERROR,
+                        f"device faults: {', '.join(fault_names(faults))}")
             b = self._breaths
             if b.last_wall is not None and now - b.last_wall > s.cart_timeout_s:
                 if self.status.cart == "ok":

@@ -49,7 +49,7 @@ def _run(out: Path, minutes: float, seed: int, processes: bool, timeout_s: float
         s = json.loads(summary.read_text())
         evals = s.get("evaluations", [])
         row["evaluations"] = len(evals)
-        row["optimisation"] = sum(1 for e in evals if e.get("index", 0) >= s.get("n_explore", 6))
+        row["optimisation"] = sum(1 for e in evals if e.get("phase") == "optimization")
     log_path = out / "session.mcap"
     if log_path.exists():
         kinds = [e["kind"] for e in read_log(log_path).data("/events")]
