@@ -23,6 +23,7 @@ import asyncio
 import collections
 import contextlib
 import enum
+import functools
 import logging
 import math
 import types
@@ -679,8 +680,10 @@ class CanEndpoint:
             self._ack_answers += 1
             return True
         self._counters[reason] += 1
-        log.warning("profile answer %s rejected: %s (push v%d, %d commit(s), %d answer(s))",
-                    ack, reason, self._ack_version, self._ack_commits, self._ack_answers)
+        # debug, like undecodable frames: a misbehaving device must not flood the log; the
+        # counters are what the bridge logs.
+        log.debug("profile answer %s rejected: %s (push v%d, %d commit(s), %d answer(s))",
+                  ack, reason, self._ack_version, self._ack_commits, self._ack_answers)
         return False
 
     def _on_bus_error(self, exc: BaseException) -> None:
@@ -730,11 +733,19 @@ class CanEndpoint:
             EncodeError: the message does not encode.
             TransportError: still refused at the deadline, or the bus has failed.
         """
+        await self._send(message)
+
+    async def _send(self, message: ExosuitMessage | can.Message,
+                    before_try: Callable[[], None] | None = None) -> None:
+        """:meth:`send`, calling ``before_try()`` right before every transmit attempt (a
+        retry after a full queue included), with nothing awaited in between."""
         bus = self._check_usable()
         frame = message if isinstance(message, can.Message) else message.to_frame()
         loop = asyncio.get_running_loop()
         deadline = loop.time() + self._send_timeout_s
         while True:
+            if before_try is not None:
+                before_try()
             try:
                 bus.send(frame, timeout=0)
                 return
@@ -904,7 +915,8 @@ class CanEndpoint:
         ``permit`` lets the caller (the bridge's supervisor) stop a push at the last moment: it
         is called with :attr:`PushStage.FIRST_SEGMENT` right before the first segment of every
         attempt and with :attr:`PushStage.COMMIT` right before every commit, synchronously,
-        with no await between its True and the frame going to the bus. When it returns False
+        with no await between its True and the frame going to the bus (if the transmit queue
+        is full, it is asked again before each retry of that frame). When it returns False
         the push sends nothing more (in particular not that commit) and raises
         :class:`~drivers.errors.ProfilePushAborted`. An exception it raises propagates the same
         way, unchanged.
@@ -981,13 +993,13 @@ class CanEndpoint:
                             delay = due - loop.time()
                             if delay > 0:
                                 await asyncio.sleep(delay)
-                        # Asked after the pacing sleep, so nothing is awaited between the
-                        # permission and the frame reaching the bus.
-                        if k == 0:
-                            check(PushStage.FIRST_SEGMENT, attempt)
-                        if frame is commit:
-                            check(PushStage.COMMIT, attempt)
-                        await self.send(frame)
+                        # Asked after the pacing sleep (and again before a transmit retry), so
+                        # nothing is awaited between the permission and the frame reaching the
+                        # bus.
+                        stage = (PushStage.COMMIT if frame is commit
+                                 else PushStage.FIRST_SEGMENT if k == 0 else None)
+                        await self._send(frame, None if stage is None
+                                         else functools.partial(check, stage, attempt))
                         if frame is commit:
                             # Counted before anything is awaited: an answer dispatched from
                             # now on may answer this commit.
