@@ -12,6 +12,8 @@ from collections.abc import AsyncIterator
 import numpy as np
 import pytest
 from exosuit_responder import Behaviour, Responder
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from drivers.exosuit.codec import ProfileAck, ProfileCommit
 from drivers.exosuit.endpoint import CanBusConfig, CanEndpoint
@@ -131,3 +133,30 @@ async def test_a_late_answer_to_a_timed_out_commit_answers_the_retry_and_nothing
         await r.listener.send(ProfileAck.ack(9))  # a third answer for two commits
         await settle(r.bridge, 3)
         assert r.ack_counts() == {"ack_repeated": 1}
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.one_of(
+    st.tuples(st.just("push"), st.integers(1, 3)),
+    st.tuples(st.just("commit"), st.just(0)),
+    st.tuples(st.just("ack"), st.integers(1, 3)),
+), max_size=40))
+def test_every_answer_is_accepted_once_per_commit_or_counted(events: list[tuple[str, int]]) -> None:
+    ep = CanEndpoint(CanBusConfig("virtual", "unused"))  # the accounting needs no open bus
+    version: int | None = None
+    commits = accepted = judged = total_accepted = 0
+    for kind, value in events:
+        if kind == "push":  # what push_profile does when it starts
+            version, commits, accepted = value, 0, 0
+            ep._ack_version, ep._ack_commits, ep._ack_answers = value, 0, 0
+        elif kind == "commit" and version is not None:
+            commits += 1
+            ep._ack_commits += 1
+        elif kind == "ack":
+            ok = ep._answers_push(ProfileAck.ack(value))
+            judged += version is not None
+            assert not ok or (value == version and accepted < commits)
+            accepted += ok
+            total_accepted += ok
+            assert accepted <= commits
+    assert total_accepted + sum(ep.counters.get(k, 0) for k in ACK_COUNTERS) == judged
