@@ -142,7 +142,7 @@ async def test_a_request_for_other_faults_leaves_a_latched_one_alone() -> None:
         await wait_for(lambda: exo.heartbeat_back_s() >= exo.heartbeat_clear_s)
         other = await ep.clear_faults(DeviceFault.OVERCURRENT)
         query = await ep.clear_faults(0)
-        with ep.subscribe(ClearFaultsAck) as answers:  # a request for an absent actuator
+        with ep.subscribe(ClearFaultsAck) as answers:  # addressed to actuator 1 alone
             await ep.send(ClearFaults(200, DeviceFault.HEARTBEAT_LOST, 1))
             late = await asyncio.wait_for(answers.get(), 2.0)
     assert (other.cleared, other.held) == (DeviceFault(0), DeviceFault.HEARTBEAT_LOST)
