@@ -551,6 +551,7 @@ class SimulatedWearer:
     def subject(self) -> dict[str, Any]:
         """JSON-able summary of the subject for logs and summary.json."""
         return {
+            "wearer": "legacy",
             "seed": self.seed,
             "space": self.space.name,
             "body_mass_kg": self.body_mass_kg,

@@ -37,7 +37,9 @@ to one shape:
   are placed inside the range the presets' tables reach (hip centroid 17-38 %GC, spread 5-12 %GC;
   ankle centroid 52-62 %GC) around the hip-extension and push-off timings of seed 000's Table II
   and Fig. 4, and ``β`` is drawn so the best saving is 5-25 % of unassisted walking, the range the
-  project specifies (the seed reports 7-35 %; hip-exosuit reports are mostly 5-20 %).
+  project specifies (the seed reports 7-35 %; hip-exosuit reports are mostly 5-20 %). Over
+  seeds 0-39 (both families): best saving 9.4-20.7 % in ``hip_6d``, 7.4-24.4 % in
+  ``hip_ankle_4d``; 23 window and 17 bump subjects.
 
 Dynamics
 ========
@@ -78,7 +80,8 @@ Breaths
   with a per-person probability of 1-4 %, off by an extra ``outlier_scale·t_3`` (Student t, 3 degrees
   of freedom: heavy-tailed), the breath's factor clipped to [0.2, 3]. The share and the width are
   model choices (no published distribution); they lift the raw CV of a steady state by about
-  1-3 points above the core CV, to about the 11 % median of the real data.
+  0.5-2.5 points above the core CV (measured over 8 subjects), to about the 11 % median of the
+  real data.
 * RER, VO2/VCO2 (Brockway), VE and HR as the legacy wearer (its module docstring), so
   ``BreathRecord.watts`` is exactly ``P``.
 
@@ -125,6 +128,7 @@ from virtual_hw.wearer import (
 
 __all__ = [
     "ANKLE_BUMPS",
+    "ANKLE_WINDOW",
     "HIP_BUMPS",
     "Bump",
     "BumpLandscape",
@@ -307,9 +311,15 @@ HIP_BUMPS = BumpPrior("hip", centre_pct=(22.0, 32.0), spread_pct=(6.0, 10.0),
 # the hip_ankle_4d ankle table's effective force is ≈ 0.48 BW.
 ANKLE_BUMPS = BumpPrior("ankle", centre_pct=(54.0, 60.0), spread_pct=(7.0, 10.0),
                         centre_sd_pct=(2.0, 4.0), spread_sd_pct=(1.0, 2.5), correlation=(-0.6, 0.6),
-                        ideal_force_bw=(0.35, 0.70), max_benefit_frac=(0.03, 0.08),
+                        ideal_force_bw=(0.35, 0.70), max_benefit_frac=(0.03, 0.07),
                         second_offset_pct=(4.0, 7.0), second_amplitude=(0.4, 0.8),
                         mistiming_penalty=(0.1, 0.3))
+
+# The window family's ankle: the legacy ANKLE_PRIOR with β at most 9 % instead of 10 %, so that with
+# the hip the best hip_ankle_4d saving stays within the project's 5-25 % (25.3 % for one of 40
+# subjects with 10 %).
+ANKLE_WINDOW = ActuatorPrior("ankle", ANKLE_PRIOR.centre_pct, ANKLE_PRIOR.width_pct,
+                             ANKLE_PRIOR.ideal_force_bw, (0.05, 0.09))
 
 
 @dataclass(frozen=True)
@@ -342,7 +352,7 @@ class RealisticWearerConfig:
     hr_gain_bpm_per_w: float = 0.15
     resting_w_per_kg: float = 1.3
     hr_sd_bpm: float = 2.0
-    windows: tuple[ActuatorPrior, ...] = (HIP_PRIOR, ANKLE_PRIOR)
+    windows: tuple[ActuatorPrior, ...] = (HIP_PRIOR, ANKLE_WINDOW)
     bumps: tuple[BumpPrior, ...] = (HIP_BUMPS, ANKLE_BUMPS)
     penalty_cap: float = 0.5
     n_optimum_candidates: int = 128

@@ -51,10 +51,10 @@ def acf(x: np.ndarray, lag: int) -> float:
 
 @pytest.fixture(scope="module")
 def optimised() -> dict[tuple[str, int], RealisticWearer]:
-    """Wearers whose true optimum is computed once for the whole module (20 seeds per space)."""
+    """Wearers whose true optimum is computed once for the whole module (40 seeds per space)."""
     out = {}
     for name, space in SPACES.items():
-        for seed in range(20):
+        for seed in range(40):
             w = RealisticWearer(space, seed)
             _ = w.true_optimum
             out[(name, seed)] = w
