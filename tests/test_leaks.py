@@ -1,5 +1,6 @@
-"""The autouse leak check of tests/conftest.py fails a test that leaves a thread or a child
-process alive, and lets one that cleans up (or whose thread ends within the grace) pass."""
+"""The autouse leak check of tests/conftest.py fails a test that leaves a thread, a child
+process or a signal handler behind, and lets one that cleans up (or whose thread ends within
+the grace) pass."""
 
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ pytestmark = pytest.mark.timeout(120)
 _CONFTEST = Path(__file__).with_name("conftest.py")
 
 _TESTS = '''
-import subprocess, sys, threading
+import signal, subprocess, sys, threading
 
 import pytest
 
@@ -55,6 +56,14 @@ def test_the_module_fixture_process_is_still_alive(server):
     assert server.poll() is None  # not killed as a leak of the test before
 
 
+def test_leaks_a_signal_handler():
+    signal.signal(signal.SIGTERM, lambda *_: None)
+
+
+def test_the_handler_was_restored():
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+
+
 def test_zzz_cleanup():
     _stop.set()
 '''
@@ -71,8 +80,10 @@ def test_leak_check_fails_leakers_only(tmp_path: Path) -> None:
     )
     out = proc.stdout
     assert proc.returncode == 1, out
-    assert "7 passed, 2 errors" in out, out
+    assert "9 passed, 3 errors" in out, out
     assert "ERROR test_leaky.py::test_leaks_a_thread" in out
     assert "ERROR test_leaky.py::test_leaks_a_process" in out
-    assert "leaked 1 thread(s) and 0 process(es)" in out and "'leaky-thread' (daemon=True" in out
-    assert "leaked 0 thread(s) and 1 process(es)" in out and "time.sleep(60)" in out
+    assert "ERROR test_leaky.py::test_leaks_a_signal_handler" in out
+    assert "leaked 1 thread(s), 0 process(es) and 0 signal" in out and "'leaky-thread' (daemon=True" in out
+    assert "leaked 0 thread(s), 1 process(es) and 0 signal" in out and "time.sleep(60)" in out
+    assert "leaked 0 thread(s), 0 process(es) and 1 signal" in out and "signal SIGTERM handler" in out
