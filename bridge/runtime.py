@@ -546,6 +546,9 @@ class BridgeSession:
             _Paused: A pause overtook the push, or the push failed (the session then pauses).
         """
         s = self.settings
+        # A fault the device latched while nothing assisted (before the session's first
+        # heartbeat, during a warm-up) would make it refuse the commit (busy).
+        await self._clear_device_faults()
         try:
             ticket = self.supervisor.begin_push(admitted, version)
         except PushRefused as err:
@@ -759,10 +762,11 @@ class BridgeSession:
                 faults = self.device.faults(s.n_actuators)
                 self.status.device = "ok" if not faults else \
                     "faults: " + "; ".join(describe_faults(faults))
-                if faults and not self.supervisor.paused:
-                    # The device latched a fault (its own heartbeat watchdog, a limit): it is
-                    # slack, so the setting being measured is not what the wearer feels. Pause;
-                    # the resume clears what a request may clear (_resume).
+                if faults and self.supervisor.assisting:
+                    # The device latched a fault (its own heartbeat watchdog, a limit) while it
+                    # assisted: it is slack, so the setting being measured is not what the wearer
+                    # feels. Pause; the resume clears what a request may clear (_resume). A fault
+                    # while nothing assists (a warm-up, the start) is cleared before the next push.
                     await self.supervisor.pause(
                         AssistanceOffReason.DEVICE_HEARTBEAT_LOST if faults & DeviceFault.HEARTBEAT_LOST
                         else AssistanceOffReason.INTERNAL_ERROR,
@@ -854,12 +858,18 @@ class BridgeSession:
         return None
 
     async def _resume(self, source: str) -> bool:
-        """Resume the session: first ask the device to clear its latched faults that a request
-        may clear (PROTOCOL.md, "Clearing a latched fault": it clears one only once its cause is
-        gone), wait for a status that shows them gone, then ask the supervisor."""
+        """Resume the session: clear the device's latched faults first, then ask the supervisor."""
+        if self.supervisor.paused and self._health(clearable_ok=True) is None:
+            await self._clear_device_faults()
+        return self.supervisor.resume(source) is None
+
+    async def _clear_device_faults(self) -> None:
+        """Ask the device to clear the latched faults that a request may clear (PROTOCOL.md,
+        "Clearing a latched fault": it clears one only once its cause is gone) and wait, briefly,
+        for a status that shows them gone."""
         s = self.settings
         faults = self.device.faults(s.n_actuators)
-        if faults and self.supervisor.paused and self._health(clearable_ok=True) is None:
+        if faults & CLEARABLE_FAULTS:
             try:
                 result = await self.endpoint.clear_faults(faults & CLEARABLE_FAULTS,
                                                           n_actuators=s.n_actuators)
@@ -873,7 +883,6 @@ class BridgeSession:
             deadline = self._clock() + 0.2
             while self.device.faults(s.n_actuators) & CLEARABLE_FAULTS and self._clock() < deadline:
                 await asyncio.sleep(s.watchdog_period_s)
-        return self.supervisor.resume(source) is None
 
     def _session_time(self, t_cart: float) -> float:
         return t_cart - (self._t_session0 if self._t_session0 is not None else t_cart)
