@@ -3,13 +3,18 @@
 A short deterministic session through :class:`bridge.log.SessionLog`'s typed methods (every
 channel), written to ``tests/data/logs/v<FORMAT_VERSION>/session.mcap``. Run it once per format
 version (the file of an older version is never rewritten: it stands for the logs that version
-wrote). v1 was written with this script by the writer of main at 41b65f5.
+wrote). v1 was written with this script by the writer of main at 41b65f5 (whose SessionLog had no
+``started_unix_ns``: its /config holds the wall clock of that run); v2 by the msgspec writer.
+
+``tests/bridge/test_log_golden.py`` also writes this session in-process and compares a digest of
+the writer's output (schemas and records) with ``digests.json``, keyed by format version.
 """
 
 from __future__ import annotations
 
 import sys
 from pathlib import Path
+from typing import Any
 
 from bridge import log as bridge_log
 from bridge.log import SessionLog
@@ -21,6 +26,7 @@ from hilbo_core.profiles import build_profile
 from hilbo_core.types import BreathRecord
 
 HERE = Path(__file__).resolve().parent
+STARTED_UNIX_NS = 1_700_000_000_000_000_000
 
 
 class _Clock:
@@ -34,7 +40,7 @@ class _Clock:
         return self.ns
 
 
-def write_session(path: Path, **log_kwargs: object) -> None:
+def write_session(path: Path, **log_kwargs: Any) -> None:
     """The golden session: 3 evaluations (2 exploration, 1 optimisation) and every channel."""
     space = hip_6d()
     opt = HILOptimizer(space, n_explore=2, max_breaths=3, window=1, budget_breaths=4, seed=1,
@@ -90,7 +96,7 @@ def main() -> int:
         sys.stderr.write(f"{out} exists; a golden file of a released format is never rewritten\n")
         return 1
     out.parent.mkdir(parents=True, exist_ok=True)
-    write_session(out)
+    write_session(out, started_unix_ns=STARTED_UNIX_NS)
     sys.stdout.write(f"{out}\n")
     return 0
 
