@@ -166,3 +166,20 @@ def test_a_bad_file_mode_is_named(tmp_path: Path, mode: Any) -> None:
     with pytest.raises(LogValueError, match="file_mode"):
         SessionLog(tmp_path / "x.mcap", session_id="x", config_json={}, file_mode=mode)
     assert not (tmp_path / "x.mcap").exists()
+
+
+def test_session_file_mode_in_the_config_and_the_summary(tmp_path: Path, umask_zero: None) -> None:
+    from bridge.config import BridgeConfigError, parse_config
+    from bridge.run import write_json_atomic
+
+    example = (Path(__file__).resolve().parents[2] / "bridge" / "config_example.toml").read_text()
+    cfg = parse_config(example)
+    assert cfg.session.file_mode == "0600" and cfg.session.file_mode_bits == 0o600
+    cfg = parse_config(example.replace('file_mode = "0600"', 'file_mode = "0640"'))
+    assert cfg.session.file_mode_bits == 0o640
+    with pytest.raises(BridgeConfigError, match=r"session.file_mode = '0999'.*octal"):
+        parse_config(example.replace('file_mode = "0600"', 'file_mode = "0999"'))
+    write_json_atomic(tmp_path / "summary.json", {"vo2": 1})
+    assert _mode(tmp_path / "summary.json") == 0o600
+    write_json_atomic(tmp_path / "s2.json", {}, mode=0o640)
+    assert _mode(tmp_path / "s2.json") == 0o640
