@@ -703,6 +703,11 @@ class SessionLog:
         else:
             try:
                 data = _ENCODER.encode(record)
+                if b"null" in data:
+                    # msgspec writes NaN/inf as null; Foxglove's schemas have one type per field.
+                    # As before: a non-finite value is omitted (the reader names the missing field).
+                    data = _encode(topic, _drop_none(_finite_or_none(
+                        msgspec.to_builtins(record, enc_hook=_json_default))))
             except (TypeError, ValueError, OverflowError) as err:
                 raise LogValueError(f"log({topic!r}): record is not JSON-serialisable: {err}") from err
         self._emit(topic, data, log_ns, publish_ns)

@@ -183,3 +183,20 @@ def test_session_file_mode_in_the_config_and_the_summary(tmp_path: Path, umask_z
     assert _mode(tmp_path / "summary.json") == 0o600
     write_json_atomic(tmp_path / "s2.json", {}, mode=0o640)
     assert _mode(tmp_path / "s2.json") == 0o640
+
+
+def test_a_non_finite_value_is_omitted_and_the_reader_names_the_gap(tmp_path: Path) -> None:
+    from hilbo_core.optimizer import Evaluation
+
+    path = tmp_path / "nan.mcap"
+    with SessionLog(path, session_id="n", config_json={}, flush_interval_s=None) as log:
+        log.log_observation(Evaluation(0, {"a": 1.0}, 400.0, float("nan"), 3, 9.0, "exploration", False,
+                                       "max_measurements"))
+        log.log_estimate(index=0, breath=0, t_setting_s=3.0, watts=400.0, mean_w=400.0, var_w2=float("inf"),
+                         phase="exploration")
+    c = read_log(path)
+    [obs] = c.topic(Topic.OBSERVATIONS)
+    assert "var" not in obs.data and obs.record is None  # a required field missing: no typed record
+    [est] = c.topic(Topic.ESTIMATOR)
+    assert "var_w2" not in est.data and "sd_w" not in est.data and est.record is None
+    assert c.invalid == 2 and c.records(Topic.OBSERVATIONS) == []
