@@ -1,9 +1,11 @@
-"""The session's MCAP log: one file per session, one JSON-schema channel per kind of record.
+"""The session's MCAP log writer: one file per session, one typed JSON channel per kind of record.
 
-Layout (shared/DESIGN.md "MCAP log"; issue 6 item 4):
+Layout (shared/DESIGN.md "MCAP log"; issue 6 item 4; issue 18 item 2):
 
-* Every channel has message encoding ``json`` and a draft-07 JSON schema (schema encoding
-  ``jsonschema``), so Foxglove can open the file and plot any numeric field. The schemas keep to
+* Every channel carries one record type of :mod:`bridge.log.records` (a msgspec Struct), encoded
+  with msgspec (about 3x faster than ``json.dumps`` of the dicts of format 1). Its draft-07 JSON
+  schema (schema encoding ``jsonschema``) is generated from that type, so Foxglove can open the
+  file and plot any numeric field, and the readers decode the same types. The schemas keep to
   what Foxglove's JSON-schema parser accepts: every property has one ``type`` (no
   ``["number", "null"]`` unions: an unknown value is *omitted*, not written as ``null``), every
   object lists ``properties``, arrays hold one item type. ``/events`` uses Foxglove's
@@ -14,8 +16,13 @@ Layout (shared/DESIGN.md "MCAP log"; issue 6 item 4):
   messages tied to a breath (``/breaths``, ``/estimator``, ``/stopping``, and whatever the caller
   stamps with ``t_s``/``publish_time_ns``); for the others it equals ``log_time``. ``sequence`` is
   one counter over the whole file, so the write order survives readers that sort by time.
-* ``/config`` (first message) and an MCAP metadata record ``hilbo.session`` carry the session id
-  and the path of the previous log when this session resumes a crashed one.
+* ``/config`` (first message) and an MCAP metadata record ``hilbo.session`` carry the session id,
+  the format version (:data:`bridge.log.records.FORMAT_VERSION`) and the path of the previous log
+  when this session resumes a crashed one.
+* ``/events`` levels come from the event kind (:func:`bridge.log.records.event_level`), and a
+  change of a device's fault bits on ``/device_status`` is also an event (``device_fault``,
+  ERROR; ``device_fault_cleared``, INFO).
+* The file is created with mode 0600 (``file_mode``): it holds health data.
 
 Crash safety. mcap's ``Writer`` keeps a chunk in memory until it reaches ``chunk_size`` (1 MiB
 by default) and writes through a buffered file, so a process killed before then leaves nothing
