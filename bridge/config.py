@@ -233,12 +233,20 @@ class SessionConfig:
         body_mass_kg: The wearer's mass in kg, 20–250 (``hip_ankle_4d`` scales its forces by it).
         out_dir: Directory for the session's MCAP log and summary.
         notes: Free text copied into the log.
+        file_mode: Permission bits of the log and summary as octal text (default ``"0600"``:
+            owner only, they hold health data: VO2, heart rate, body mass).
     """
 
     subject: str
     body_mass_kg: float
     out_dir: Path = Path("sessions")
     notes: str = ""
+    file_mode: str = "0600"
+
+    @property
+    def file_mode_bits(self) -> int:
+        """:attr:`file_mode` as an integer (``0o600``)."""
+        return int(self.file_mode, 8)
 
 
 def _parse_session(data: object) -> SessionConfig:
@@ -254,7 +262,16 @@ def _parse_session(data: object) -> SessionConfig:
         body_mass_kg=t.number("body_mass_kg", lo=20.0, hi=250.0),
         out_dir=Path(t.string("out_dir", "sessions")),
         notes=t.string("notes", "", non_empty=False),
+        file_mode=_file_mode(t),
     )
+
+
+def _file_mode(t: _Table) -> str:
+    text = t.string("file_mode", "0600")
+    if not re.fullmatch(r"0?[0-7]{3}", text):
+        raise BridgeConfigError(f"{t.name('file_mode')} = {text!r}: expected octal permission bits such as "
+                                "\"0600\" (owner read/write: session files hold health data) or \"0640\"")
+    return text
 
 
 # --------------------------------------------------------------------------------------------
@@ -1270,7 +1287,7 @@ def add_config_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 #: The keys each table allows (``[cart]``'s are the cart driver's: drivers/cart/FORMAT.md).
 ALLOWED_KEYS: Mapping[str, tuple[str, ...]] = MappingProxyType({
-    "session": ("subject", "body_mass_kg", "out_dir", "notes"),
+    "session": ("subject", "body_mass_kg", "out_dir", "notes", "file_mode"),
     "space": ("preset", "bounds", "constraints", "profile", "parameters", "derived"),
     "protocol": tuple(f.name for f in dataclasses.fields(ProtocolConfig)),
     "can": ("interface", "channel", "bitrate", "options", "heartbeat_period_ms", "push_timeout_ms",

@@ -23,7 +23,7 @@ from typing import Any
 from rich.console import Console
 
 from bridge.config import HilboConfig
-from bridge.log import SessionLog, new_session_id
+from bridge.log import DEFAULT_FILE_MODE, SessionLog, new_session_id
 from bridge.operator_view import run_operator_view
 from bridge.resume import rebuild_optimizer
 from bridge.runtime import BridgeSession, Command, RuntimeSettings
@@ -77,10 +77,16 @@ def _headless_line(session: BridgeSession) -> Callable[[str], None]:
     return line
 
 
-def write_json_atomic(path: Path, data: Any) -> None:
-    """Write JSON so a reader never sees half a file (temporary file, then rename)."""
+def write_json_atomic(path: Path, data: Any, *, mode: int = DEFAULT_FILE_MODE) -> None:
+    """Write JSON so a reader never sees half a file (temporary file, then rename).
+
+    The file gets permission bits ``mode`` (default 0o600: a summary holds health data).
+    """
     tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2) + "\n")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)
+    with os.fdopen(fd, "w") as f:
+        os.fchmod(f.fileno(), mode)
+        f.write(json.dumps(data, indent=2) + "\n")
     os.replace(tmp, path)
 
 
@@ -144,7 +150,8 @@ async def run_session(
     stream = BreathStream.from_config(cfg.cart)
     async with CanEndpoint(cfg.can.bus) as endpoint, stream:
         with SessionLog(path, session_id=session_id, config_json=cfg.to_json(),
-                        previous_log=previous, param_names=space.names) as log:
+                        previous_log=previous, param_names=space.names,
+                        file_mode=cfg.session.file_mode_bits) as log:
             if resume is not None:
                 log.log_optimizer_state(opt, reason="resume")
             elif cfg.prior.priors:
@@ -174,5 +181,5 @@ async def run_session(
                         await view
     summary.update(session_id=session_id, log=str(path), previous_log=previous,
                    config_source=str(cfg.source))
-    write_json_atomic(summary_path, summary)
+    write_json_atomic(summary_path, summary, mode=cfg.session.file_mode_bits)
     return RunResult(path, summary_path, summary)
