@@ -789,7 +789,7 @@ class BridgeSession:
             await sup.wait_paused()
             healthy_since: float | None = None
             while sup.paused and not sup.stopped:
-                if sup.pause_cause is not AssistanceOffReason.OPERATOR_STOP:
+                if not sup.by_operator:
                     now = self._clock()
                     if self._health(clearable_ok=True) is not None:
                         healthy_since = None

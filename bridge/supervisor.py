@@ -117,8 +117,9 @@ class Supervisor:
         self._epoch = 0
         self._assist_on = False
         self._acked_once = False
-        self._pause_reason = ""
-        self._pause_cause: AssistanceOffReason | None = None
+        #: The reasons of the current pause, oldest first, with their assistance-off reasons.
+        self._causes: dict[str, AssistanceOffReason] = {}
+        self._last_reason = ""
         #: Counts of what the supervisor refused or saw: pushes refused at begin, first segments
         #: and commits refused (an aborted push), acks overtaken by a pause, resumes refused.
         self.counters: Counter[str] = Counter()
@@ -150,13 +151,13 @@ class Supervisor:
 
     @property
     def pause_reason(self) -> str:
-        """Why the session paused last ("" before any pause)."""
-        return self._pause_reason
+        """Why the session is paused ("; "-joined reasons), or was last ("" before any pause)."""
+        return "; ".join(self._causes) if self._causes else self._last_reason
 
     @property
-    def pause_cause(self) -> AssistanceOffReason | None:
-        """The assistance-off reason of the current pause (``OPERATOR_STOP`` for the operator's)."""
-        return self._pause_cause if self._paused.is_set() else None
+    def by_operator(self) -> bool:
+        """True while the current pause includes the operator's own pause (or stop)."""
+        return AssistanceOffReason.OPERATOR_STOP in self._causes.values()
 
     @property
     def epoch(self) -> int:
@@ -167,7 +168,7 @@ class Supervisor:
         """The state line of the operator view."""
         st = self.state
         if st is SupervisorState.PAUSED:
-            return f"paused: {self._pause_reason}"
+            return f"paused: {self.pause_reason}"
         return st.value
 
     async def wait_paused(self) -> None:
@@ -180,9 +181,11 @@ class Supervisor:
 
     # ---------------------------------------------------------------- events
     async def pause(self, reason: AssistanceOffReason, text: str) -> None:
-        """Pause the session and command assistance-off now (idempotent while paused)."""
-        if not self._paused.is_set():
-            self._pause_reason, self._pause_cause = text, AssistanceOffReason(reason)
+        """Pause the session and command assistance-off now (idempotent for the same reason)."""
+        if text not in self._causes:
+            # A pause during a pause adds its reason (the operator sees "between bouts" as well
+            # as the heartbeat loss before it); one resume ends them all.
+            self._causes[text] = AssistanceOffReason(reason)
             self._paused.set()
             self._on_event("pause", text)
         await self._off(reason, text)
@@ -192,7 +195,7 @@ class Supervisor:
         if not self._stopped.is_set():
             self._stopped.set()
             self._paused.set()
-            self._pause_reason, self._pause_cause = text, AssistanceOffReason(reason)
+            self._causes[text] = AssistanceOffReason(reason)
         await self._off(reason, text)
 
     async def assistance_off(self, reason: AssistanceOffReason, text: str) -> None:
@@ -217,6 +220,8 @@ class Supervisor:
             self.counters["resume_refused"] += 1
             self._on_event("resume_refused", f"cannot resume ({source}): {why}")
             return why
+        self._last_reason = self.pause_reason
+        self._causes.clear()
         self._paused.clear()
         self._on_event("resume", f"resumed by the {source}")
         return None

@@ -290,6 +290,10 @@ class Evaluation(_Record, kw_only=True):
     reason: Annotated[str, _d("threshold, max_measurements, budget or told")]
     t_start: Annotated[float | None, _d("Session time when the setting was applied, s")] = None
     t_end: Annotated[float | None, _d("Session time of its last breath, s")] = None
+    obs_mean: Annotated[float | None, _d(
+        "Data-only mean the GP is told (the posterior with the estimator's prior on c divided "
+        "out), W; absent: mean")] = None
+    obs_var: Annotated[float | None, _d("Its variance, W²; absent: var")] = None
 
 
 class OptimizerState(_Record, kw_only=True):

@@ -544,6 +544,8 @@ class SessionLog:
             index=int(e.index), params=_params(e.params), mean=float(e.mean), var=float(e.var),
             breaths=int(e.breaths), duration_s=float(e.duration_s), phase=str(e.phase),
             stopped_early=bool(e.stopped_early), reason=str(e.reason), t_start=t_start, t_end=t_end,
+            obs_mean=None if e.obs_mean is None else float(e.obs_mean),
+            obs_var=None if e.obs_var is None else float(e.obs_var),
         ), None if t_s is None else _t_ns(t_s))
 
     def log_optimizer_state(self, optimizer: HILOptimizer, *, reason: str,

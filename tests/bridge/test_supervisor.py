@@ -113,3 +113,16 @@ async def test_an_unknown_stage_is_an_error() -> None:
     sup, _, _, _ = make()
     with pytest.raises(ValueError, match="segment"):
         sup.permit(sup.begin_push("a", 1), "segment")
+
+
+async def test_a_pause_during_a_pause_adds_its_reason_and_one_resume_ends_both() -> None:
+    sup, _, _, events = make()
+    await sup.pause(AssistanceOffReason.DEVICE_HEARTBEAT_LOST, "device heartbeat lost for 260 ms")
+    await sup.pause(AssistanceOffReason.SESSION_END, "between bouts")
+    await sup.pause(AssistanceOffReason.SESSION_END, "between bouts")  # the same reason: once
+    assert sup.describe() == "paused: device heartbeat lost for 260 ms; between bouts"
+    assert [k for k, _ in events].count("pause") == 2 and not sup.by_operator
+    await sup.pause(AssistanceOffReason.OPERATOR_STOP, "operator pause")
+    assert sup.by_operator
+    assert sup.resume("operator") is None and not sup.paused and not sup.by_operator
+    assert sup.pause_reason == "device heartbeat lost for 260 ms; between bouts; operator pause"
