@@ -51,8 +51,8 @@ pytestmark = [
 ROOT = Path(__file__).resolve().parents[2]
 HILBO = [sys.executable, "-m", "bridge.cli"]  # = the venv's `hilbo` console script
 HOST = "127.0.0.1"
-#: The README's --speed 10 doubled: the devices' simulated clock runs 20x the wall clock.
-SPEED = "20"
+#: The README says --speed 10; 30 keeps the session to seconds (the clock runs 30x the wall).
+SPEED = "30"
 #: Bounded waits, wall seconds.
 READY_S = 20.0
 SESSION_S = 60.0
@@ -138,13 +138,27 @@ def dry_run_config(work: Path, *, cart_port: int, can_url: str) -> Path:
     return path
 
 
-@contextlib.contextmanager
-def devices(work: Path) -> Iterator[tuple[Lab, Path]]:
-    """The README's three background commands, started and ready; the session's config."""
+@dataclass(frozen=True)
+class Devices:
+    """The README's three background commands, running: where to reach them."""
+
+    lab: Lab
+    can_url: str
+    cart_port: int
+
+
+@pytest.fixture(scope="module")
+def devices(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Devices]:
+    """The server and the two devices, started once and shared by the module's sessions.
+
+    Shared as a user's lab shares them: the devices stay up while sessions come and go (the
+    second session finds an exosuit whose watchdog latched ``heartbeat_lost`` when the first
+    bridge went away).
+    """
+    work = tmp_path_factory.mktemp("devices")
     lab = Lab(work)
     can_port, cart_port = _free_port(), _free_port()
     url = f"ws://{HOST}:{can_port}/"
-    config = dry_run_config(work, cart_port=cart_port, can_url=url)
     try:
         lab.start("can", [sys.executable, "-m", "can_remote", "--interface", "virtual",
                           "--channel", "demo", "--host", HOST, "--port", str(can_port)])
@@ -157,9 +171,22 @@ def devices(work: Path) -> Iterator[tuple[Lab, Path]]:
                            "--can-channel", url])
         lab.wait_for("the exosuit's ready record", lambda: '"ready"' in lab.text("exosuit"))
         lab.wait_for("the cart's address line", lambda: f"tcp {HOST} {cart_port}" in lab.text("cart"))
-        yield lab, config
+        yield Devices(lab, url, cart_port)
     finally:
         lab.stop_all()
+
+
+@contextlib.contextmanager
+def session(work: Path, devices: Devices) -> Iterator[tuple[Lab, Path]]:
+    """This test's config, and a Lab for its ``hilbo run`` whose processes are killed on leaving."""
+    devices.lab.check_alive()
+    config = dry_run_config(work, cart_port=devices.cart_port, can_url=devices.can_url)
+    run = Lab(work)
+    try:
+        yield run, config
+    finally:
+        run.stop_all()
+        devices.lab.check_alive()
 
 
 def events(log: Path) -> list[str]:
@@ -189,8 +216,8 @@ def assert_session_ended_in_the_optimisation_bout(stdout: str) -> list[str]:
     return kinds
 
 
-def test_auto_resume_passes_the_bout_pause_headless(tmp_path: Path) -> None:
-    with devices(tmp_path) as (lab, config):
+def test_auto_resume_passes_the_bout_pause_headless(tmp_path: Path, devices: Devices) -> None:
+    with session(tmp_path, devices) as (lab, config):
         run = lab.start("run", [*HILBO, "run", str(config), "--no-view", "--auto-resume", "1"])
         try:
             run.wait(timeout=SESSION_S)
@@ -261,7 +288,7 @@ def view_state(screen: str) -> str:
 
 
 @pytest.mark.skipif(shutil.which("tmux") is None, reason="tmux is not installed")
-def test_r_in_the_live_view_passes_the_bout_pause(tmp_path: Path) -> None:
+def test_r_in_the_live_view_passes_the_bout_pause(tmp_path: Path, devices: Devices) -> None:
     """An operator at the live view presses `r` at every pause it shows, the bout pause among them.
 
     The README's example config as printed keeps the device watchdog at 100 ms, which a loaded
@@ -271,7 +298,7 @@ def test_r_in_the_live_view_passes_the_bout_pause(tmp_path: Path) -> None:
     """
     tmux = Tmux(tmp_path / "tmux.sock")
     rc_file, out_file = tmp_path / "run.rc", tmp_path / "run.out"
-    with devices(tmp_path) as (lab, config):
+    with session(tmp_path, devices) as (_, config):
         # stdout (the two paths) to a file; stderr, where the live view draws, is the terminal
         cmd = (f"{shlex.join([*HILBO, 'run', str(config)])} > {shlex.quote(str(out_file))}; "
                f"echo $? > {shlex.quote(str(rc_file))}")
@@ -285,7 +312,7 @@ def test_r_in_the_live_view_passes_the_bout_pause(tmp_path: Path) -> None:
             deadline = time.monotonic() + SESSION_S
             last_press = -PRESS_AGAIN_S
             while not rc_file.exists():
-                lab.check_alive()
+                devices.lab.check_alive()
                 if time.monotonic() > deadline:
                     pytest.fail(f"hilbo run did not end within {SESSION_S:g} s (r pressed at {presses}); "
                                 f"last screen:\n{screen}\nevents: {newest_log_events(tmp_path)}")
@@ -299,8 +326,9 @@ def test_r_in_the_live_view_passes_the_bout_pause(tmp_path: Path) -> None:
         finally:
             tmux.kill(pane_pid)
     assert rc_file.read_text().strip() == "0", screen
-    assert "paused: between bouts" in presses, f"the view never showed the bout pause: {presses}"
     kinds = assert_session_ended_in_the_optimisation_bout(out_file.read_text())
+    if "pause: between bouts" in kinds:  # else the bout pause fell into a watchdog pause
+        assert "paused: between bouts" in presses, f"the view never showed the bout pause: {presses}"
     after = kinds[next(i for i, k in enumerate(kinds) if k.startswith("bout_pause")):]
     ended = next(k for k in after if k.startswith(("resume", "stop")))
     assert ended == "resume: resumed by the operator", (ended, presses, kinds)
