@@ -17,6 +17,7 @@ Either way the session must reach its end with evaluations in the optimisation b
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import json
 import os
 import re
@@ -43,12 +44,11 @@ pytestmark = [
     pytest.mark.slow,
     pytest.mark.timeout(120),
     pytest.mark.skipif(
-        __import__("importlib").util.find_spec("can_remote") is None,
+        importlib.util.find_spec("can_remote") is None,
         reason="python-can-remote (a dev extra) is not installed",
     ),
 ]
 
-ROOT = Path(__file__).resolve().parents[2]
 HILBO = [sys.executable, "-m", "bridge.cli"]  # = the venv's `hilbo` console script
 HOST = "127.0.0.1"
 #: The README says --speed 10; 30 keeps the session to seconds (the clock runs 30x the wall).
@@ -224,7 +224,7 @@ def test_auto_resume_passes_the_bout_pause_headless(tmp_path: Path, devices: Dev
     """``--no-view --auto-resume 1``: the policy ends the bout pause; the session ends normally.
 
     The example's 100 ms device watchdog stays as printed; on a loaded 2-core host it trips
-    1-6 times a session (measured), each ended by the policy too, so the policy's limit is
+    0-14 times a session (measured), each ended by the policy too, so the policy's limit is
     raised from 10 lest those transient pauses, not the bout pause, use it up.
     """
     with session(tmp_path, devices, max_auto_resumes="50") as (lab, config):
@@ -237,10 +237,11 @@ def test_auto_resume_passes_the_bout_pause_headless(tmp_path: Path, devices: Dev
         err = lab.text("run", "err")
         assert run.returncode == 0, err[-3000:]
         kinds = assert_session_ended_in_the_optimisation_bout(lab.text("run"))
-        first_pause = next(i for i, k in enumerate(kinds) if k.startswith("bout_pause"))
-        assert any(k.startswith("resume") for k in kinds[first_pause:]), kinds
-        # --no-view: the pause and the automatic resume were each announced on stderr
-        assert re.search(r"(?i)pause", err) and re.search(r"(?i)resum", err), err[-3000:]
+        after = kinds[next(i for i, k in enumerate(kinds) if k.startswith("bout_pause")):]
+        ended = next(k for k in after if k.startswith(("resume", "stop")))
+        assert ended.startswith("resume: resumed by the resume policy"), (ended, kinds)
+        # --no-view: the bout pause and the policy's resume were each announced on stderr
+        assert "exploration bout complete" in err and "resumed by the resume policy" in err, err[-3000:]
 
 
 # --- the operator's `r`, in a terminal --------------------------------------------------------------
