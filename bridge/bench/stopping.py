@@ -43,6 +43,7 @@ from typing import Any
 import numpy as np
 
 from bridge.bench.common import blas_threads, markdown_table, round_sig
+from bridge.bench.executors import keep_freed_memory
 from hilbo_core.benchmarks import (
     _NOISE_STREAM,  # the trial's measurement stream: peers must measure what the BO methods measure
     FUNCTIONS,
@@ -266,6 +267,7 @@ def run_stopping_task(task: StoppingTask) -> dict[str, Any]:
     """Run one trial (in a worker); the result of :func:`stopping_trial` plus ``wall_s``,
     ``protocol`` and ``refit_growth``."""
     blas_threads(1)  # wherever it runs: see bridge.bench.common.blas_threads
+    keep_freed_memory()  # no page faults for the same big arrays again (see there)
     t0 = time.perf_counter()
     if task.method in PEER_METHODS:
         result = peer_trial(task.function, task.noise, task.method, task.seed, task.protocol)
