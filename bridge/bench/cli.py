@@ -75,6 +75,7 @@ def _stopping_command(args: argparse.Namespace, campaign: Any) -> str:
 def _cmd_stopping(args: argparse.Namespace) -> int:
     from bridge.bench.plots import plot_stopping_function
     from bridge.bench.stopping import (
+        PEER_METHODS,
         StoppingCampaign,
         function_descriptions,
         load_trials,
@@ -86,7 +87,7 @@ def _cmd_stopping(args: argparse.Namespace) -> int:
 
     # Everything is validated before any work starts (exit code 2 with the offending value).
     functions = choices(args.functions, FUNCTIONS, "function", list(FUNCTIONS))
-    methods = choices(args.methods, METHODS, "method", ["fixed", "adaptive"])
+    methods = choices(args.methods, {**METHODS, **PEER_METHODS}, "method", ["fixed", "adaptive"])
     noises = numbers(args.noise, "noise level", NOISE_LEVELS)
     if args.grid_step < 1:
         raise ConfigError(f"--grid-step {args.grid_step}; expected an integer >= 1")
@@ -360,7 +361,8 @@ def add_bench_parser(subparsers: Any) -> Any:
     st.add_argument("--noise", default=None,
                     help="comma-separated σ_z²/σ̃² factors (default 0.1,1,10)")
     st.add_argument("--methods", default=None,
-                    help=f"comma-separated, from {','.join(METHODS)} (default fixed,adaptive)")
+                    help=f"comma-separated, from {','.join(METHODS)} and the Optuna peers "
+                         "tpe-wilcoxon,tpe-halving (pip install hilbo[peers]) (default fixed,adaptive)")
     st.add_argument("--noise-model", default="matched", choices=["matched", "assumed"],
                     help="matched: measurements have variance σ_z²; assumed: they have σ̃² and σ_z² "
                          "is only the estimator's assumption (default matched)")

