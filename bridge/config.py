@@ -459,11 +459,19 @@ class ProtocolConfig:
             pause_between_bouts=self.pause_between_bouts,
         )
 
-    def optimizer_config(self) -> OptimizerConfig:
-        """The :class:`hilbo_core.optimizer.OptimizerConfig` of this protocol."""
+    def optimizer_config(self, *, with_budget: bool = True) -> OptimizerConfig:
+        """The :class:`hilbo_core.optimizer.OptimizerConfig` of this protocol.
+
+        Args:
+            with_budget: Give the optimizer the budgets (its own counter: breath time inside
+                evaluations). False for an optimizer driven by a
+                :class:`hilbo_core.protocol.SessionProtocol`, which ends the session on walking
+                time (:meth:`session_protocol_config`).
+        """
         return OptimizerConfig(
             n_explore=self.n_explore, max_breaths=self.max_breaths, window=self.window,
-            budget_s=self.budget_s, budget_breaths=self.budget_breaths, stopping=self.stopping,
+            budget_s=self.budget_s if with_budget else None,
+            budget_breaths=self.budget_breaths if with_budget else None, stopping=self.stopping,
             seed=self.seed, xi=self.xi, kernel=self.kernel, n_candidates=self.n_candidates,
             n_local=self.n_local, refit_lag=1 if self.refit is RefitMode.AHEAD else 0,
         )
