@@ -282,7 +282,8 @@ class SessionProtocol:
             config: The protocol.
             n_explored: Completed exploration evaluations (the optimizer's, capped at E).
             t_start_s: The resumed session's start on its breath clock (None: the first breath).
-            session_used_s: Walking time of the session before the resume (s).
+            session_used_s: Walking time of the session before the resume (s; it counts
+                against ``session_s``, and in :attr:`walking`'s ``session_s`` only).
             optimization_used_s: Of the optimisation bout before the resume (s).
             optimization_used_breaths: Breaths of the optimisation bout before the resume.
         """
@@ -296,10 +297,13 @@ class SessionProtocol:
         proto._session_used_s = float(session_used_s)
         if proto._n_explored == config.n_explore:
             proto._phase = SessionPhase.WARM_UP_OPTIMIZATION
-            proto._opt_used_s = float(optimization_used_s)
-            proto._opt_breaths = optimization_used_breaths
-            proto._opt_begun = True  # its resume warm-up counts against the budget
-            proto._t_opt = t_start_s
+            if optimization_used_s > 0 or optimization_used_breaths > 0:
+                # The bout had begun: its resume warm-up counts against the budget. (Otherwise
+                # the session stopped between the bouts, and the budget starts after the warm-up.)
+                proto._opt_used_s = float(optimization_used_s)
+                proto._opt_breaths = optimization_used_breaths
+                proto._opt_begun = True
+                proto._t_opt = t_start_s
         return proto
 
     # ------------------------------------------------------------------ read-only views
@@ -325,7 +329,7 @@ class SessionProtocol:
 
     @property
     def t_s(self) -> float | None:
-        """The breath clock now: the last breath (or the start, or a resume time given)."""
+        """The breath clock now: the last breath (before any, the start time or None)."""
         return self._t_last
 
     @property

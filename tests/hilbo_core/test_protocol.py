@@ -139,6 +139,11 @@ def test_resumed_session_warms_up_in_its_bout_and_counts_what_was_walked() -> No
 
     q = SessionProtocol.resumed(cfg, n_explored=1, t_start_s=0.0)
     assert kp(q.start()) == (K.WARM_UP, P.WARM_UP_EXPLORATION) and q.n_explored == 1
+    # Stopped between the bouts: the optimisation bout (and its budget) begins after the warm-up.
+    r = SessionProtocol.resumed(cfg, n_explored=2, t_start_s=0.0, session_used_s=700.0)
+    assert kp(r.start()) == (K.WARM_UP, P.WARM_UP_OPTIMIZATION) and not r.optimization_started
+    assert r.on_breath(3.0).kind is K.PROPOSE and r.t_end_s == 103.0
+    assert r.walking.session_s == 703.0
 
 
 def test_stop_ends_the_session_anywhere() -> None:
@@ -246,6 +251,8 @@ def _walk(cfg: SessionProtocolConfig, intervals: list[float], eval_breaths: int,
     act, t, k, n, pending, paused_for = p.start(), 0.0, 0, 0, -1, -1
     log: list[tuple[float, Action]] = [(t, act)]
     while act.kind is not K.END:
+        if k > 100_000:
+            raise AssertionError(f"no end after {k} breaths (t = {t:.0f} s, {p.phase.value})")
         if act.kind is K.PAUSE_BETWEEN_BOUTS or (act.kind is K.PAUSED and paused_for >= 2):
             act, paused_for = p.on_resume(), -1
             log.append((t, act))
@@ -321,9 +328,11 @@ def test_the_session_ends_within_one_breath_of_its_minutes(intervals, session_s,
 
 @settings(max_examples=100, deadline=None)
 @given(intervals=_intervals, budget_s=st.floats(30.0, 600.0), eval_breaths=st.integers(1, 12),
-       transition=st.integers(0, 3), pause_every=st.sampled_from([0, 23]))
+       transition=st.integers(0, 3), pause_every=st.sampled_from([0, 97]))
 def test_the_optimisation_bout_ends_within_one_breath_of_its_budget(intervals, budget_s, eval_breaths,
                                                                     transition, pause_every) -> None:
+    # Pauses rarer than a warm-up (<= 40 breaths) plus an evaluation (<= 15): else every resume
+    # warm-up is paused again and the optimisation bout (whose budget ends the session) never begins.
     cfg = SessionProtocolConfig(warmup_s=20.0, n_explore=2, budget_s=budget_s, pause_between_bouts=True)
     p, log = _walk(cfg, intervals, eval_breaths, transition, pause_every)
     t_opt = next(t for t, a in log if a.kind is K.PROPOSE and a.phase is P.OPTIMIZATION)
