@@ -30,6 +30,7 @@ from bridge.runtime import BridgeSession, Command, RuntimeSettings
 from drivers.cart import BreathStream
 from drivers.exosuit import CanEndpoint
 from hilbo_core import HILOptimizer
+from hilbo_core.protocol import SessionProtocol
 
 __all__ = ["RunResult", "run_session", "runtime_settings", "write_json_atomic"]
 
@@ -49,8 +50,6 @@ def runtime_settings(cfg: HilboConfig, *, auto_resume_s: float | None = None,
                      n_actuators: int = 2, feedback_log_period_s: float = 0.1) -> RuntimeSettings:
     """The runtime's settings from a validated config."""
     return RuntimeSettings(
-        warmup_s=cfg.protocol.warmup_s,
-        pause_between_bouts=cfg.protocol.pause_between_bouts,
         auto_resume_s=cfg.watchdog.auto_resume_s if auto_resume_s is None else auto_resume_s,
         max_auto_resumes=cfg.watchdog.max_auto_resumes,
         device_timeout_s=cfg.watchdog.device_heartbeat_timeout_ms / 1000.0,
@@ -111,6 +110,7 @@ async def run_session(
     auto_resume_s: float | None = None,
     operator_view: bool = True,
     n_actuators: int = 2,
+    session_s: float | None = None,
     on_session: Callable[[BridgeSession], None] | None = None,
 ) -> RunResult:
     """Run one session from a config to its end.
@@ -125,6 +125,7 @@ async def run_session(
             cart (wall s; simulations, and ``hilbo run --auto-resume`` without a keyboard).
         operator_view: Show the live terminal view (when stderr is a terminal).
         n_actuators: Actuators whose heartbeat the watchdog requires.
+        session_s: A whole-session limit in walking seconds as well (``hilbo sim --minutes``).
         on_session: Called with the session before it runs (tests, simulation wiring).
 
     Returns:
@@ -135,13 +136,22 @@ async def run_session(
     if resume is not None:
         opt, info = rebuild_optimizer(resume)
         session_id, previous = info.session_id, str(resume)
+        # What the crashed session walked of its optimisation bout is known as the measured
+        # breath time of its evaluations (the log's optimizer state), a lower bound.
+        used = opt.budget_used
+        protocol = SessionProtocol.resumed(
+            cfg.protocol.session_protocol_config(session_s=session_s),
+            n_explored=min(len(opt.evaluations), cfg.protocol.n_explore),
+            optimization_used_s=float(used["seconds"]), optimization_used_breaths=int(used["breaths"]))
         logger.info("resuming %s: %d evaluations recovered", resume, info.n_evaluations)
         if cfg.prior.priors:
             logger.info("[prior] not re-applied on resume: the rebuilt optimizer holds its own priors")
     else:
         # Fast prior (seed 003 §3.3): validated and inflated when the config was loaded.
-        opt = HILOptimizer(space, config=cfg.protocol.optimizer_config(),
+        # The protocol ends the session on walking time; the optimizer keeps no budget.
+        opt = HILOptimizer(space, config=cfg.protocol.optimizer_config(with_budget=False),
                            prior_observations=cfg.prior.priors)
+        protocol = SessionProtocol(cfg.protocol.session_protocol_config(session_s=session_s))
         session_id = new_session_id()
     path = Path(log_path) if log_path is not None else _log_path(cfg, out_dir)
     summary_path = path.with_suffix(".summary.json")
@@ -156,8 +166,9 @@ async def run_session(
                 log.log_optimizer_state(opt, reason="resume")
             elif cfg.prior.priors:
                 log.log_event("prior", cfg.prior.describe(), **cfg.prior.event_details())
-            session = BridgeSession(opt, cfg.make_gate(), endpoint, stream, log, settings)
-            session.status.budget_s = opt.config.budget_s
+            session = BridgeSession(opt, cfg.make_gate(), endpoint, stream, log, settings,
+                                    protocol=protocol)
+            session.status.budget_s = protocol.config.budget_s
             if on_session is not None:
                 on_session(session)
             installed = []

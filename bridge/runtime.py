@@ -54,7 +54,7 @@ from drivers.exosuit import (
     pack_tables,
 )
 from hilbo_core import HILOptimizer, HyperparameterFit, brockway_watts
-from hilbo_core.optimizer import Phase
+from hilbo_core.protocol import Action, ActionKind, ProtocolStateError, SessionPhase, SessionProtocol
 from hilbo_core.types import BreathRecord
 
 __all__ = [
@@ -98,8 +98,6 @@ class RuntimeSettings:
     """Protocol and supervision settings of a session (from the config's [protocol]/[can]/[watchdog]).
 
     Attributes:
-        warmup_s: Walking without assistance at the start of each bout (breath time, s).
-        pause_between_bouts: Pause after exploration until the operator resumes.
         auto_resume_s: The resume policy of headless runs: a pause the operator did not ask
             for ends once the device and the cart have been healthy this long (wall s;
             simulations, ``hilbo run --auto-resume S``, ``[watchdog] auto_resume_s``); None:
@@ -119,8 +117,6 @@ class RuntimeSettings:
         gc: When full garbage collections may stop the event loop (bridge/collector.py).
     """
 
-    warmup_s: float = 180.0
-    pause_between_bouts: bool = True
     auto_resume_s: float | None = None
     max_auto_resumes: int = 10
     device_timeout_s: float = 0.25
@@ -194,6 +190,8 @@ class SessionStatus:
     breath_time_s: float = 0.0
     budget_used_s: float = 0.0
     budget_s: float | None = None
+    #: When the session is expected to end (session time, s; the protocol's estimate).
+    expected_end_s: float | None = None
     device: str = "unknown"
     cart: str = "waiting"
     events: list[str] = field(default_factory=list)
@@ -218,6 +216,24 @@ class _Paused(Exception):
 class _Remeasure(Exception):
     """Raised inside the measurement loop when the cart's clock was re-anchored (a cart restart
     or a time jump): the breaths of the setting being measured are not one series any more."""
+
+
+#: The operator view's name of the bout a protocol phase belongs to.
+_BOUT_OF = {
+    SessionPhase.WARM_UP_EXPLORATION: "exploration", SessionPhase.EXPLORATION: "exploration",
+    SessionPhase.BOUT_PAUSE: "optimization", SessionPhase.WARM_UP_OPTIMIZATION: "optimization",
+    SessionPhase.OPTIMIZATION: "optimization", SessionPhase.ENDED: "ended",
+}
+
+
+@dataclass(frozen=True)
+class _Setting:
+    """The setting being measured: its evaluation index, its session start time (s) and the
+    cart validator's re-anchors when it began."""
+
+    index: int
+    t_start: float
+    reanchors: int
 
 
 class _Stopped(Exception):
@@ -246,7 +262,9 @@ class BridgeSession:
         endpoint: An open CAN endpoint.
         breaths: The cart's validated breath stream.
         log: The session log.
-        settings: Protocol and supervision settings.
+        settings: Supervision settings.
+        protocol: The walking protocol (warm-ups, bouts, the pause between them, the session's
+            time); for a resumed optimizer, :meth:`SessionProtocol.resumed`.
         clock: Wall clock for watchdogs (monotonic seconds); injectable for tests.
     """
 
@@ -259,6 +277,7 @@ class BridgeSession:
         log: SessionLog,
         settings: RuntimeSettings | None = None,
         *,
+        protocol: SessionProtocol,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.opt = optimizer
@@ -267,6 +286,8 @@ class BridgeSession:
         self._stream = breaths
         self.log = log
         self.settings = settings or RuntimeSettings()
+        self.protocol = protocol
+        self._setting: _Setting | None = None
         self._clock = clock
         self.device = DeviceView()
         #: The one owner of pause, stop, assistance, the heartbeat's state and the gate's
@@ -362,6 +383,9 @@ class BridgeSession:
             "best_params": None, "best_mean": None, "best_var": None,
             "push_latency_ms": _quantiles_ms(self.latencies_s),
             "stop_to_ack_ms": _quantiles_ms(self.stop_latencies_s),
+            # Session time is walking time (issue 17): where every walked second went.
+            "walking": self.protocol.walking.to_json(),
+            "end_reason": None if self.protocol.end_reason is None else self.protocol.end_reason.value,
         }
         if self.opt.evaluations:
             params, mean, var = self.opt.best()
@@ -370,33 +394,83 @@ class BridgeSession:
 
     # ------------------------------------------------------------------ main protocol
     async def _main(self) -> None:
-        s = self.settings
-        await self._warm_up("exploration" if self.opt.phase is Phase.EXPLORATION else "optimization")
-        bout_paused = self.opt.phase is not Phase.EXPLORATION
-        while not self.opt.done:
+        """The session's walking protocol (hilbo_core/protocol.py: warm-ups, the two bouts, the
+        pause between them, the budget in walking time), driven by the cart's breaths: the one
+        protocol loop of the process (the simulations run the same machine through ``drive``)."""
+        p = self.protocol
+        act = p.start()
+        while act.kind is not ActionKind.END:
             if self.supervisor.stopped:
+                p.stop()
                 raise _Stopped
-            if not bout_paused and self.opt.phase is Phase.OPTIMIZATION:
-                bout_paused = True
-                if s.pause_between_bouts:
-                    await self._bout_pause()
-                    await self._warm_up("optimization")
-            if self.supervisor.paused:
-                await self._wait_resumed()
-                await self._warm_up(self.status.bout)
-                continue
             try:
-                await self._evaluate_one()
+                act = await self._step(act)
             except (_Paused, _Remeasure) as err:
-                why = (f"the pause ({self.supervisor.pause_reason})" if isinstance(err, _Paused)
-                       else "the cart's clock re-anchoring")
-                dropped = self.opt.cancel_current()
-                if dropped is not None:
-                    self.log.log_optimizer_state(self.opt, reason="cancel")
-                    self._event("evaluation_cancelled", f"setting abandoned by {why}; it is re-measured")
-        self._event("budget_spent", "optimisation budget spent")
+                act = await self._abandon(err)
+        self.opt.cancel_current()  # a setting proposed but never measured
+        reason = p.end_reason.value if p.end_reason is not None else "stopped"
+        self._event("budget_spent", f"session time spent ({reason}): "
+                    f"{p.walking.session_s / 60:.1f} min walked")
 
-    async def _evaluate_one(self) -> None:
+    async def _step(self, act: Action) -> Action:
+        """Do what ``act`` says, then give the next breath to the protocol; its next action.
+
+        Raises:
+            _Paused: The session paused (the caller abandons the setting, waits, warms up).
+            _Remeasure: The cart's clock was re-anchored during a measurement.
+        """
+        p = self.protocol
+        if act.kind is ActionKind.PAUSE_BETWEEN_BOUTS:
+            end = await self._bout_pause()
+            return end or p.on_resume(self._breaths.last_t)
+        if self.supervisor.paused:
+            raise _Paused
+        if act.kind is ActionKind.WARM_UP:
+            self.status.bout = f"warm-up ({_BOUT_OF[act.phase]})"
+            if act.starts:
+                self._t_stop = None  # the next push answers the warm-up's end, not a stop decision
+                await self.supervisor.assistance_off(AssistanceOffReason.SESSION_END, "warm-up")
+        elif act.kind is ActionKind.PROPOSE:
+            if self._breaths.last_t is None:  # no warm-up and no breath yet: the clock starts
+                act = p.on_breath((await self._next_breath()).t_s)
+                if act.kind is not ActionKind.TRANSITION:
+                    return act
+            if not await self._propose(act):
+                return p.on_setting_dropped()
+            p.on_setting_applied(self._breaths.last_t)
+        rec = await self._next_breath()
+        if self._setting is not None and self._breaths.reanchors != self._setting.reanchors:
+            raise _Remeasure
+        act = p.on_breath(rec.t_s)
+        if act.kind is ActionKind.MEASURE:
+            return await self._measure(rec, act)
+        return act
+
+    async def _abandon(self, err: _Paused | _Remeasure) -> Action:
+        """The setting being proposed or measured is given up (a pause, or a re-anchored cart
+        clock); after a pause, wait for the resume. Returns the protocol's next action."""
+        p = self.protocol
+        why = (f"the pause ({self.supervisor.pause_reason})" if isinstance(err, _Paused)
+               else "the cart's clock re-anchoring")
+        self._setting = None
+        dropped = self.opt.cancel_current()
+        if dropped is not None:
+            self.log.log_optimizer_state(self.opt, reason="cancel")
+            self._event("evaluation_cancelled", f"setting abandoned by {why}; it is re-measured")
+        if isinstance(err, _Remeasure):
+            return p.on_setting_dropped()
+        act = p.on_pause()
+        if act.kind is ActionKind.END:
+            return act
+        end = await self._wait_resumed()
+        return end or p.on_resume(self._breaths.last_t)
+
+    async def _propose(self, act: Action) -> bool:
+        """Ask for the next setting, push it and wait until the device runs it.
+
+        Returns:
+            False when the safety limits refused the setting (nothing was sent).
+        """
         t_stop, self._t_stop = self._t_stop, None
         t_decided = t_stop if t_stop is not None else self._clock()
         # The GP work takes tens of ms: off the loop (a worker process by default, so it does
@@ -410,7 +484,7 @@ class BridgeSession:
         if self._worker.lost is not None and not self._worker_lost_logged:
             self._worker_lost_logged = True
             self._event("proposal_worker_lost", self._worker.lost)
-        self.status.bout = self.opt.phase.value
+        self.status.bout = _BOUT_OF[act.phase]
         index = len(self.opt.evaluations)
 
         def log_proposal() -> None:
@@ -435,9 +509,9 @@ class BridgeSession:
             self.status.event(f"proposal rejected by the limits: {err}")
             if self.gate.rejections_exhausted:
                 await self.supervisor.pause(AssistanceOffReason.LIMIT_VIOLATION,
-                                  "too many proposals rejected by the safety limits; check [limits] "
-                                  "against [space]")
-            return
+                                            "too many proposals rejected by the safety limits; "
+                                            "check [limits] against [space]")
+            return False
         self._version = self._version % 255 + 1
         await self._push(admitted, self._version, index, log_first=log_proposal)
         latency = self._clock() - t_decided
@@ -450,46 +524,54 @@ class BridgeSession:
         self.collector.quiet_point()
         self._start_fit_ahead()
         t0 = self._breaths.last_t if self._breaths.last_t is not None else 0.0
-        t0_session = self._session_time(t0)
+        self._setting = _Setting(index, self._session_time(t0), self._breaths.reanchors)
         self.status.evaluation, self.status.params = index + 1, params
         self.status.breaths_in_setting, self.status.mean_w, self.status.sd_w = 0, None, None
-        reanchors = self._breaths.reanchors
-        while True:
-            rec = await self._next_breath()
-            if self._breaths.reanchors != reanchors:
-                raise _Remeasure
-            t = rec.t_s - t0
-            if t <= 0:
-                continue  # a breath that arrived before the switch: it belongs to the old setting
-            watts = brockway_watts(rec.vo2_ml_min, rec.vco2_ml_min)
-            step = self.opt.observe_breath(t, watts)
+        return True
+
+    async def _measure(self, rec: BreathRecord, act: Action) -> Action:
+        """Give a measured breath to the optimizer; close the evaluation when the stopping rule
+        (or the end of the session's time, ``act.final``) says so. Returns the next action."""
+        p, setting = self.protocol, self._setting
+        if setting is None or act.t_setting_s is None:
+            raise ProtocolStateError("a measured breath without a setting being measured")
+        watts = brockway_watts(rec.vo2_ml_min, rec.vco2_ml_min)
+        step = self.opt.observe_breath(act.t_setting_s, watts)
+        self.status.breaths_in_setting = step.index + 1
+        self.status.mean_w, self.status.sd_w = step.mean, math.sqrt(step.var)
+        self.log.log_step(step, index=setting.index, t_setting_s=act.t_setting_s, watts=watts,
+                          t_s=rec.t_s, incumbent=self.opt.incumbent)
+        if step.decision is not None:
+            d = step.decision
+            self.status.last_decision = f"{d.reason.name.lower()} z={d.z:+.2f}"
+        self.status.budget_used_s = p.walking.optimization_s
+        ev = step.evaluation if step.stop else None
+        if ev is None and act.final:
+            ev = self.opt.close_current()  # the session's time ran out in this evaluation
+            if ev is None:  # an exploration evaluation cut short: Algorithm 2 needs it whole
+                self._setting = None
+                return p.on_setting_dropped()
+        if ev is None:
+            return act
+        self._setting = None
+        nxt = p.on_evaluation_done()
+        if nxt.kind is ActionKind.PROPOSE:
             if step.stop:
                 self._t_stop = self._clock()
-            self.status.breaths_in_setting = step.index + 1
-            self.status.mean_w, self.status.sd_w = step.mean, math.sqrt(step.var)
-            self.log.log_step(step, index=index, t_setting_s=t, watts=watts, t_s=rec.t_s,
-                              incumbent=self.opt.incumbent)
-            if step.decision is not None:
-                d = step.decision
-                self.status.last_decision = f"{d.reason.name.lower()} z={d.z:+.2f}"
-            used = self.opt.budget_used
-            self.status.budget_used_s = used["seconds"]
-            if step.stop and step.evaluation is not None:
-                if not self.opt.done:
-                    # The next proposal starts now, on a copy; the logging below overlaps it.
-                    self._next_ask = await self._start_next_ask()
-                    # One turn of the loop lets the ask hand its request to the worker before
-                    # the logging, which grows with the session (the optimizer's state: ~10 ms
-                    # at 160 evaluations), holds the loop: "to_worker_ms" in /proposals.
-                    await asyncio.sleep(0)
-                ev = step.evaluation
-                t_end = self._session_time(rec.t_s)
-                self.records.append({**ev.to_json(), "t_start": t0_session, "t_end": t_end})
-                self.log.log_observation(ev, t_start=t0_session, t_end=t_end, t_s=rec.t_s)
-                self.log.log_optimizer_state(self.opt, reason="evaluation", t_s=rec.t_s)
-                self.status.best_mean_w = min(r["mean"] for r in self.records)
-                self.status.event(f"eval {ev.index + 1}: {ev.mean:.0f} W, {ev.breaths} breaths, {ev.reason}")
-                return
+            # The next proposal starts now, on a copy; the logging below overlaps it.
+            self._next_ask = await self._start_next_ask()
+            # One turn of the loop lets the ask hand its request to the worker before the
+            # logging, which grows with the session (the optimizer's state: ~10 ms at 160
+            # evaluations), holds the loop: "to_worker_ms" in /proposals.
+            await asyncio.sleep(0)
+        t_end = self._session_time(rec.t_s)
+        self.records.append({**ev.to_json(), "t_start": setting.t_start, "t_end": t_end})
+        self.log.log_observation(ev, t_start=setting.t_start, t_end=t_end, t_s=rec.t_s)
+        self.log.log_optimizer_state(self.opt, reason="evaluation", t_s=rec.t_s)
+        self.status.best_mean_w = self.opt.best()[1]
+        self.status.expected_end_s = self._expected_end_s()
+        self.status.event(f"eval {ev.index + 1}: {ev.mean:.0f} W, {ev.breaths} breaths, {ev.reason}")
+        return nxt
 
     # ------------------------------------------------------------------ hyperparameters ahead
     def _start_fit_ahead(self) -> None:
@@ -617,42 +699,32 @@ class BridgeSession:
         getter.cancel()
         raise _Paused
 
-    async def _warm_up(self, bout: str) -> None:
-        """Walk without assistance for warmup_s of breath time; breaths are logged, not used."""
-        self._t_stop = None  # the next push answers the warm-up's end, not a stop decision
-        self.status.bout = f"warm-up ({bout})"
-        await self.supervisor.assistance_off(AssistanceOffReason.SESSION_END, "warm-up")
-        start: float | None = None
-        while self.settings.warmup_s > 0:
-            try:
-                rec = await self._next_breath()
-            except _Paused:
-                await self._wait_resumed()
-                start = None
-                continue
-            start = rec.t_s if start is None else start
-            if rec.t_s - start >= self.settings.warmup_s:
-                break
-        self.status.bout = bout
-
-    async def _bout_pause(self) -> None:
+    async def _bout_pause(self) -> Action | None:
+        """The pause between the bouts (assistance off) until the operator or the resume
+        policy resumes. Returns END when the session's time runs out during it."""
         self._event("bout_pause", "exploration bout complete; pausing until the operator resumes")
         await self.supervisor.pause(AssistanceOffReason.SESSION_END, "between bouts")
         # Not a full collection (113-176 ms measured, issue 15): the device's 100 ms heartbeat
         # watchdog would latch heartbeat_lost. What was allocated since the last freeze only.
         self.collector.quiet_point()
-        await self._wait_resumed()
+        return await self._wait_resumed()
 
-    async def _wait_resumed(self) -> None:
+    async def _wait_resumed(self) -> Action | None:
+        """Wait out a pause. Its breaths are logged and given to the protocol (walking time:
+        they count against the session's time, not as measurements). Returns END when the
+        session's time runs out during the pause, else None once resumed."""
         while self.supervisor.paused:
             if self.supervisor.stopped:
                 raise _Stopped
-            # Breaths during a pause are drained and logged but count against nothing.
             # asyncio.timeout, not wait_for: Python 3.11's wait_for swallows a cancellation
             # that arrives as the inner get() completes, and the task then never ends.
             with contextlib.suppress(TimeoutError):
                 async with asyncio.timeout(0.05):
-                    await self._breaths.queue.get()
+                    rec = await self._breaths.queue.get()
+                    act = self.protocol.on_breath(rec.t_s)
+                    if act.kind is ActionKind.END:
+                        return act
+        return None
 
     # ------------------------------------------------------------------ background tasks
     async def _cart_task(self) -> None:
@@ -883,6 +955,11 @@ class BridgeSession:
             deadline = self._clock() + 0.2
             while self.device.faults(s.n_actuators) & CLEARABLE_FAULTS and self._clock() < deadline:
                 await asyncio.sleep(s.watchdog_period_s)
+
+    def _expected_end_s(self) -> float | None:
+        """The protocol's expected end in session time (s), or None."""
+        t_end = self.protocol.expected_t_end_s()
+        return None if t_end is None or self._t_session0 is None else t_end - self._t_session0
 
     def _session_time(self, t_cart: float) -> float:
         return t_cart - (self._t_session0 if self._t_session0 is not None else t_cart)

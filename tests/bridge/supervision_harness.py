@@ -42,6 +42,7 @@ from drivers.exosuit import (
 )
 from hilbo_core import HILOptimizer, OptimizerConfig
 from hilbo_core.presets import hip_6d
+from hilbo_core.protocol import SessionProtocol, SessionProtocolConfig
 from hilbo_core.types import BreathRecord
 
 BREATH_S = 3.0
@@ -320,18 +321,22 @@ def run_session(tmp: Path, *, at: int | None = None, at_time_s: float | None = N
         end_after_s: The operator stops the session this long after the fault (None: the
             session runs to its budget's end).
         cart_restart_at_s: The cart's clock restarts near 0 at this loop time.
-        settings_kw: :class:`RuntimeSettings` fields to override.
+        settings_kw: :class:`RuntimeSettings` fields to override, and ``pause_between_bouts``
+            (the protocol's).
     """
     device = FakeExosuit()
     space = hip_6d()
     opt = HILOptimizer(space, config=OptimizerConfig(
-        n_explore=2, max_breaths=3, budget_breaths=3 * max(n_evaluations - 2, 1), seed=1,
+        n_explore=2, max_breaths=3, seed=1,
         n_candidates=64, n_local=0))
     gate = SafeProfileGate(space, ProfileLimits(), body_mass_kg=75.0)
+    pause_between_bouts = bool(settings_kw.pop("pause_between_bouts", False))
     settings = RuntimeSettings(**{
-        "warmup_s": 0.0, "pause_between_bouts": False, "device_timeout_s": 0.35,
-        "watchdog_period_s": 0.05, "cart_timeout_s": 60.0, "apply_timeout_s": 2.0,
-        "pace_s": SEGMENT_PACE_S, **settings_kw})
+        "device_timeout_s": 0.35, "watchdog_period_s": 0.05, "cart_timeout_s": 60.0,
+        "apply_timeout_s": 2.0, "pace_s": SEGMENT_PACE_S, **settings_kw})
+    protocol = SessionProtocol(SessionProtocolConfig(
+        warmup_s=0.0, n_explore=2, max_breaths=3, budget_s=None,
+        budget_breaths=3 * max(n_evaluations - 2, 1), pause_between_bouts=pause_between_bouts))
     holder: dict[str, BridgeSession] = {}
 
     def fire() -> None:
@@ -362,7 +367,7 @@ def run_session(tmp: Path, *, at: int | None = None, at_time_s: float | None = N
         loop.set_task_factory(inj.factory)
         with SessionLog(tmp / f"s{next(_RUNS)}.mcap", session_id="t", config_json={}) as log:
             session = BridgeSession(opt, gate, device, cart, log, settings,  # type: ignore[arg-type]
-                                    clock=loop.time)
+                                    protocol=protocol, clock=loop.time)
             holder["session"] = session
             session.status.listeners.append(events.append)
             session._worker = InlineWorker()  # type: ignore[assignment]
