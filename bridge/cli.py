@@ -50,12 +50,16 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     if args.bus is not None and not args.processes:
         raise BridgeConfigError("--bus goes with --processes (in one process the devices share "
                                 "python-can's virtual bus)")
+    if args.live and (args.engine == "core" or args.processes):
+        raise BridgeConfigError("--live streams the in-process bridge session (without --processes "
+                                "and --engine core)")
     if args.engine == "core":
         return _cmd_sim_core(args)
     import asyncio
 
     from rich.console import Console
 
+    from bridge.config import LiveConfig
     from bridge.sim import MAX_SPEED, VirtualSimConfig, run_virtual_sim
 
     console = Console(stderr=True)
@@ -74,7 +78,10 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     if args.processes:
         summary = asyncio.run(run_process_sim(cfg, out, bus=bus, operator_view=console.is_terminal))
     else:
-        summary = asyncio.run(run_virtual_sim(cfg, out, operator_view=console.is_terminal))
+        live = LiveConfig(enabled=True) if args.live else None
+        if live is not None:
+            console.print(f"hilbo sim: live view on ws://{live.host}:{live.port} (Foxglove: Open connection)")
+        summary = asyncio.run(run_virtual_sim(cfg, out, operator_view=console.is_terminal, live=live))
     _print_done(console, summary)
     print(out / "summary.json")
     print(out / "session.mcap")
@@ -93,6 +100,7 @@ def _print_done(console: Any, summary: dict[str, Any]) -> None:
 
 def _cmd_run(args: argparse.Namespace) -> int:
     import asyncio
+    import dataclasses
 
     from rich.console import Console
 
@@ -101,6 +109,11 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
     console = Console(stderr=True)
     cfg = load_config(args.config)
+    if args.live:
+        cfg = dataclasses.replace(cfg, live=dataclasses.replace(cfg.live, enabled=True))
+    if cfg.live.enabled:
+        console.print(f"hilbo run: live view on ws://{cfg.live.host}:{cfg.live.port} "
+                      "(Foxglove: Open connection)")
     resume = Path(args.resume) if args.resume else None
     console.print(f"hilbo run: {cfg.source} (subject {cfg.session.subject})"
                   + (f", resuming {resume}" if resume else ""))
@@ -200,6 +213,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="with --processes: vcan = SocketCAN vcan0; remote = a python-can-remote "
                           "server started on 127.0.0.1; auto (default) = vcan0 where it exists, "
                           "else remote")
+    sim.add_argument("--live", action="store_true",
+                     help="stream the session to Foxglove on ws://127.0.0.1:8765 (README: Live view)")
     sim.set_defaults(func=_cmd_sim)
 
     run = sub.add_parser("run", help="run a lab session from a config file",
@@ -215,6 +230,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--auto-resume", type=_seconds, default=None, metavar="S",
                      help="end the pause between the bouts by itself after S seconds (for a run "
                           "without keyboard, e.g. --no-view; default: wait for the operator's r)")
+    run.add_argument("--live", action="store_true",
+                     help="stream the session to Foxglove (as [live] enabled = true; README: Live view)")
     run.set_defaults(func=_cmd_run)
 
     from bridge.config import add_config_parser

@@ -65,7 +65,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from mcap.well_known import MessageEncoding, SchemaEncoding
@@ -76,6 +76,9 @@ from hilbo_core.optimizer import BreathStep, Evaluation, HILOptimizer
 from hilbo_core.profiles import ForceProfile
 from hilbo_core.stopping import StopDecision
 from hilbo_core.types import BreathRecord
+
+if TYPE_CHECKING:
+    from bridge.live import LiveSink
 
 __all__ = [
     "CHANNELS",
@@ -582,6 +585,8 @@ class SessionLog:
             without ``Writer.flush()`` gets).
         clock_ns: The ``log_time`` clock in ns (wall clock by default).
         overwrite: Replace an existing file.
+        live: A live view (:class:`bridge.live.LiveServer`) that gets every record written, on
+            the same topic with the same schema (issue 19 item 2); None: no live view.
 
     Raises:
         LogValueError: A bad option.
@@ -609,6 +614,7 @@ class SessionLog:
         chunked: bool = True,
         clock_ns: Callable[[], int] = time.time_ns,
         overwrite: bool = False,
+        live: LiveSink | None = None,
     ) -> None:
         if not isinstance(session_id, str) or not session_id.strip():
             raise LogValueError(f"session_id={session_id!r}; expected a non-empty string")
@@ -639,6 +645,8 @@ class SessionLog:
         self._closed = False
         self._sequence = 0
         self._thread_error: BaseException | None = None
+        self._live = live  # live view (bridge/live.py): mirrors every record in _write
+        self._schemas: dict[str, tuple[str, Mapping[str, Any]]] = {}
         try:
             self._file = open(self.path, "wb" if overwrite else "xb")  # closed in close()
         except OSError as err:
@@ -928,6 +936,7 @@ class SessionLog:
                                            json.dumps(schema).encode())
         cid = self._writer.register_channel(topic, MessageEncoding.JSON, sid)
         self._channel_ids[topic] = cid
+        self._schemas[topic] = (schema_name, schema)
         return cid
 
     def _write(self, topic: str, message: Mapping[str, Any], publish_time_ns: int | None) -> None:
@@ -960,6 +969,9 @@ class SessionLog:
         self._pending = True
         self.stats.messages += 1
         self.stats.per_topic[topic] += 1
+        if self._live is not None:  # live view: the same record, topic and schema (never raises)
+            schema_name, schema = self._schemas[topic]
+            self._live.publish(topic, schema_name, schema, data, log_ns)
 
     def _flush_locked(self) -> None:
         if not self._pending:
