@@ -42,30 +42,39 @@ def _seconds(text: str) -> float:
     return value
 
 
+def _version() -> str:
+    from importlib import metadata
+
+    try:
+        return metadata.version("hilbo")
+    except metadata.PackageNotFoundError:  # a checkout on PYTHONPATH, not installed
+        return "unknown (not installed)"
+
+
 def _cmd_sim(args: argparse.Namespace) -> int:
-    from bridge.errors import BridgeConfigError
+    from bridge.errors import UsageError
 
     if args.processes and args.engine == "core":
-        raise BridgeConfigError("--processes runs the virtual devices as processes; --engine core has none")
+        raise UsageError("--processes runs the virtual devices as processes; --engine core has none")
     if args.bus is not None and not args.processes:
-        raise BridgeConfigError("--bus goes with --processes (in one process the devices share "
+        raise UsageError("--bus goes with --processes (in one process the devices share "
                                 "python-can's virtual bus)")
     if args.live and (args.engine == "core" or args.processes):
-        raise BridgeConfigError("--live streams the in-process bridge session (without --processes "
-                                "and --engine core)")
+        raise UsageError("--live streams the in-process bridge session (without --processes "
+                         "and --engine core)")
     if args.engine == "core":
         return _cmd_sim_core(args)
     import asyncio
 
     from rich.console import Console
 
-    from bridge.config import LiveConfig
+    from bridge.config import LiveConfig, check_out_dir
     from bridge.sim import MAX_SPEED, VirtualSimConfig, run_virtual_sim
 
     console = Console(stderr=True)
     cfg = VirtualSimConfig(minutes=args.minutes, seed=args.seed, speed=args.speed,
-                           preset=args.preset, stopping=args.stopping)
-    out = Path(args.out)
+                           preset=args.preset, stopping=args.stopping, wearer=args.wearer)
+    out = check_out_dir(args.out, "--out")
     speed = cfg.speed or MAX_SPEED
     where = "the virtual exosuit and cart"
     if args.processes:
@@ -73,7 +82,8 @@ def _cmd_sim(args: argparse.Namespace) -> int:
 
         bus = resolve_bus(args.bus or "auto")
         where += f" as processes ({'SocketCAN vcan0' if bus == 'vcan' else 'python-can-remote'})"
-    console.print(f"hilbo sim: {cfg.minutes:g}-minute {cfg.preset} session on {where}, seed {cfg.seed}, "
+    console.print(f"hilbo sim: {cfg.minutes:g}-minute {cfg.preset} session on {where}, {cfg.wearer} "
+                  f"wearer seed {cfg.seed}, "
                   f"{speed:g}x real time (about {cfg.minutes * 60 / speed:.0f} s)")
     if args.processes:
         summary = asyncio.run(run_process_sim(cfg, out, bus=bus, operator_view=console.is_terminal))
@@ -104,11 +114,17 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
     from rich.console import Console
 
-    from bridge.config import load_config
+    from bridge.config import check_out_dir, config_warnings, load_config
     from bridge.run import run_session
 
     console = Console(stderr=True)
     cfg = load_config(args.config)
+    for warning in config_warnings(cfg):
+        print(f"hilbo run: warning: {warning}", file=sys.stderr)
+    if args.out:
+        check_out_dir(args.out, "--out")
+    else:
+        check_out_dir(cfg.session.out_dir)
     if args.live:
         cfg = dataclasses.replace(cfg, live=dataclasses.replace(cfg.live, enabled=True))
     if cfg.live.enabled:
@@ -117,11 +133,11 @@ def _cmd_run(args: argparse.Namespace) -> int:
     resume = Path(args.resume) if args.resume else None
     console.print(f"hilbo run: {cfg.source} (subject {cfg.session.subject})"
                   + (f", resuming {resume}" if resume else ""))
-    if (cfg.protocol.pause_between_bouts and args.auto_resume is None
+    if (args.auto_resume is None and cfg.watchdog.auto_resume_s is None
             and (args.no_view or not sys.stdin.isatty())):
-        console.print("hilbo run: note: no keyboard (--no-view, or stdin is not a terminal): the pause "
-                      "between the bouts lasts until SIGTERM/Ctrl-C; give --auto-resume S, or set "
-                      "[protocol] pause_between_bouts = false")
+        console.print("hilbo run: note: no keyboard (--no-view, or stdin is not a terminal): any pause "
+                      "(the one between the bouts too) lasts until SIGTERM/Ctrl-C; give "
+                      "--auto-resume S or set [watchdog] auto_resume_s")
     result = asyncio.run(run_session(cfg, resume=resume, out_dir=Path(args.out) if args.out else None,
                                      operator_view=not args.no_view, auto_resume_s=args.auto_resume))
     s = result.summary
@@ -142,8 +158,10 @@ def _cmd_sim_core(args: argparse.Namespace) -> int:
 
     console = Console(stderr=True)
     cfg = SimConfig(minutes=args.minutes, seed=args.seed, speed=args.speed, preset=args.preset,
-                    stopping=args.stopping)
-    out = Path(args.out)
+                    stopping=args.stopping, wearer=args.wearer)
+    from bridge.config import check_out_dir
+
+    out = check_out_dir(args.out, "--out")
     out.mkdir(parents=True, exist_ok=True)
 
     def progress(rec: SimEvaluation, opt: HILOptimizer) -> None:
@@ -183,6 +201,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Human-in-the-loop Bayesian optimisation of soft-exosuit assistance.",
     )
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
+    parser.add_argument("--version", action="version", version=f"hilbo {_version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     sim = sub.add_parser("sim", help="run a whole session on the virtual exosuit and cart",
@@ -201,6 +220,10 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--out", default="runs/sim", help="output directory (default runs/sim)")
     sim.add_argument("--preset", default="hip_6d", choices=["hip_6d", "hip_ankle_4d"],
                      help="parameter space (default hip_6d)")
+    sim.add_argument("--wearer", default="realistic", choices=["realistic", "legacy"],
+                     help="simulated wearer: realistic (default; breath noise and outliers as in "
+                          "real data, tau 30-60 s, slow adaptation, two landscape families) or "
+                          "legacy (the earlier one)")
     sim.add_argument("--stopping", default="adaptive", choices=["adaptive", "fixed"],
                      help="stopping rule in the optimisation phase (default adaptive)")
     sim.add_argument("--engine", default="bridge", choices=["bridge", "core"],
@@ -226,10 +249,14 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--resume", metavar="LOG.mcap", default=None,
                      help="continue the session of this log (also one cut off by a crash) in a new log")
     run.add_argument("--out", default=None, help="output directory (default: [session] out_dir)")
-    run.add_argument("--no-view", action="store_true", help="no live terminal view")
+    run.add_argument("--no-view", action="store_true",
+                     help="no live terminal view: one line per evaluation and per pause, resume "
+                          "or refusal on stderr")
     run.add_argument("--auto-resume", type=_seconds, default=None, metavar="S",
-                     help="end the pause between the bouts by itself after S seconds (for a run "
-                          "without keyboard, e.g. --no-view; default: wait for the operator's r)")
+                     help="the resume policy: end any pause the operator did not ask for (between "
+                          "the bouts, lost heartbeat, silent cart) once the device and the cart "
+                          "have been healthy for S seconds, at most [watchdog] max_auto_resumes "
+                          "times, then stop (default: [watchdog] auto_resume_s, else wait for r)")
     run.add_argument("--live", action="store_true",
                      help="stream the session to Foxglove (as [live] enabled = true; README: Live view)")
     run.set_defaults(func=_cmd_run)
@@ -278,7 +305,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``hilbo`` console script."""
-    from bridge.errors import BridgeError
+    from bridge.errors import BridgeError, UsageError
     from drivers.errors import DriverError
     from hilbo_core.errors import HilboError
 
@@ -288,9 +315,13 @@ def main(argv: Sequence[str] | None = None) -> int:
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
         return int(args.func(args))
-    except (HilboError, BridgeError, DriverError) as err:
+    except UsageError as err:
         print(f"hilbo {args.command}: error: {err}", file=sys.stderr)
         return 2
+    except (HilboError, BridgeError, DriverError) as err:
+        # Bad input or a failure at run time: 1. Only argparse's usage errors are 2.
+        print(f"hilbo {args.command}: error: {err}", file=sys.stderr)
+        return 1
     except BaseExceptionGroup as group:
         # A session's task group wraps the error of the task that failed (the cart stream's
         # CartError or a column map's DriverConfigError): report that error, not a traceback.
@@ -301,7 +332,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         while isinstance(leaf, BaseExceptionGroup):
             leaf = leaf.exceptions[0]
         print(f"hilbo {args.command}: error: {leaf}", file=sys.stderr)
-        return 2
+        return 1
     except KeyboardInterrupt:
         print(f"hilbo {args.command}: interrupted", file=sys.stderr)
         return 130
@@ -311,6 +342,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         with contextlib.suppress(OSError):
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141
+    except OSError as err:  # a file that cannot be written or read: its name, no traceback
+        print(f"hilbo {args.command}: error: {err}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

@@ -8,7 +8,7 @@
     (default ``IN.recovered.mcap``) that Foxglove and any MCAP reader open.
 
 Errors (not an MCAP file, an empty file, another program's MCAP, an unwritable output) print
-one line naming the file and the problem and exit with status 2; no traceback.
+one line naming the file and the problem and exit with status 1; no traceback.
 """
 
 from __future__ import annotations
@@ -21,11 +21,11 @@ from pathlib import Path
 from typing import Any
 
 from bridge.log import LogError, Topic
-from bridge.logread import LogContents, read_log, recover
+from bridge.log.reader import LogContents, read_log, recover
 
 __all__ = ["add_log_parser", "default_recovered_path", "log_info"]
 
-_EXIT_ERROR = 2
+_EXIT_ERROR = 1  # bad input; 2 is argparse's, for a wrong command line
 
 
 def add_log_parser(subparsers: Any) -> argparse.ArgumentParser:
@@ -64,13 +64,15 @@ def default_recovered_path(src: str | Path) -> Path:
 def log_info(contents: LogContents) -> dict[str, Any]:
     """The ``hilbo log info`` summary as a JSON-able dict."""
     rng = contents.time_range_ns
-    snaps = contents.data(Topic.OPTIMIZER_STATE)
+    snaps = contents.records(Topic.OPTIMIZER_STATE)
     return {
         "path": contents.path,
         "size_bytes": contents.size_bytes,
         "complete": contents.complete,
         "unreadable_bytes": contents.unreadable_bytes,
         "stop_reason": contents.stop_reason,
+        "damage": [{"start": d.start, "end": d.end, "reason": d.reason} for d in contents.damage],
+        "format_version": contents.format_version,
         "session_id": contents.session_id,
         "previous_log": contents.previous_log,
         "library": contents.library,
@@ -80,7 +82,7 @@ def log_info(contents: LogContents) -> dict[str, Any]:
                          "messages": c.message_count} for t, c in sorted(contents.channels.items())},
         "messages": sum(c.message_count for c in contents.channels.values()),
         "evaluations": len(contents.topic(Topic.OBSERVATIONS)),
-        "last_snapshot_evaluations": snaps[-1].get("n_evaluations") if snaps else None,
+        "last_snapshot_evaluations": snaps[-1].n_evaluations if snaps else None,
     }
 
 
@@ -92,9 +94,11 @@ def _info_text(s: dict[str, Any]) -> str:
     lines = [f"{s['path']}: {s['size_bytes']:,} bytes, "
              + ("closed normally" if s["complete"] else
                 f"TRUNCATED ({s['unreadable_bytes']:,} bytes unreadable: {s['stop_reason']})")]
+    lines += [f"DAMAGED: bytes {d['start']:,}–{d['end']:,} skipped ({d['reason']}); read on after them"
+              for d in s["damage"]]
     chain = f" (resumes {s['previous_log']})" if s["previous_log"] else ""
     lines.append(f"session:    {s['session_id'] or '?'}{chain}")
-    lines.append(f"written by: {s['library'] or '?'}")
+    lines.append(f"written by: {s['library'] or '?'} (log format {s['format_version'] or '?'})")
     rng = s["time_range_ns"]
     if rng:
         lines.append(f"log time:   {_fmt_time(rng[0])} – {_fmt_time(rng[1])} "
@@ -137,6 +141,7 @@ def _cmd_recover(args: argparse.Namespace) -> int:
         return _fail("recover", err)
     state = ("was already complete" if report.source_complete else
              f"was cut off: {report.unreadable_bytes:,} bytes unreadable ({report.stop_reason})")
+    state += "".join(f"\n  damaged inside: {d.describe()}" for d in report.damage)
     topics = ", ".join(f"{t} {n}" for t, n in sorted(report.per_topic.items()))
     _say(f"{report.src} {state}\nwrote {report.messages:,} messages to {report.dst}"
          + (f"\n  {topics}" if topics else ""))

@@ -21,10 +21,12 @@ watchdog's assistance-off by as much.
   frozen — what the session allocated since the last quiet point, a few thousand objects —
   then ``gc.freeze()`` again. The collections CPython starts by itself in between walk only
   what one evaluation allocated;
-* **long pauses** (:meth:`Collector.full`, between the bouts, assistance off): unfreeze and
-  collect everything, then freeze again. Frozen objects are still freed by reference counting
-  the moment nothing uses them; only a reference *cycle* among objects that were frozen while
-  alive waits for this (or the end) to be reclaimed;
+* **never a whole-heap walk while a device is connected**: :meth:`Collector.full` (unfreeze and
+  collect everything) took 113-176 ms between the bouts, longer than the device's 100 ms
+  heartbeat watchdog, which then latched ``heartbeat_lost`` (issue 15), so the session no
+  longer calls it; the pause between the bouts is a quiet point like the others. Frozen
+  objects are still freed by reference counting the moment nothing uses them; only a
+  reference *cycle* among objects that were frozen while alive waits for the session's end;
 * **end** (:meth:`Collector.__exit__`): ``gc.unfreeze()``, CPython's schedule as before.
 
 :attr:`GcMode.AUTOMATIC` leaves CPython's own schedule alone (the pauses are still measured).

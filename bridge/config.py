@@ -61,6 +61,7 @@ from drivers.cart import CartConfig
 from drivers.cart.pipeline import describe_record
 from drivers.errors import DriverConfigError
 from drivers.exosuit.endpoint import INTERFACE_OPTIONS, CanBusConfig
+from drivers.exosuit.rating import RATED_FORCE_N
 from hilbo_core.errors import ConfigError, InfeasibleError
 from hilbo_core.gp import KernelKind
 from hilbo_core.optimizer import OptimizerConfig, PriorObservation, StoppingKind
@@ -90,6 +91,8 @@ __all__ = [
     "SpaceConfig",
     "WatchdogConfig",
     "add_config_parser",
+    "check_out_dir",
+    "config_warnings",
     "example_config_text",
     "load_config",
     "parse_config",
@@ -232,12 +235,20 @@ class SessionConfig:
         body_mass_kg: The wearer's mass in kg, 20–250 (``hip_ankle_4d`` scales its forces by it).
         out_dir: Directory for the session's MCAP log and summary.
         notes: Free text copied into the log.
+        file_mode: Permission bits of the log and summary as octal text (default ``"0600"``:
+            owner only, they hold health data: VO2, heart rate, body mass).
     """
 
     subject: str
     body_mass_kg: float
     out_dir: Path = Path("sessions")
     notes: str = ""
+    file_mode: str = "0600"
+
+    @property
+    def file_mode_bits(self) -> int:
+        """:attr:`file_mode` as an integer (``0o600``)."""
+        return int(self.file_mode, 8)
 
 
 def _parse_session(data: object) -> SessionConfig:
@@ -253,7 +264,16 @@ def _parse_session(data: object) -> SessionConfig:
         body_mass_kg=t.number("body_mass_kg", lo=20.0, hi=250.0),
         out_dir=Path(t.string("out_dir", "sessions")),
         notes=t.string("notes", "", non_empty=False),
+        file_mode=_file_mode(t),
     )
+
+
+def _file_mode(t: _Table) -> str:
+    text = t.string("file_mode", "0600")
+    if not re.fullmatch(r"0?[0-7]{3}", text):
+        raise BridgeConfigError(f"{t.name('file_mode')} = {text!r}: expected octal permission bits such as "
+                                "\"0600\" (owner read/write: session files hold health data) or \"0640\"")
+    return text
 
 
 # --------------------------------------------------------------------------------------------
@@ -638,11 +658,21 @@ class WatchdogConfig:
         cart_data_timeout_s: No valid breath for this long (wall clock) → assistance-off and pause;
             shorter gaps only pause estimation. 2–300 s (breaths come every 2–6 s).
         bus_error: :class:`BusErrorPolicy`.
+        auto_resume_s: The resume policy of headless runs (issue 15): a pause that the operator
+            did not ask for (the pause between the bouts, a lost device heartbeat, silent cart,
+            a failed push) ends by itself once the device and the cart have been healthy for
+            this long (wall s, 0-3600; device faults that the bridge may clear are cleared
+            first); None (the default): only the operator's ``r`` ends a pause.
+            ``hilbo run --auto-resume S`` sets it, ``hilbo sim`` always uses it.
+        max_auto_resumes: At most this many automatic resumes per session (1-1000); the next
+            pause that would need one stops the session instead of waiting for nobody.
     """
 
     device_heartbeat_timeout_ms: float = 100.0
     cart_data_timeout_s: float = 15.0
     bus_error: BusErrorPolicy = BusErrorPolicy.PAUSE
+    auto_resume_s: float | None = None
+    max_auto_resumes: int = 10
 
     def to_json(self) -> dict[str, Any]:
         """JSON-able form."""
@@ -655,6 +685,9 @@ def _parse_watchdog(data: object) -> WatchdogConfig:
         device_heartbeat_timeout_ms=t.number("device_heartbeat_timeout_ms", 100.0, lo=40.0, hi=1000.0),
         cart_data_timeout_s=t.number("cart_data_timeout_s", 15.0, lo=2.0, hi=300.0),
         bus_error=t.choice("bus_error", BusErrorPolicy, BusErrorPolicy.PAUSE),
+        auto_resume_s=(t.number("auto_resume_s", lo=0.0, hi=3600.0)
+                       if t.has("auto_resume_s") else None),
+        max_auto_resumes=t.integer("max_auto_resumes", 10, lo=1, hi=1000),
     )
 
 
@@ -1090,6 +1123,49 @@ def load_config(path: str | Path) -> HilboConfig:
     return parse_config(text, source=str(path))
 
 
+def check_out_dir(path: str | Path, what: str = "session.out_dir") -> Path:
+    """Refuse an output directory that cannot be created: it, or a parent, is not a directory.
+
+    Args:
+        path: The directory the session's log and summary go to (need not exist yet).
+        what: How to name it in the error (``session.out_dir`` or ``--out``).
+
+    Returns:
+        ``path`` as a :class:`~pathlib.Path`.
+
+    Raises:
+        BridgeConfigError: ``path`` or one of its parents exists and is not a directory.
+    """
+    path = Path(path)
+    for p in (path, *path.parents):
+        if p.exists():
+            if not p.is_dir():
+                where = "" if p == path else f" (its parent {p} is not a directory)"
+                raise BridgeConfigError(
+                    f"{what} = {str(path)!r}: expected a directory (existing or to be created), "
+                    f"but {p} is a file{where}"
+                )
+            break
+    return path
+
+
+def config_warnings(cfg: HilboConfig) -> list[str]:
+    """What is valid but probably wrong: one line each (``hilbo config check``, ``hilbo run``).
+
+    Today: a force limit above the exosuit's rated force
+    (:data:`drivers.exosuit.rating.RATED_FORCE_N`).
+    """
+    out: list[str] = []
+    for name, lim in [("limits", cfg.limits.default),
+                      *((f"limits.actuators.{k}", v) for k, v in cfg.limits.actuators.items()
+                        if v.max_force_n != cfg.limits.default.max_force_n)]:
+        if lim.max_force_n > RATED_FORCE_N:
+            out.append(f"{name}.max_force_n = {lim.max_force_n:g} N is above the exosuit's rated "
+                       f"force, {RATED_FORCE_N:g} N (drivers/exosuit/rating.py): the device may "
+                       "refuse such profiles, or be driven beyond its rating")
+    return out
+
+
 def example_config_text() -> str:
     """The complete commented example config (``bridge/config_example.toml``)."""
     return resources.files("bridge").joinpath("config_example.toml").read_text(encoding="utf-8")
@@ -1157,12 +1233,15 @@ def _cmd_check(args: argparse.Namespace, out: TextIO | None = None, err: TextIO 
             cfg = parse_config(sys.stdin.read(), source="<stdin>")
         else:
             cfg = load_config(args.config)
+        check_out_dir(cfg.session.out_dir)
     except BridgeConfigError as exc:
         err.write(f"hilbo config check: invalid config: {exc}\n")
-        return 2
+        return 1
     out.write(f"config OK: {cfg.source}\n{summarize(cfg)}\n")
+    for warning in config_warnings(cfg):
+        err.write(f"hilbo config check: warning: {warning}\n")
     if _check_cart_file(cfg, out, err) != 0:
-        return 2
+        return 1
     if args.samples > 0:
         report = preflight(cfg.space.space, cfg.limits, body_mass_kg=cfg.session.body_mass_kg,
                            n=args.samples)
@@ -1172,7 +1251,7 @@ def _cmd_check(args: argparse.Namespace, out: TextIO | None = None, err: TextIO 
         if report.n_rejected == report.n_checked:
             err.write(f"hilbo config check: the limits refuse every sampled setting, e.g. "
                       f"{report.example}\n")
-            return 2
+            return 1
         if report.n_rejected:
             err.write(f"hilbo config check: warning: {report.n_rejected} of {report.n_checked} "
                       f"settings would be refused (each refusal cancels the setting), e.g. "
@@ -1216,7 +1295,8 @@ def add_config_parser(subparsers: Any) -> argparse.ArgumentParser:
         subparsers: The ``add_subparsers()`` object of the ``hilbo`` parser.
 
     Returns:
-        The ``config`` parser. Each action sets ``func(args) -> exit code`` (0 ok, 2 invalid).
+        The ``config`` parser. Each action sets ``func(args) -> exit code`` (0 ok, 1 invalid;
+        argparse's 2 is for a wrong command line).
     """
     parser = subparsers.add_parser(
         "config", help="print an example session config, or check one",
@@ -1228,9 +1308,9 @@ def add_config_parser(subparsers: Any) -> argparse.ArgumentParser:
                                  description="Print a complete commented config to standard output.")
     example.set_defaults(func=_cmd_example)
     check = actions.add_parser(
-        "check", help="validate a config and print a summary (exit 0 ok, 2 invalid)",
+        "check", help="validate a config and print a summary (exit 0 ok, 1 invalid)",
         description="Validate a config, print a summary, and check how many sampled settings of "
-                    "the space the limits refuse. Exit status 0 if valid, 2 if not.",
+                    "the space the limits refuse. Exit status 0 if valid, 1 if not.",
     )
     check.add_argument("config", help="CONFIG.toml, or - to read standard input")
     check.add_argument("--samples", type=int, default=256,
@@ -1241,7 +1321,7 @@ def add_config_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 #: The keys each table allows (``[cart]``'s are the cart driver's: drivers/cart/FORMAT.md).
 ALLOWED_KEYS: Mapping[str, tuple[str, ...]] = MappingProxyType({
-    "session": ("subject", "body_mass_kg", "out_dir", "notes"),
+    "session": ("subject", "body_mass_kg", "out_dir", "notes", "file_mode"),
     "space": ("preset", "bounds", "constraints", "profile", "parameters", "derived"),
     "protocol": tuple(f.name for f in dataclasses.fields(ProtocolConfig)),
     "can": ("interface", "channel", "bitrate", "options", "heartbeat_period_ms", "push_timeout_ms",

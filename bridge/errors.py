@@ -6,7 +6,14 @@ matching built-in, so callers that catch ``ValueError`` keep working.
 
 from __future__ import annotations
 
-__all__ = ["BridgeConfigError", "BridgeError", "DeviceProcessError", "ReviewError", "UnsafeProfileError"]
+__all__ = [
+    "BridgeConfigError",
+    "BridgeError",
+    "DeviceProcessError",
+    "ReviewError",
+    "UnsafeProfileError",
+    "UsageError",
+]
 
 
 class BridgeError(Exception):
@@ -38,3 +45,8 @@ class UnsafeProfileError(BridgeError, ValueError):
         super().__init__(message)
         self.verdict = verdict
         self.params = params
+
+
+class UsageError(BridgeError, ValueError):
+    """The command line asks for options that do not go together: ``hilbo`` exits with status 2,
+    like argparse's own usage errors (every other error is 1)."""

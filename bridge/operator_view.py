@@ -3,7 +3,8 @@
 Keys (when stdin is a terminal): ``p`` pause (assistance off), ``r`` resume, ``q`` stop.
 Without a terminal (CI, a pipe) the view prints nothing live; signals still stop the session.
 
-Issue 19.2: device faults are shown by name with what clears them (:func:`describe_faults`),
+Issue 19.2: device faults are shown by name with what clears them (:func:`describe_faults`, from
+drivers/exosuit/faults.py),
 the session's expected end (``SessionStatus.t_end_unix_s``, else the optimisation budget), and
 "best so far" is what ``HILOptimizer.best()`` returns, the same quantity as the summary's best.
 """
@@ -25,27 +26,20 @@ from rich.text import Text
 
 from bridge.runtime import BridgeSession, Command, SessionStatus
 from drivers.exosuit import DeviceFault
+from drivers.exosuit.faults import FAULT_INFO
 
 __all__ = ["KEYS", "describe_faults", "render_status", "run_operator_view"]
 
 KEYS = {"p": Command.PAUSE, "r": Command.RESUME, "q": Command.STOP}
 
-# Interim, until drivers/exosuit maps the fault bits to names and what clears each (then
-# _fault_clears is the one call site to swap). As the virtual exosuit behaves: a lost bridge
-# heartbeat is latched by the device until a profile is acked while the bridge runs (a resume);
-# the other bits are the drive's own and clear when the condition ends.
-_LATCHED_CLEARS = "latched: clears on resume [r] (a profile acked while running)"
-_DEVICE_CLEARS = "clears when the device reports the condition gone"
-
-
 def _fault_clears(bits: int) -> list[tuple[str, str]]:
-    """(name, what clears it) of each fault bit set in ``bits``."""
-    flags = DeviceFault(bits & sum(int(f) for f in DeviceFault))
-    out = [(f.name.lower(), _LATCHED_CLEARS if f is DeviceFault.HEARTBEAT_LOST else _DEVICE_CLEARS)
-           for f in DeviceFault if f in flags and f.name]
-    unknown = bits & ~int(flags)
-    if unknown:
-        out.append((f"unknown bits 0x{unknown:02x}", "see the device's documentation"))
+    """(name, what clears it) of each fault bit set in ``bits`` (drivers/exosuit/faults.py)."""
+    out = []
+    for k in range(bits.bit_length()):
+        if bits >> k & 1:
+            info = FAULT_INFO.get(DeviceFault(1 << k)) if k < 8 else None
+            out.append((info.name, info.clears) if info is not None
+                       else (f"bit{k}", "not defined by the protocol"))
     return out
 
 

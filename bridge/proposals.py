@@ -37,6 +37,7 @@ import math
 import numbers
 import os
 import pickle
+import signal
 import struct
 import sys
 import time
@@ -344,6 +345,10 @@ class ProposalWorker:
 
 
 if __name__ == "__main__":  # the worker process: python -m bridge.proposals
+    # Ctrl-C (SIGINT to the terminal's process group) is the session's to handle: it stops
+    # safely and closes our stdin, which ends this loop. Raised here it would only print a
+    # KeyboardInterrupt traceback and cost the session its worker mid-shutdown.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     # The replies get the real stdout to themselves; anything a library prints goes to stderr.
     _replies = os.fdopen(os.dup(sys.stdout.fileno()), "wb")
     os.dup2(sys.stderr.fileno(), sys.stdout.fileno())

@@ -45,7 +45,8 @@ from pathlib import Path
 from typing import Any
 
 from bridge.log import LogError, Topic
-from bridge.logread import LogContents, LogMessage, read_log
+from bridge.log import records as rec
+from bridge.log.reader import LogContents, LogMessage, read_log
 from hilbo_core.errors import HilboError
 from hilbo_core.metabolic import Estimator
 from hilbo_core.optimizer import HILOptimizer
@@ -91,8 +92,8 @@ class ResumeInfo:
         discarded_breaths: Its breaths (not counted anywhere).
         in_progress_params: With RESUME, the setting whose breaths were kept, or None.
         last_breath_t_s: Cart time of the last logged breath, or None.
-        observations: The logged ``/observations`` of the recovered evaluations (in this log),
-            with their session times, in index order.
+        observations: The logged ``/observations`` records of the recovered evaluations (in
+            this log), with their session times, in index order.
         warnings: Anything odd that did not prevent the rebuild.
     """
 
@@ -110,7 +111,7 @@ class ResumeInfo:
     discarded_breaths: int
     in_progress_params: dict[str, float] | None
     last_breath_t_s: float | None
-    observations: tuple[dict[str, Any], ...]
+    observations: tuple[rec.Evaluation, ...]
     warnings: tuple[str, ...]
 
 
@@ -143,7 +144,7 @@ def rebuild_optimizer(
     contents = source if isinstance(source, LogContents) else read_log(source, topics=RESUME_TOPICS)
     warnings: list[str] = []
     opt, tail, n_snap, reason = _starting_point(contents, estimator_factory, warnings, depth=0)
-    replay = _Replay(opt, estimator_factory, contents.path)
+    replay = _Replay(opt, estimator_factory, contents.path, _damage(contents))
     for msg in tail:
         replay.apply(msg)
     opt = replay.opt
@@ -164,14 +165,14 @@ def rebuild_optimizer(
         else:
             in_progress = opt.current_params
     observations = _check_observations(contents, opt, warnings)
-    breaths = contents.data(Topic.BREATHS)
+    breaths = contents.records(Topic.BREATHS)
     info = ResumeInfo(
         log_path=contents.path, session_id=contents.session_id, previous_log=contents.previous_log,
         config=contents.config, truncated=contents.truncated, unreadable_bytes=contents.unreadable_bytes,
         n_evaluations=len(opt.evaluations), n_from_snapshot=n_snap, n_replayed=replay.n_completed,
         snapshot_reason=reason, discarded_params=discarded, discarded_breaths=discarded_breaths,
         in_progress_params=in_progress,
-        last_breath_t_s=float(breaths[-1]["t_s"]) if breaths and "t_s" in breaths[-1] else None,
+        last_breath_t_s=breaths[-1].t_s if breaths else None,
         observations=observations, warnings=tuple(warnings + replay.warnings),
     )
     return opt, info
@@ -186,26 +187,29 @@ def _starting_point(
     messages = contents.messages
     last = max((i for i, m in enumerate(messages) if m.topic == Topic.OPTIMIZER_STATE), default=None)
     if last is not None:
-        snap = messages[last].data
+        snap = messages[last].record
+        if not isinstance(snap, rec.OptimizerState):
+            raise ResumeError(f"{contents.path}: the optimizer snapshot (message {messages[last].sequence}) "
+                              f"is not a valid {Topic.OPTIMIZER_STATE} record{_damage(contents)}")
         try:
-            opt = HILOptimizer.from_json(snap["state"], estimator_factory=estimator_factory)
+            opt = HILOptimizer.from_json(snap.state, estimator_factory=estimator_factory)
         except (KeyError, TypeError, HilboError) as err:
             raise ResumeError(f"{contents.path}: the optimizer snapshot (message {messages[last].sequence}) "
                               f"cannot be loaded: {err}") from err
-        return opt, messages[last + 1:], len(opt.evaluations), str(snap.get("reason", ""))
+        return opt, messages[last + 1:], len(opt.evaluations), snap.reason or ""
     previous = contents.previous_log
     if previous is None or depth >= _MAX_CHAIN:
-        cut = f"; the file is truncated ({contents.stop_reason})" if contents.truncated else ""
+        cut = f"; the file is cut off ({contents.stop_reason})" if contents.truncated else ""
         raise ResumeError(
             f"{contents.path}: no {Topic.OPTIMIZER_STATE} snapshot in the log ({len(messages)} messages "
-            f"read{cut}); nothing to resume from (a session logs one at its start: "
-            "SessionLog.log_optimizer_state(opt, reason='start'))"
+            f"read{cut}{_damage(contents)}); a session writes one when it starts, so this log cannot be "
+            "resumed: start a new session without --resume"
         )
     prev_path = _resolve(previous, Path(contents.path).parent)
     warnings.append(f"{contents.path} has no snapshot; rebuilt from the previous log {prev_path} first")
     prev = read_log(prev_path, topics=RESUME_TOPICS)
     opt, tail, n_snap, reason = _starting_point(prev, estimator_factory, warnings, depth + 1)
-    replay = _Replay(opt, estimator_factory, prev.path)
+    replay = _Replay(opt, estimator_factory, prev.path, _damage(prev))
     for msg in tail:
         replay.apply(msg)
     warnings.extend(replay.warnings)
@@ -229,9 +233,10 @@ class _Replay:
     """Re-executes the logged ask()/breath calls on an optimizer."""
 
     def __init__(self, opt: HILOptimizer, estimator_factory: Callable[[], Estimator] | None,
-                 path: str) -> None:
+                 path: str, damage: str = "") -> None:
         self.opt = opt
         self.path = path
+        self.damage = damage
         self.estimator_factory = estimator_factory
         state_cur = opt.to_json()["current"] if opt.current_params is not None else None
         self.cur_breaths = 0 if state_cur is None else len(state_cur["breaths"])
@@ -245,12 +250,11 @@ class _Replay:
         elif msg.topic == Topic.ESTIMATOR:
             self._breath(msg)
 
-    def _index(self, msg: LogMessage, key: str) -> int:
-        value = msg.data.get(key)
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ResumeError(f"{self.path}: {msg.topic} message {msg.sequence} has {key}={value!r}; "
-                              "expected an integer")
-        return value
+    def _record(self, msg: LogMessage, kind: type[Any]) -> Any:
+        if not isinstance(msg.record, kind):
+            raise ResumeError(f"{self.path}: {msg.topic} message {msg.sequence} is not a valid "
+                              f"{kind.__name__} record ({msg.raw[:80]!r})")
+        return msg.record
 
     def _ask(self, msg: LogMessage) -> dict[str, float]:
         self.pre_ask_state = self.opt.to_json()
@@ -264,7 +268,8 @@ class _Replay:
 
     def _proposal(self, msg: LogMessage) -> None:
         n = len(self.opt.evaluations)
-        k = self._index(msg, "index")
+        proposal = self._record(msg, rec.Proposal)
+        k = proposal.index
         if k < n:
             self.warnings.append(f"{msg.topic} message {msg.sequence} for evaluation {k} precedes the "
                                  f"snapshot's {n} evaluations; ignored")
@@ -277,8 +282,8 @@ class _Replay:
             # (cancel_current, e.g. a pause) and asked again. Do the same.
             self.opt.cancel_current()
         params = self._ask(msg)
-        logged = msg.data.get("params")
-        if not isinstance(logged, Mapping) or not _same_params(params, logged):
+        logged = proposal.params
+        if not _same_params(params, logged):
             raise ResumeError(
                 f"{self.path}: replayed proposal for evaluation {k} is {params}, but the log has {logged} "
                 f"(message {msg.sequence}); the optimizer state and the log disagree"
@@ -286,7 +291,8 @@ class _Replay:
 
     def _breath(self, msg: LogMessage) -> None:
         n = len(self.opt.evaluations)
-        k, b = self._index(msg, "index"), self._index(msg, "breath")
+        est = self._record(msg, rec.Estimate)
+        k, b = est.index, est.breath
         if k < n or (k == n and self.opt.current_params is not None and b < self.cur_breaths):
             return  # already inside the snapshot
         if k > n:
@@ -300,11 +306,11 @@ class _Replay:
                                  "asked the optimizer again")
         if b != self.cur_breaths:
             raise ResumeError(f"{self.path}: evaluation {k} needs breath {self.cur_breaths} next, but the "
-                              f"log has breath {b} (message {msg.sequence}); breaths are missing")
+                              f"log has breath {b} (message {msg.sequence}); breaths are missing"
+                              f"{self.damage}")
         try:
-            t, watts = float(msg.data["t_setting_s"]), float(msg.data["watts"])
-            step = self.opt.observe(t, watts)
-        except (KeyError, TypeError, ValueError, HilboError) as err:
+            step = self.opt.observe(est.t_setting_s, est.watts)
+        except (TypeError, ValueError, HilboError) as err:
             raise ResumeError(f"{self.path}: cannot replay breath {b} of evaluation {k} "
                               f"(message {msg.sequence}): {err!r}") from err
         self.cur_breaths += 1
@@ -327,38 +333,40 @@ def _same_params(a: Mapping[str, float], b: Mapping[str, Any]) -> bool:
         return False
 
 
+def _damage(contents: LogContents) -> str:
+    """``"; the file is damaged: ..."`` when part of it could not be read, else ""."""
+    return f"; the file is damaged: {contents.damage_text()}" if contents.damaged else ""
+
+
 def _check_observations(contents: LogContents, opt: HILOptimizer,
-                        warnings: list[str]) -> tuple[dict[str, Any], ...]:
+                        warnings: list[str]) -> tuple[rec.Evaluation, ...]:
     """Every logged completed evaluation is in ``opt``, unchanged; returns them by index."""
     evs = opt.evaluations
-    seen: dict[int, dict[str, Any]] = {}
+    seen: dict[int, rec.Evaluation] = {}
     for msg in contents.topic(Topic.OBSERVATIONS):
-        d = msg.data
-        k = d.get("index")
-        if isinstance(k, bool) or not isinstance(k, int) or k < 0:
-            raise ResumeError(f"{contents.path}: {Topic.OBSERVATIONS} message {msg.sequence} has "
-                              f"index={k!r}; expected an integer >= 0")
+        d = msg.record
+        if not isinstance(d, rec.Evaluation):
+            raise ResumeError(f"{contents.path}: {Topic.OBSERVATIONS} message {msg.sequence} is not a valid "
+                              f"evaluation record ({msg.raw[:80]!r})")
+        k = d.index
         if k >= len(evs):
             raise ResumeError(
                 f"{contents.path}: evaluation {k} was logged as completed (message {msg.sequence}) but the "
                 f"rebuilt optimizer has only {len(evs)} evaluations: its snapshot and breaths are missing"
+                f"{_damage(contents)}"
             )
         ev = evs[k]
-        try:
-            same = (_same_params(ev.params, d["params"]) and _close(ev.mean, float(d["mean"]))
-                    and _close(ev.var, float(d["var"])) and int(d["breaths"]) == ev.breaths)
-        except (KeyError, TypeError, ValueError) as err:
-            raise ResumeError(f"{contents.path}: {Topic.OBSERVATIONS} message {msg.sequence} is "
-                              f"malformed: {err!r}") from err
+        same = (_same_params(ev.params, d.params) and _close(ev.mean, d.mean)
+                and _close(ev.var, d.var) and d.breaths == ev.breaths)
         if not same:
             raise ResumeError(
-                f"{contents.path}: evaluation {k} in the log (mean {d.get('mean')} W, var {d.get('var')}, "
-                f"{d.get('breaths')} breaths) differs from the rebuilt one (mean {ev.mean} W, var {ev.var}, "
+                f"{contents.path}: evaluation {k} in the log (mean {d.mean} W, var {d.var}, "
+                f"{d.breaths} breaths) differs from the rebuilt one (mean {ev.mean} W, var {ev.var}, "
                 f"{ev.breaths} breaths); was the session run with another estimator?"
             )
         if k in seen:
             # A repeated log message; the optimizer holds the evaluation once either way.
             warnings.append(f"evaluation {k} is logged as completed twice (message {msg.sequence})")
             continue
-        seen[k] = dict(d)
+        seen[k] = d
     return tuple(seen[k] for k in sorted(seen))

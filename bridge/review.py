@@ -35,9 +35,15 @@ GP's estimated minimum among the evaluated points, with that evaluation's estima
 ``/optimizer_state`` snapshot, or of the optimizer rebuilt by :func:`bridge.resume.rebuild_optimizer`
 when evaluations completed after that snapshot; failing both, the lowest estimated mean.
 
+A log damaged *inside* the file (garbage over a chunk, a bad CRC: not the cut-off tail a crash
+leaves) is read around the damage (:mod:`bridge.log.reader` restarts at the next intact record);
+the review is written, its events and notes say which byte ranges were skipped, ``hilbo review``
+prints a warning naming them on stderr and exits with status 1, so a script notices. A log only
+cut off at its end by a crash is reviewed up to the cut with status 0.
+
 Bad input (a missing file, not MCAP, empty, another program's MCAP, a hilbo log with nothing
 in it, files of different sessions) raises a :class:`~bridge.errors.BridgeError` whose one-line
-message names the file and what was expected; ``hilbo`` turns it into exit status 2.
+message names the file and what was expected; ``hilbo`` turns it into exit status 1.
 """
 
 from __future__ import annotations
@@ -47,16 +53,19 @@ import dataclasses
 import logging
 import math
 import os
+import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import msgspec
 import numpy as np
 
-from bridge.errors import ReviewError
-from bridge.log import LogError, LogFormatError, Topic
-from bridge.logread import LogContents, read_log
+from bridge.errors import ReviewError, UsageError
+from bridge.log import EventLevel, LogError, LogFormatError, Topic
+from bridge.log import records as rec
+from bridge.log.reader import LogContents, read_log
 
 __all__ = [
     "Breath",
@@ -81,7 +90,7 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-_LEVELS = {0: "unknown", 1: "debug", 2: "info", 3: "warning", 4: "error", 5: "fatal"}
+_EXIT_DAMAGED = 1
 
 
 # ---------------------------------------------------------------------------------- data
@@ -97,6 +106,7 @@ class LogFile:
         size_bytes: File size.
         unreadable_bytes: Bytes after the last intact record.
         stop_reason: Why reading stopped early ("" when complete).
+        damage: Byte ranges damaged inside the file and skipped ("" when none).
         messages: Messages read.
         offset_s: Where its first breath lies on the merged session-time axis, s.
         duration_s: First to last breath, s.
@@ -112,6 +122,7 @@ class LogFile:
     messages: int
     offset_s: float
     duration_s: float
+    damage: str = ""
 
     @property
     def name(self) -> str:
@@ -444,8 +455,17 @@ def _has_data(c: LogContents) -> bool:
     if c.topic(Topic.BREATHS) or c.topic(Topic.ESTIMATOR) or c.topic(Topic.OBSERVATIONS):
         return True
     # A resumed session's file that crashed before its first breath still knows the old evaluations.
-    return any(isinstance(m.data.get("state"), Mapping) and m.data["state"].get("evaluations")
-               for m in c.topic(Topic.OPTIMIZER_STATE))
+    return any(_snapshot_evaluations(s) for s in c.records(Topic.OPTIMIZER_STATE))
+
+
+def _snapshot_evaluations(snap: rec.OptimizerState | None) -> list[rec.Evaluation]:
+    """The completed evaluations inside an optimizer snapshot, as typed records."""
+    if snap is None:
+        return []
+    try:
+        return msgspec.convert(snap.state.get("evaluations") or [], list[rec.Evaluation])
+    except msgspec.ValidationError:
+        return []
 
 
 def _same_file(a: str | Path, b: str | Path, base: Path) -> bool:
@@ -521,6 +541,16 @@ class _Run:
                              tuple(self.watts), tuple(self.mean_w), tuple(self.sd_w), completed)
 
 
+@dataclass(frozen=True)
+class _Observed:
+    """A logged completed evaluation with its session times (s; None if unknown)."""
+
+    pos: int
+    record: rec.Evaluation
+    t_start_s: float | None
+    t_end_s: float | None
+
+
 @dataclass
 class _FileScan:
     """What one file contributes (filled by :func:`_scan_file`)."""
@@ -528,151 +558,146 @@ class _FileScan:
     breaths: list[Breath]
     traces: list[EstimateTrace]
     orphan_runs: list[EstimateTrace]
-    observations: list[tuple[int, dict[str, Any], EstimateTrace | None]]  # (position, data, trace)
+    observations: list[_Observed]
     events: list[TimelineEvent]
     rejects: dict[str, dict[str, int]]
     z_runs: dict[int, list[tuple[int, float, bool, str]]]
-    profiles: list[tuple[int, dict[str, Any]]]
-    feedback: list[tuple[int, dict[str, Any]]]
-    snapshots: list[dict[str, Any]]
+    profiles: list[tuple[int, rec.ProfileSent]]
+    feedback: list[tuple[int, rec.ForceFeedback]]
+    snapshots: list[rec.OptimizerState]
     end_s: float
 
 
 def _scan_file(c: LogContents, fi: int, offset: float) -> _FileScan:
-    msgs = c.messages
-    first_t = next((_f(m.data.get("t_s")) for m in msgs if m.topic == Topic.BREATHS
-                    and _f(m.data.get("t_s")) is not None), None)
+    msgs = [m for m in c.messages if m.record is not None]
+    first_t = next((m.record.t_s for m in msgs if m.topic == Topic.BREATHS and _f(m.record.t_s) is not None),
+                   None)
     if first_t is None:
-        first_t = next((_f(m.data.get("t_s")) for m in msgs if m.topic == Topic.ESTIMATOR
-                        and _f(m.data.get("t_s")) is not None), 0.0)
+        first_t = next((m.record.t_s for m in msgs if m.topic == Topic.ESTIMATOR
+                        and _f(m.record.t_s) is not None), 0.0)
     t0 = float(first_t if first_t is not None else 0.0)
 
-    def session_time(t_s: Any, default: float) -> float:
+    def session_time(t_s: float | None, default: float) -> float:
         t = _f(t_s)
         return default if t is None else offset + t - t0
 
-    estimates_by_t: dict[float, dict[str, Any]] = {}
+    estimates_by_t: dict[float, rec.Estimate] = {}
     for m in msgs:
-        if m.topic == Topic.ESTIMATOR and _f(m.data.get("t_s")) is not None:
-            estimates_by_t[float(m.data["t_s"])] = m.data
+        if m.topic == Topic.ESTIMATOR and _f(m.record.t_s) is not None:
+            estimates_by_t[float(m.record.t_s)] = m.record
     scan = _FileScan([], [], [], [], [], {}, {}, [], [], [], offset)
     runs: dict[int, _Run] = {}
     last = offset
     fault_state: dict[int, int] = {}
+    # Format 2 logs carry the device's faults as /events; older ones only in /device_status.
+    faults_as_events = any(m.topic == Topic.EVENTS and m.record.kind == "device_fault" for m in msgs)
     z_open: dict[int, list[tuple[int, float, bool, str]]] = {}
     for pos, m in enumerate(msgs):
-        d = m.data
+        r = m.record
         topic = m.topic
         if topic == Topic.BREATHS:
-            t = _f(d.get("t_s"))
+            t = _f(r.t_s)
             if t is None:
                 continue
             last = session_time(t, last)
             est = estimates_by_t.get(t)
             scan.breaths.append(Breath(
-                fi, t, last, _f(d.get("vo2_ml_min")), _f(d.get("vco2_ml_min")), _f(d.get("ve_l_min")),
-                _f(d.get("rer")), _f(d.get("hr_bpm")), _f(d.get("watts")),
-                None if est is None else _i(est.get("index")), None if est is None else _i(est.get("breath")),
-                None if est is None else _f(est.get("mean_w")), None if est is None else _sd(est)))
+                fi, t, last, _f(r.vo2_ml_min), _f(r.vco2_ml_min), _f(r.ve_l_min), _f(r.rer), _f(r.hr_bpm),
+                _f(r.watts), None if est is None else est.index, None if est is None else est.breath,
+                None if est is None else _f(est.mean_w), None if est is None else _sd(est)))
         elif topic == Topic.ESTIMATOR:
-            k, b = _i(d.get("index")), _i(d.get("breath"))
-            mean = _f(d.get("mean_w"))
-            if k is None or b is None or mean is None:
+            k, b, mean = r.index, r.breath, _f(r.mean_w)
+            if mean is None:
                 continue
-            t = session_time(d.get("t_s"), last)
+            t = session_time(r.t_s, last)
             run = runs.get(k)
             if run is not None and (b == 0 or b != len(run.time_s)):
                 # A new run of the same index: the old one was abandoned (pause, cancel, crash).
                 scan.orphan_runs.append(run.trace(fi, completed=False))
                 run = None
             if run is None:
-                t_set = _f(d.get("t_setting_s")) or 0.0
-                run = runs[k] = _Run(k, str(d.get("phase", "")), t - t_set, [], [], [], [])
+                t_set = _f(r.t_setting_s) or 0.0
+                run = runs[k] = _Run(k, r.phase or "", t - t_set, [], [], [], [])
             run.time_s.append(t)
-            run.watts.append(_f(d.get("watts")) or math.nan)
+            run.watts.append(_f(r.watts) or math.nan)
             run.mean_w.append(mean)
-            run.sd_w.append(_sd(d) or math.nan)
+            run.sd_w.append(_sd(r) or math.nan)
         elif topic == Topic.STOPPING:
-            k, b, z = _i(d.get("index")), _i(d.get("breath")), _f(d.get("z"))
-            if k is None or b is None or z is None:
+            k, b, z = r.index, r.breath, _f(r.z)
+            if z is None:
                 continue
             zr = z_open.get(k)
             if zr is None or b == 0 or (zr and b != zr[-1][0] + 1):
                 zr = z_open[k] = []
-            zr.append((b, z, bool(d.get("stop")), str(d.get("reason", ""))))
+            zr.append((b, z, r.stop, r.reason))
         elif topic == Topic.OBSERVATIONS:
-            k = _i(d.get("index"))
-            if k is None:
-                continue
+            k = r.index
             run = runs.pop(k, None)
             trace = run.trace(fi, completed=True) if run is not None else None
             if trace is not None:
                 scan.traces.append(trace)
             if k in z_open:
                 scan.z_runs[k] = z_open.pop(k)
-            obs = dict(d)
             if trace is not None and trace.time_s:
-                obs["_t_start"], obs["_t_end"] = trace.t_start_s, trace.time_s[-1]
+                obs = _Observed(pos, r, trace.t_start_s, trace.time_s[-1])
             else:
                 # Only the logged times: session times of this file.
-                ts, te = _f(d.get("t_start")), _f(d.get("t_end"))
-                obs["_t_start"] = None if ts is None else offset + ts
-                obs["_t_end"] = None if te is None else offset + te
-            scan.observations.append((pos, obs, trace))
+                ts, te = _f(r.t_start), _f(r.t_end)
+                obs = _Observed(pos, r, None if ts is None else offset + ts,
+                                None if te is None else offset + te)
+            scan.observations.append(obs)
         elif topic == Topic.PROPOSALS:
-            k = _i(d.get("index"))
-            if k is not None and k in runs:
-                scan.orphan_runs.append(runs.pop(k).trace(fi, completed=False))
+            if r.index in runs:
+                scan.orphan_runs.append(runs.pop(r.index).trace(fi, completed=False))
         elif topic == Topic.EVENTS:
-            level = _LEVELS.get(_i(d.get("level")) or 0, "unknown")
-            scan.events.append(TimelineEvent(session_time(d.get("t_s"), last), fi, level,
-                                             str(d.get("kind", "event")), str(d.get("message", ""))))
+            scan.events.append(TimelineEvent(session_time(r.t_s, last), fi, _level_name(r.level), r.kind,
+                                             r.message))
         elif topic == Topic.ACKS:
-            if d.get("accepted") is False:
-                why = d.get("error") or d.get("reason") or "nack"
+            if not r.accepted:
+                why = r.error or r.reason or "nack"
                 scan.events.append(TimelineEvent(last, fi, "warning", "nack",
-                                                 f"profile version {d.get('version')} not accepted: {why}"))
+                                                 f"profile version {r.version} not accepted: {why}"))
         elif topic == Topic.DEVICE_STATUS:
-            act, faults = _i(d.get("actuator")), _i(d.get("faults"))
-            if act is None or faults is None:
-                continue
-            if faults != fault_state.get(act, 0):
-                names = d.get("fault_names") or []
-                what = ", ".join(map(str, names)) or hex(faults)
-                text = (f"actuator {act}: faults {what} (mode {d.get('mode')})" if faults
+            act, faults = r.actuator, r.faults
+            if faults != fault_state.get(act, 0) and not faults_as_events:
+                what = ", ".join(r.fault_names or []) or hex(faults)
+                text = (f"actuator {act}: faults {what} (mode {r.mode})" if faults
                         else f"actuator {act}: faults cleared")
                 scan.events.append(TimelineEvent(last, fi, "error" if faults else "info",
                                                  "fault" if faults else "fault_cleared", text))
             fault_state[act] = faults
         elif topic == Topic.REJECTS:
-            counts = d.get("counts")
-            if isinstance(counts, Mapping):
-                scan.rejects[str(d.get("source", "?"))] = {
-                    str(r): int(n) for r, n in counts.items() if _i(n) is not None}
+            scan.rejects[r.source] = dict(r.counts)
         elif topic == Topic.OPTIMIZER_STATE:
-            scan.snapshots.append(d)
+            scan.snapshots.append(r)
         elif topic == Topic.PROFILES_SENT:
-            scan.profiles.append((pos, d))
+            scan.profiles.append((pos, r))
         elif topic == Topic.FORCE_FEEDBACK:
-            scan.feedback.append((pos, d))
+            scan.feedback.append((pos, r))
     scan.orphan_runs.extend(r.trace(fi, completed=False) for r in runs.values())
     scan.end_s = max(last, max((b.time_s for b in scan.breaths), default=offset))
     return scan
 
 
-def _sd(d: Mapping[str, Any]) -> float | None:
-    sd = _f(d.get("sd_w"))
+def _level_name(level: int) -> str:
+    try:
+        return EventLevel(level).name.lower()
+    except ValueError:
+        return "unknown"
+
+
+def _sd(e: rec.Estimate) -> float | None:
+    sd = _f(e.sd_w)
     if sd is None:
-        var = _f(d.get("var_w2"))
+        var = _f(e.var_w2)
         sd = math.sqrt(var) if var is not None and var >= 0 else None
     return sd
 
 
-def _space_info(snapshot: Mapping[str, Any] | None, contents: LogContents
+def _space_info(snapshot: rec.OptimizerState | None, contents: LogContents
                 ) -> tuple[tuple[str, ...], dict[str, str], dict[str, tuple[float, float]]]:
-    space: Any = None
-    if snapshot is not None and isinstance(snapshot.get("state"), Mapping):
-        space = snapshot["state"].get("space")
+    # The parameter space is the optimizer's own JSON (ParameterSpace.to_json), or the config's.
+    space: Any = snapshot.state.get("space") if snapshot is not None else None
     if not isinstance(space, Mapping):
         cfg_space = (contents.config or {}).get("space")
         space = cfg_space.get("definition") if isinstance(cfg_space, Mapping) else None
@@ -689,7 +714,8 @@ def _space_info(snapshot: Mapping[str, Any] | None, contents: LogContents
                 if lo is not None and hi is not None:
                     bounds[n] = (lo, hi)
     if not names:
-        names = [str(n) for n in contents.session.get("param_names") or []]
+        cfg = c_cfg[0] if (c_cfg := contents.records(Topic.CONFIG)) else None
+        names = list(cfg.param_names) if cfg is not None else []
     return tuple(names), units, bounds
 
 
@@ -722,13 +748,21 @@ def load_session(paths: Sequence[str | os.PathLike[str]]) -> Session:
         scan = _scan_file(c, fi, offset)
         first = scan.breaths[0].time_s if scan.breaths else offset
         files.append(LogFile(c.path, c.session_id, c.previous_log, c.complete, c.size_bytes,
-                             c.unreadable_bytes, c.stop_reason, len(c.messages), offset, scan.end_s - first))
+                             c.unreadable_bytes, c.stop_reason, len(c.messages), offset, scan.end_s - first,
+                             c.damage_text()))
         scans.append(scan)
         if not c.complete:
             scan.events.append(TimelineEvent(
                 scan.end_s, fi, "error", "log_cut_off",
                 f"{Path(c.path).name} ends here: cut off, {c.unreadable_bytes:,} bytes unreadable "
                 f"({c.stop_reason})"))
+        if c.damaged:
+            # Damage inside the file (not a crash's cut-off tail): say where, and that what lies
+            # after it was read.
+            text = (f"{Path(c.path).name} is damaged inside: {c.damage_text()}; the messages after the "
+                    "damage were read, those inside it are lost")
+            scan.events.append(TimelineEvent(offset, fi, "error", "log_damaged", text))
+            notes.append(text)
         if fi > 0:
             scan.events.insert(0, TimelineEvent(offset, fi, "info", "resumed",
                                                 f"session resumed in {Path(c.path).name}"))
@@ -744,20 +778,16 @@ def load_session(paths: Sequence[str | os.PathLike[str]]) -> Session:
     evals: dict[int, EvaluationRow] = {}
     obs_pos: dict[int, tuple[int, int]] = {}
     for fi, scan in enumerate(scans):
-        for pos, d, _trace in scan.observations:
-            k = int(d["index"])
-            row = _eval_row(d, fi, d.get("_t_start"), d.get("_t_end"), "observation")
-            if row is None:
-                notes.append(f"{files[fi].path}: the /observations message of evaluation {k} is malformed; "
-                             "skipped")
-                continue
+        for obs in scan.observations:
+            k = obs.record.index
+            row = _eval_row(obs.record, fi, obs.t_start_s, obs.t_end_s, "observation")
             if k in evals:
                 if not math.isclose(evals[k].mean_w, row.mean_w, rel_tol=1e-9):
                     notes.append(f"evaluation {k} is logged twice with different estimates "
                                  f"({evals[k].mean_w:.1f} W and {row.mean_w:.1f} W); the first is shown")
                 continue
             evals[k] = row
-            obs_pos[k] = (fi, pos)
+            obs_pos[k] = (fi, obs.pos)
     snapshot, snap_file = None, None
     for fi in reversed(range(len(scans))):
         if scans[fi].snapshots:
@@ -765,21 +795,17 @@ def load_session(paths: Sequence[str | os.PathLike[str]]) -> Session:
             break
     # Evaluations only the optimizer knows (completed by a resume's replay, /observations lost).
     orphans = [t for s in scans for t in s.orphan_runs]
-    if snapshot is not None and isinstance(snapshot.get("state"), Mapping):
-        for d in snapshot["state"].get("evaluations") or []:
-            k = _i(d.get("index")) if isinstance(d, Mapping) else None
-            if k is None or k in evals:
-                continue
-            n = _i(d.get("breaths"))
-            match = next((t for t in reversed(orphans) if t.index == k and len(t.time_s) == n), None)
-            fi = match.file if match is not None else (snap_file or 0)
-            row = _eval_row(d, fi, match.t_start_s if match else None, match.time_s[-1] if match else None,
-                            "snapshot")
-            if row is not None:
-                evals[k] = row
-                if match is not None:
-                    orphans.remove(match)
-                    scans[match.file].traces.append(dataclasses.replace(match, completed=True))
+    for ev in _snapshot_evaluations(snapshot):
+        k = ev.index
+        if k in evals:
+            continue
+        match = next((t for t in reversed(orphans) if t.index == k and len(t.time_s) == ev.breaths), None)
+        fi = match.file if match is not None else (snap_file or 0)
+        evals[k] = _eval_row(ev, fi, match.t_start_s if match else None,
+                             match.time_s[-1] if match else None, "snapshot")
+        if match is not None:
+            orphans.remove(match)
+            scans[match.file].traces.append(dataclasses.replace(match, completed=True))
     evaluations = tuple(evals[k] for k in sorted(evals))
     if [e.index for e in evaluations] != list(range(len(evaluations))):
         missing = sorted(set(range(max(evals) + 1)) - set(evals)) if evals else []
@@ -818,16 +844,12 @@ def load_session(paths: Sequence[str | os.PathLike[str]]) -> Session:
     )
 
 
-def _eval_row(d: Mapping[str, Any], fi: int, t_start: Any, t_end: Any, source: str) -> EvaluationRow | None:
-    try:
-        params = {str(k): float(v) for k, v in d["params"].items()}
-        return EvaluationRow(
-            index=int(d["index"]), params=params, mean_w=float(d["mean"]), var_w2=float(d["var"]),
-            breaths=int(d["breaths"]), duration_s=float(d.get("duration_s", math.nan)),
-            phase=str(d.get("phase", "")), stopped_early=bool(d.get("stopped_early", False)),
-            reason=str(d.get("reason", "")), t_start_s=_f(t_start), t_end_s=_f(t_end), file=fi, source=source)
-    except (KeyError, TypeError, ValueError, AttributeError):
-        return None
+def _eval_row(e: rec.Evaluation, fi: int, t_start: float | None, t_end: float | None,
+              source: str) -> EvaluationRow:
+    return EvaluationRow(
+        index=e.index, params=dict(e.params), mean_w=e.mean, var_w2=e.var, breaths=e.breaths,
+        duration_s=e.duration_s, phase=e.phase, stopped_early=e.stopped_early, reason=e.reason,
+        t_start_s=_f(t_start), t_end_s=_f(t_end), file=fi, source=source)
 
 
 def _standardise(m: np.ndarray, s: np.ndarray) -> np.ndarray:
@@ -836,7 +858,8 @@ def _standardise(m: np.ndarray, s: np.ndarray) -> np.ndarray:
 
 def _thresholds(scans: list[_FileScan], traces: Sequence[EstimateTrace],
                 evaluations: Sequence[EvaluationRow], config: Mapping[str, Any],
-                snapshot: Mapping[str, Any] | None, z_runs: Mapping[int, list[tuple[int, float, bool, str]]],
+                snapshot: rec.OptimizerState | None,
+                z_runs: Mapping[int, list[tuple[int, float, bool, str]]],
                 notes: list[str]) -> ThresholdData | None:
     by_index = {e.index: e for e in evaluations}
     z_traces = tuple(
@@ -846,9 +869,9 @@ def _thresholds(scans: list[_FileScan], traces: Sequence[EstimateTrace],
         for k, rows in sorted(z_runs.items()) if rows)
     snaps = [s for scan in scans for s in scan.snapshots]
     for snap in snaps:
-        a = snap.get("thresholds")
-        state = snap.get("state") if isinstance(snap.get("state"), Mapping) else {}
-        if isinstance(a, list) and a:
+        a = snap.thresholds
+        state = snap.state  # the optimizer's own JSON (HILOptimizer.to_json)
+        if a:
             try:
                 thr = np.asarray(a, dtype=float)
                 m = np.asarray(state.get("traces_m"), dtype=float)
@@ -863,8 +886,7 @@ def _thresholds(scans: list[_FileScan], traces: Sequence[EstimateTrace],
     from hilbo_core.errors import HilboError
     from hilbo_core.stopping import threshold_schedule
 
-    state = snapshot.get("state") if snapshot is not None else None
-    state_cfg = state.get("config") if isinstance(state, Mapping) else None
+    state_cfg = snapshot.state.get("config") if snapshot is not None else None
     state_cfg = state_cfg if isinstance(state_cfg, Mapping) else {}
     proto = config.get("protocol") if isinstance(config.get("protocol"), Mapping) else {}
     n = _i(state_cfg.get("max_breaths")) or _i(proto.get("max_breaths"))
@@ -888,7 +910,7 @@ def _thresholds(scans: list[_FileScan], traces: Sequence[EstimateTrace],
                          "exploration evaluations", z_traces)
 
 
-def _recommend(contents: Sequence[LogContents], snapshot: Mapping[str, Any] | None,
+def _recommend(contents: Sequence[LogContents], snapshot: rec.OptimizerState | None,
                evaluations: Sequence[EvaluationRow], notes: list[str]) -> Recommendation | None:
     if not evaluations:
         return None
@@ -897,10 +919,9 @@ def _recommend(contents: Sequence[LogContents], snapshot: Mapping[str, Any] | No
 
     opt = None
     method = ""
-    snap_evals = (snapshot.get("state") or {}).get("evaluations") if snapshot is not None else None
-    if snapshot is not None and len(snap_evals or []) == len(evaluations):
+    if snapshot is not None and len(_snapshot_evaluations(snapshot)) == len(evaluations):
         try:
-            opt = HILOptimizer.from_json(snapshot["state"])
+            opt = HILOptimizer.from_json(snapshot.state)
             method = "HILOptimizer.best() of the last optimizer snapshot (the GP's estimated minimum among " \
                      "the evaluated settings, with that evaluation's own estimate)"
         except (HilboError, KeyError, TypeError, ValueError) as err:
@@ -937,41 +958,36 @@ def _same_params(a: Mapping[str, float], b: Mapping[str, float]) -> bool:
 
 
 def _feedback(scan: _FileScan, index: int, obs_pos: int, notes: list[str]) -> FeedbackData | None:
-    sent = [(pos, d) for pos, d in scan.profiles if _i(d.get("index")) == index and pos < obs_pos]
+    sent = [(pos, r) for pos, r in scan.profiles if r.index == index and pos < obs_pos]
     if not sent:
         notes.append(f"no force feedback plot: no /profiles_sent message for evaluation {index}")
         return None
     pos0, prof = sent[-1]
-    version = _i(prof.get("version"))
+    version = prof.version
     samples: dict[int, tuple[list[float], list[float], list[float]]] = {}
-    for pos, d in scan.feedback:
+    for pos, fb in scan.feedback:
         # Every batch stamped with this version, also those logged after the observation: a
         # setting stopped after a breath or two may end before its first batch is written (at
         # `hilbo sim` speed always). Samples of another table are filtered out below.
-        if pos <= pos0 or _i(d.get("profile_version")) != version:
+        if pos <= pos0 or fb.profile_version != version:
             continue
-        act = _i(d.get("actuator"))
-        des, mea, gait = d.get("desired_n"), d.get("measured_n"), d.get("gait_phase_pct")
-        if act is None or not (isinstance(des, list) and isinstance(mea, list) and isinstance(gait, list)) \
-                or not len(des) == len(mea) == len(gait):
+        gait = fb.gait_phase_pct
+        if gait is None or not len(fb.desired_n) == len(fb.measured_n) == len(gait):
             continue
-        acc = samples.setdefault(act, ([], [], []))
-        for g, de, me in zip(gait, des, mea, strict=True):
+        acc = samples.setdefault(fb.actuator, ([], [], []))
+        for g, de, me in zip(gait, fb.desired_n, fb.measured_n, strict=True):
             if _f(g) is not None and g >= 0 and _f(de) is not None and _f(me) is not None:
-                acc[0].append(float(g))
-                acc[1].append(float(de))
-                acc[2].append(float(me))
+                acc[0].append(g)
+                acc[1].append(de)
+                acc[2].append(me)
     tables: dict[int, tuple[str, np.ndarray, np.ndarray]] = {}
-    profiles = [p for p in prof.get("profiles") or [] if isinstance(p, Mapping)]
+    profiles = prof.profiles
     for act in samples:
         # One table per actuator, or one table every actuator executes (the hip suit's two legs).
         p = profiles[act] if len(profiles) > max(act, 1) else (profiles[0] if profiles else None)
         if p is not None:
-            try:
-                tables[act] = (str(p.get("actuator", "")), np.asarray(p["gait_pct"], dtype=float),
-                               np.asarray(p["force_n"], dtype=float))
-            except (KeyError, TypeError, ValueError):
-                pass
+            tables[act] = (p.actuator, np.asarray(p.gait_pct, dtype=float),
+                           np.asarray(p.force_n, dtype=float))
     arrays: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
     excluded = 0
     for act, (g_list, d_list, m_list) in sorted(samples.items()):
@@ -994,7 +1010,7 @@ def _feedback(scan: _FileScan, index: int, obs_pos: int, notes: list[str]) -> Fe
         notes.append(f"force tracking: {excluded} feedback samples of the recommended setting's batches "
                      "were left out: their desired force is not the table sent (the old profile, before "
                      "the switch at the gait-cycle boundary)")
-    return FeedbackData(index, int(version or 0), arrays, tables)
+    return FeedbackData(index, version, arrays, tables)
 
 
 # ---------------------------------------------------------------------------------- outputs
@@ -1098,10 +1114,15 @@ def add_review_parser(subparsers: Any) -> argparse.ArgumentParser:
 def _cmd_review(args: argparse.Namespace) -> int:
     if args.compare:
         if len(args.logs) != 2:
-            raise ReviewError(f"--compare takes exactly two logs (A.mcap B.mcap), got {len(args.logs)}")
+            raise UsageError(f"--compare takes exactly two logs (A.mcap B.mcap), got {len(args.logs)}")
         files = compare_sessions(args.logs[0], args.logs[1], args.out).files
     else:
-        files = review_session(args.logs, args.out).files
+        result = review_session(args.logs, args.out)
+        files = result.files
     for path in files:
         print(path)  # noqa: T201 (CLI output: one line per file written)
-    return 0
+    damaged = [f for f in result.session.files if f.damage] if not args.compare else []
+    for f in damaged:
+        sys.stderr.write(f"hilbo review: warning: {f.path} is damaged inside the file: {f.damage}; what lies "
+                         "after the damage was read and reviewed, the report lists the damage\n")
+    return _EXIT_DAMAGED if damaged else 0

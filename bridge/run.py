@@ -20,9 +20,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from rich.console import Console
+
 from bridge.config import HilboConfig
 from bridge.live import LiveServer
-from bridge.log import SessionLog, new_session_id
+from bridge.log import DEFAULT_FILE_MODE, SessionLog, new_session_id
 from bridge.operator_view import run_operator_view
 from bridge.resume import rebuild_optimizer
 from bridge.runtime import BridgeSession, Command, RuntimeSettings
@@ -50,7 +52,8 @@ def runtime_settings(cfg: HilboConfig, *, auto_resume_s: float | None = None,
     return RuntimeSettings(
         warmup_s=cfg.protocol.warmup_s,
         pause_between_bouts=cfg.protocol.pause_between_bouts,
-        auto_resume_s=auto_resume_s,
+        auto_resume_s=cfg.watchdog.auto_resume_s if auto_resume_s is None else auto_resume_s,
+        max_auto_resumes=cfg.watchdog.max_auto_resumes,
         device_timeout_s=cfg.watchdog.device_heartbeat_timeout_ms / 1000.0,
         cart_timeout_s=cfg.watchdog.cart_data_timeout_s,
         push_timeout_s=cfg.can.push_timeout_ms / 1000.0,
@@ -64,10 +67,27 @@ def runtime_settings(cfg: HilboConfig, *, auto_resume_s: float | None = None,
     )
 
 
-def write_json_atomic(path: Path, data: Any) -> None:
-    """Write JSON so a reader never sees half a file (temporary file, then rename)."""
+def _headless_line(session: BridgeSession) -> Callable[[str], None]:
+    """A printer of the session's event lines on stderr, with the session's breath time and
+    state, for runs without the live view."""
+    console = Console(stderr=True, highlight=False, soft_wrap=True)
+
+    def line(text: str) -> None:
+        st = session.status
+        console.print(f"[{st.breath_time_s / 60:6.1f} min | {st.state}] {text}", markup=False)
+    return line
+
+
+def write_json_atomic(path: Path, data: Any, *, mode: int = DEFAULT_FILE_MODE) -> None:
+    """Write JSON so a reader never sees half a file (temporary file, then rename).
+
+    The file gets permission bits ``mode`` (default 0o600: a summary holds health data).
+    """
     tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2) + "\n")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)
+    with os.fdopen(fd, "w") as f:
+        os.fchmod(f.fileno(), mode)
+        f.write(json.dumps(data, indent=2) + "\n")
     os.replace(tmp, path)
 
 
@@ -101,8 +121,9 @@ async def run_session(
         resume: A previous session's log (possibly cut off by a crash) to continue.
         out_dir: Overrides ``[session] out_dir``.
         log_path: Exact log path (else ``OUT_DIR/<subject>_<time>.mcap``).
-        auto_resume_s: End the pause between the bouts by itself after this long (wall s;
-            simulations, and ``hilbo run --auto-resume`` without a keyboard).
+        auto_resume_s: The resume policy (``[watchdog] auto_resume_s``, which this overrides):
+            end a pause the operator did not ask for after this long of a healthy device and
+            cart (wall s; simulations, and ``hilbo run --auto-resume`` without a keyboard).
         operator_view: Show the live terminal view (when stderr is a terminal).
         n_actuators: Actuators whose heartbeat the watchdog requires.
         on_session: Called with the session before it runs (tests, simulation wiring).
@@ -132,7 +153,8 @@ async def run_session(
     async with CanEndpoint(cfg.can.bus) as endpoint, stream:
         with live or contextlib.nullcontext(), \
                 SessionLog(path, session_id=session_id, config_json=cfg.to_json(),
-                           previous_log=previous, param_names=space.names, live=live) as log:
+                           previous_log=previous, param_names=space.names,
+                           file_mode=cfg.session.file_mode_bits, live=live) as log:
             if resume is not None:
                 log.log_optimizer_state(opt, reason="resume")
             elif cfg.prior.priors:
@@ -150,6 +172,9 @@ async def run_session(
                     installed.append(sig)
             view = asyncio.create_task(run_operator_view(session), name="operator-view") \
                 if operator_view else None
+            if not operator_view:
+                # Headless (issue 15): one line per evaluation and per pause, resume or refusal.
+                session.status.listeners.append(_headless_line(session))
             try:
                 summary = await session.run()
             finally:
@@ -161,5 +186,5 @@ async def run_session(
                         await view
     summary.update(session_id=session_id, log=str(path), previous_log=previous,
                    config_source=str(cfg.source))
-    write_json_atomic(summary_path, summary)
+    write_json_atomic(summary_path, summary, mode=cfg.session.file_mode_bits)
     return RunResult(path, summary_path, summary)

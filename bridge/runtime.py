@@ -37,15 +37,21 @@ from bridge.collector import Collector, GcMode
 from bridge.errors import UnsafeProfileError
 from bridge.log import LogError, SessionLog
 from bridge.proposals import ProposalWorker, WorkerKind
-from drivers.errors import DriverError, ProfilePushError
+from bridge.safety import AdmittedProfile
+from bridge.supervisor import PushRefused, Supervisor
+from drivers.errors import DriverError, ProfilePushAborted, ProfilePushError
 from drivers.exosuit import (
+    CLEARABLE_FAULTS,
     DEFAULT_PACE_S,
     AssistanceOffReason,
-    BridgeState,
     CanEndpoint,
+    DeviceFault,
     DeviceMode,
     DeviceStatus,
     ForceFeedback,
+    describe_faults,
+    fault_names,
+    pack_tables,
 )
 from hilbo_core import HILOptimizer, HyperparameterFit, brockway_watts
 from hilbo_core.optimizer import Phase
@@ -65,10 +71,10 @@ logger = logging.getLogger(__name__)
 class ProfileGate(Protocol):
     """What the session needs from the safety layer (bridge.safety.SafeProfileGate)."""
 
-    def admit(self, params: dict[str, float]) -> Any:
+    def admit(self, params: dict[str, float]) -> AdmittedProfile:
         """Build and check the profiles of ``params``; raise when anything is out of limits."""
 
-    def acknowledge(self, admitted: Any) -> None:
+    def acknowledge(self, admitted: AdmittedProfile) -> None:
         """Record that the device acknowledged ``admitted`` (the reference for rate limits)."""
 
     def assistance_off(self) -> None:
@@ -94,9 +100,14 @@ class RuntimeSettings:
     Attributes:
         warmup_s: Walking without assistance at the start of each bout (breath time, s).
         pause_between_bouts: Pause after exploration until the operator resumes.
-        auto_resume_s: End the pause between the bouts by itself after this long (wall s):
-            simulations, and headless runs (``hilbo run --auto-resume S``).
+        auto_resume_s: The resume policy of headless runs: a pause the operator did not ask
+            for ends once the device and the cart have been healthy this long (wall s;
+            simulations, ``hilbo run --auto-resume S``, ``[watchdog] auto_resume_s``); None:
+            only the operator resumes.
+        max_auto_resumes: Automatic resumes per session at most; the next pause that would
+            need one stops the session (a headless run never waits for nobody).
         device_timeout_s: Device status silence that triggers assistance-off (wall s).
+        watchdog_period_s: How often the watchdog looks at the device and the cart (wall s).
         cart_timeout_s: Breath silence after which estimation pauses (wall s).
         apply_timeout_s: How long to wait for the device to report a pushed profile active.
         push_timeout_s, push_retries, pace_s: Profile push (see CanEndpoint.push_profile).
@@ -111,7 +122,9 @@ class RuntimeSettings:
     warmup_s: float = 180.0
     pause_between_bouts: bool = True
     auto_resume_s: float | None = None
+    max_auto_resumes: int = 10
     device_timeout_s: float = 0.25
+    watchdog_period_s: float = 0.01
     cart_timeout_s: float = 20.0
     apply_timeout_s: float = 5.0
     push_timeout_s: float = 0.25
@@ -145,6 +158,14 @@ class DeviceView:
             return None
         return versions.pop()
 
+    def faults(self, n_actuators: int) -> DeviceFault:
+        """The faults any actuator reports now (the union of their last statuses)."""
+        out = DeviceFault(0)
+        for a, st in self.status.items():
+            if a < n_actuators:
+                out |= DeviceFault(int(st.faults))
+        return out
+
     def silent_for(self, now: float, n_actuators: int) -> float:
         """Seconds since the stalest actuator's last status (inf before any)."""
         if len(self.last_status_wall) < n_actuators:
@@ -154,9 +175,14 @@ class DeviceView:
 
 @dataclass
 class SessionStatus:
-    """A snapshot for the operator view (written by the main task, read by the display)."""
+    """A snapshot for the operator view (written by the main task, read by the display).
 
-    state: str = "starting"
+    ``state`` is not stored: it is the supervisor's (the one owner of pause/stop/assist).
+    """
+
+    supervisor: Supervisor | None = field(default=None, repr=False)
+    #: Called with every event line as it happens (``hilbo run --no-view`` prints them).
+    listeners: list[Callable[[str], None]] = field(default_factory=list, repr=False)
     bout: str = "warm-up"
     evaluation: int = 0
     params: dict[str, float] | None = None
@@ -177,14 +203,26 @@ class SessionStatus:
     device_faults: dict[int, int] = field(default_factory=dict)  # actuator -> DeviceFault bits
     t_end_unix_s: float | None = None  # expected end of the session, wall clock (Unix s)
 
+    @property
+    def state(self) -> str:
+        """The supervision state line ("starting", "running", "paused: why", "stopped")."""
+        return "starting" if self.supervisor is None else self.supervisor.describe()
+
     def event(self, text: str) -> None:
         """Remember a recent event for the display."""
         self.events.append(text)
         del self.events[:-6]
+        for listener in self.listeners:
+            listener(text)
 
 
 class _Paused(Exception):
     """Raised inside the measurement loop when the session pauses (internal control flow)."""
+
+
+class _Remeasure(Exception):
+    """Raised inside the measurement loop when the cart's clock was re-anchored (a cart restart
+    or a time jump): the breaths of the setting being measured are not one series any more."""
 
 
 class _Stopped(Exception):
@@ -200,6 +238,8 @@ class _Breaths:
     last_t: float | None = None
     count: int = 0
     ended: bool = False
+    #: The validator's re-anchors seen so far (drivers/cart/validate.py, BreathValidator.reanchors).
+    reanchors: int = 0
 
 
 class BridgeSession:
@@ -234,14 +274,14 @@ class BridgeSession:
         self.settings = settings or RuntimeSettings()
         self._clock = clock
         self.device = DeviceView()
-        self.status = SessionStatus()
+        #: The one owner of pause, stop, assistance, the heartbeat's state and the gate's
+        #: baseline (bridge/supervisor.py); every other task asks it.
+        self.supervisor = Supervisor(endpoint, gate, on_event=self._event, health=self._health)
+        self.status = SessionStatus(supervisor=self.supervisor)
         self._breaths = _Breaths()
         self._commands: asyncio.Queue[Command] = asyncio.Queue()
-        self._paused = asyncio.Event()
-        self._stop = asyncio.Event()
-        self._pause_reason = ""
         self._version = 0
-        self._assist_on = False
+        self._auto_resumes = 0
         # Wall time from the decision to change the setting to the device's ack of the commit:
         # every push (the first of a bout counts from the end of its warm-up) and the pushes that
         # follow a stop decision (issue 6: stop decision -> new profile committed on the bus).
@@ -285,8 +325,9 @@ class BridgeSession:
         except* _Stopped:
             pass
         finally:
-            await self._safe_off(AssistanceOffReason.OPERATOR_STOP if self._stop.is_set()
-                                 else AssistanceOffReason.SESSION_END, "session end")
+            await self.supervisor.assistance_off(
+                AssistanceOffReason.OPERATOR_STOP if self.supervisor.stopped
+                else AssistanceOffReason.SESSION_END, "session end")
             self._log_counters()
             self.log.log_event("gc", f"garbage collection ({self.collector.mode.value})",
                                mode=self.collector.mode.value, **self.collector.stats.to_json())
@@ -305,6 +346,7 @@ class BridgeSession:
                     tg.create_task(self._watchdog_task(), name="watchdog"),
                     tg.create_task(self._command_task(), name="commands"),
                     tg.create_task(self._bus_failure_task(), name="bus-failure"),
+                    tg.create_task(self._resume_policy_task(), name="resume-policy"),
                 ]
                 self.endpoint.start_heartbeat(self.settings.heartbeat_period_s)
                 try:
@@ -337,25 +379,26 @@ class BridgeSession:
         await self._warm_up("exploration" if self.opt.phase is Phase.EXPLORATION else "optimization")
         bout_paused = self.opt.phase is not Phase.EXPLORATION
         while not self.opt.done:
-            if self._stop.is_set():
+            if self.supervisor.stopped:
                 raise _Stopped
             if not bout_paused and self.opt.phase is Phase.OPTIMIZATION:
                 bout_paused = True
                 if s.pause_between_bouts:
                     await self._bout_pause()
                     await self._warm_up("optimization")
-            if self._paused.is_set():
+            if self.supervisor.paused:
                 await self._wait_resumed()
                 await self._warm_up(self.status.bout)
                 continue
             try:
                 await self._evaluate_one()
-            except _Paused:
+            except (_Paused, _Remeasure) as err:
+                why = (f"the pause ({self.supervisor.pause_reason})" if isinstance(err, _Paused)
+                       else "the cart's clock re-anchoring")
                 dropped = self.opt.cancel_current()
                 if dropped is not None:
                     self.log.log_optimizer_state(self.opt, reason="cancel")
-                    self._event("evaluation_cancelled",
-                                f"setting abandoned by the pause ({self._pause_reason}); it is re-measured")
+                    self._event("evaluation_cancelled", f"setting abandoned by {why}; it is re-measured")
         self._event("budget_spent", "optimisation budget spent")
 
     async def _evaluate_one(self) -> None:
@@ -396,16 +439,12 @@ class BridgeSession:
             self.log.log_event("unsafe_proposal", str(err), verdict=err.verdict.to_json(), params=params)
             self.status.event(f"proposal rejected by the limits: {err}")
             if self.gate.rejections_exhausted:
-                await self._pause(AssistanceOffReason.LIMIT_VIOLATION,
+                await self.supervisor.pause(AssistanceOffReason.LIMIT_VIOLATION,
                                   "too many proposals rejected by the safety limits; check [limits] "
                                   "against [space]")
             return
-        table = np.concatenate([p.force_n for p in admitted.profiles])
         self._version = self._version % 255 + 1
-        # The device assists only while the bridge heartbeat says "running" (PROTOCOL.md);
-        # assistance-off switches it to "paused".
-        self.endpoint.bridge_state = BridgeState.RUNNING
-        await self._push(table, self._version, admitted, index, log_first=log_proposal)
+        await self._push(admitted, self._version, index, log_first=log_proposal)
         latency = self._clock() - t_decided
         self.latencies_s.append(latency)
         if t_stop is not None:
@@ -419,8 +458,11 @@ class BridgeSession:
         t0_session = self._session_time(t0)
         self.status.evaluation, self.status.params = index + 1, params
         self.status.breaths_in_setting, self.status.mean_w, self.status.sd_w = 0, None, None
+        reanchors = self._breaths.reanchors
         while True:
             rec = await self._next_breath()
+            if self._breaths.reanchors != reanchors:
+                raise _Remeasure
             t = rec.t_s - t0
             if t <= 0:
                 continue  # a breath that arrived before the switch: it belongs to the old setting
@@ -494,17 +536,34 @@ class BridgeSession:
         await self._collect_fit_ahead()
         return self._worker.start_ask(self.opt)
 
-    async def _push(self, table: np.ndarray, version: int, admitted: Any, index: int, *,
+    async def _push(self, admitted: AdmittedProfile, version: int, index: int, *,
                     log_first: Callable[[], None] | None = None) -> None:
-        """Push ``table`` (already admitted by the gate) and wait for the device's ack.
+        """Push what the gate admitted and wait for the device's ack, with the supervisor's leave.
 
-        The proposal (``log_first``) and the profile are logged while the paced segments go out:
-        the first segment is on the bus before the logging starts, and the logging (a few ms of
-        JSON) fits in the gaps between segments instead of delaying the first one.
+        The supervisor is asked before the push, before its first segment and before every
+        commit (bridge/supervisor.py): a pause that arrives during the push aborts it (no commit)
+        and the pause's assistance-off is already on its way. The proposal (``log_first``) and
+        the profile are logged while the paced segments go out: the first segment is on the bus
+        before the logging starts, and the logging (a few ms of JSON) fits in the gaps between
+        segments instead of delaying the first one.
+
+        Raises:
+            _Paused: A pause overtook the push, or the push failed (the session then pauses).
         """
         s = self.settings
+        # A fault the device latched while nothing assisted (before the session's first
+        # heartbeat, during a warm-up) would make it refuse the commit (busy).
+        await self._clear_device_faults()
+        try:
+            ticket = self.supervisor.begin_push(admitted, version)
+        except PushRefused as err:
+            if log_first is not None:
+                log_first()
+            raise _Paused from err
+        table = pack_tables([p.force_n for p in admitted.profiles])
         push = asyncio.ensure_future(self.endpoint.push_profile(
-            table, version, timeout_s=s.push_timeout_s, retries=s.push_retries, pace_s=s.pace_s))
+            table, version, timeout_s=s.push_timeout_s, retries=s.push_retries, pace_s=s.pace_s,
+            permit=lambda stage: self.supervisor.permit(ticket, stage)))
         await asyncio.sleep(0)  # lets the push send its first segment
         try:
             if log_first is not None:
@@ -518,23 +577,30 @@ class BridgeSession:
             raise
         try:
             result = await push
+        except ProfilePushAborted as err:
+            self._event("push_aborted", f"{err} ({self.supervisor.describe()})")
+            raise _Paused from err
         except ProfilePushError as err:
             reason = getattr(err, "reason", "none")
             self.log.log_ack(version=version, accepted=False, reason=reason, error=str(err))
-            await self._pause(AssistanceOffReason.INTERNAL_ERROR, f"profile push failed: {err}")
+            await self.supervisor.pause(AssistanceOffReason.INTERNAL_ERROR, f"profile push failed: {err}")
             raise _Paused from err
-        self.gate.acknowledge(admitted)
-        self._assist_on = True
+        if not self.supervisor.acknowledged(ticket):
+            # Committed before the pause, acked after it: the pause's assistance-off followed
+            # the commit on the bus and the heartbeat says "paused"; the device stays off.
+            self._event("ack_overtaken", f"profile v{version} acknowledged after the pause; "
+                        "the device stays off")
+            raise _Paused
         self.log.log_ack(version=version, accepted=True, attempts=result.attempts,
                          elapsed_s=result.elapsed_s, crc32=result.crc32)
 
     async def _wait_applied(self, version: int) -> None:
         deadline = self._clock() + self.settings.apply_timeout_s
         while self.device.active_version(self.settings.n_actuators) != version:
-            if self._paused.is_set():
+            if self.supervisor.paused:
                 raise _Paused
             if self._clock() > deadline:
-                await self._pause(AssistanceOffReason.INTERNAL_ERROR,
+                await self.supervisor.pause(AssistanceOffReason.INTERNAL_ERROR,
                                   f"profile v{version} acknowledged but not active after "
                                   f"{self.settings.apply_timeout_s:g} s")
                 raise _Paused
@@ -543,9 +609,12 @@ class BridgeSession:
     async def _next_breath(self) -> BreathRecord:
         """The next breath, raising _Paused if the session pauses while waiting."""
         getter = asyncio.ensure_future(self._breaths.queue.get())
-        pauser = asyncio.ensure_future(self._paused.wait())
+        pauser = asyncio.ensure_future(self.supervisor.wait_paused())
         try:
             done, _ = await asyncio.wait({getter, pauser}, return_when=asyncio.FIRST_COMPLETED)
+        except BaseException:
+            getter.cancel()  # cancelled (the session ends): no task left waiting on the queue
+            raise
         finally:
             pauser.cancel()
         if getter in done:
@@ -557,7 +626,7 @@ class BridgeSession:
         """Walk without assistance for warmup_s of breath time; breaths are logged, not used."""
         self._t_stop = None  # the next push answers the warm-up's end, not a stop decision
         self.status.bout = f"warm-up ({bout})"
-        await self._safe_off(AssistanceOffReason.SESSION_END, "warm-up")
+        await self.supervisor.assistance_off(AssistanceOffReason.SESSION_END, "warm-up")
         start: float | None = None
         while self.settings.warmup_s > 0:
             try:
@@ -573,16 +642,15 @@ class BridgeSession:
 
     async def _bout_pause(self) -> None:
         self._event("bout_pause", "exploration bout complete; pausing until the operator resumes")
-        await self._pause(AssistanceOffReason.SESSION_END, "between bouts")
-        self.collector.full()  # assistance is off: the one moment a whole-heap walk is free
-        s = self.settings
-        if s.auto_resume_s is not None:
-            asyncio.get_running_loop().call_later(s.auto_resume_s, self.command, Command.RESUME)
+        await self.supervisor.pause(AssistanceOffReason.SESSION_END, "between bouts")
+        # Not a full collection (113-176 ms measured, issue 15): the device's 100 ms heartbeat
+        # watchdog would latch heartbeat_lost. What was allocated since the last freeze only.
+        self.collector.quiet_point()
         await self._wait_resumed()
 
     async def _wait_resumed(self) -> None:
-        while self._paused.is_set():
-            if self._stop.is_set():
+        while self.supervisor.paused:
+            if self.supervisor.stopped:
                 raise _Stopped
             # Breaths during a pause are drained and logged but count against nothing.
             # asyncio.timeout, not wait_for: Python 3.11's wait_for swallows a cancellation
@@ -591,32 +659,18 @@ class BridgeSession:
                 async with asyncio.timeout(0.05):
                     await self._breaths.queue.get()
 
-    # ------------------------------------------------------------------ safety
-    async def _pause(self, reason: AssistanceOffReason, text: str) -> None:
-        if not self._paused.is_set():
-            self._pause_reason = text
-            self._paused.set()
-            self.status.state = f"paused: {text}"
-            self._event("pause", text)
-        await self._safe_off(reason, text)
-
-    async def _safe_off(self, reason: AssistanceOffReason, text: str) -> None:
-        """Command assistance-off now (idempotent per state change; failures are logged)."""
-        try:
-            await self.endpoint.send_assistance_off(reason)
-        except DriverError as err:
-            logger.exception("assistance-off could not be sent (%s)", text)
-            self._event("assistance_off_failed", f"{text}: {err}")
-            return
-        self.gate.assistance_off()
-        if self._assist_on:
-            self._event("assistance_off", f"assistance off: {text}")
-        self._assist_on = False
-
     # ------------------------------------------------------------------ background tasks
     async def _cart_task(self) -> None:
         b = self._breaths
+        validator = getattr(self._stream, "validator", None)
         async for rec in self._stream:
+            if validator is not None and validator.reanchors != b.reanchors:
+                b.reanchors = validator.reanchors
+                ra = validator.last_reanchor
+                self._event("cart_reanchor",
+                            f"cart clock {ra.kind.value} (cart t = {ra.raw_t_s:.1f} s -> session "
+                            f"t = {ra.t_s:.1f} s, {ra.dropped} breaths dropped): the setting being "
+                            "measured starts again")
             b.last_wall, b.last_t = self._clock(), rec.t_s
             b.count += 1
             if self._t_session0 is None:
@@ -627,7 +681,6 @@ class BridgeSession:
             b.queue.put_nowait(rec)
         b.ended = True
         self._event("cart_ended", "the cart stream ended")
-        self._stop.set()
         self._commands.put_nowait(Command.STOP)
 
     async def _status_task(self) -> None:
@@ -698,7 +751,7 @@ class BridgeSession:
         started = self._clock()
         next_counts = started + 5.0
         while True:
-            await asyncio.sleep(0.01)
+            await asyncio.sleep(s.watchdog_period_s)
             now = self._clock()
             if now >= next_counts:
                 next_counts = now + 5.0
@@ -707,18 +760,60 @@ class BridgeSession:
             if silent > s.device_timeout_s and now - started > s.device_timeout_s:
                 healthy = self.status.device == "ok"
                 self.status.device = "LOST"
-                if healthy or not self._paused.is_set():
-                    await self._pause(AssistanceOffReason.DEVICE_HEARTBEAT_LOST,
+                if healthy or not self.supervisor.paused:
+                    await self.supervisor.pause(AssistanceOffReason.DEVICE_HEARTBEAT_LOST,
                                       f"device heartbeat lost for {silent * 1e3:.0f} ms")
             elif silent <= s.device_timeout_s:
-                faults = [int(st.faults) for st in self.device.status.values() if int(st.faults)]
-                self.status.device = "ok" if not faults else f"faults {faults}"
+                faults = self.device.faults(s.n_actuators)
+                self.status.device = "ok" if not faults else \
+                    "faults: " + "; ".join(describe_faults(faults))
+                if faults and self.supervisor.assisting:
+                    # The device latched a fault (its own heartbeat watchdog, a limit) while it
+                    # assisted: it is slack, so the setting being measured is not what the wearer
+                    # feels. Pause; the resume clears what a request may clear (_resume). A fault
+                    # while nothing assists (a warm-up, the start) is cleared before the next push.
+                    await self.supervisor.pause(
+                        AssistanceOffReason.DEVICE_HEARTBEAT_LOST if faults & DeviceFault.HEARTBEAT_LOST
+                        else AssistanceOffReason.INTERNAL_ERROR,
+                        f"device faults: {', '.join(fault_names(faults))}")
             b = self._breaths
             if b.last_wall is not None and now - b.last_wall > s.cart_timeout_s:
                 if self.status.cart == "ok":
                     self.status.cart = "SILENT"
-                    await self._pause(AssistanceOffReason.INTERNAL_ERROR,
-                                      f"no breath for {now - b.last_wall:.0f} s")
+                    await self.supervisor.pause(AssistanceOffReason.INTERNAL_ERROR,
+                                                f"no breath for {now - b.last_wall:.0f} s")
+
+    async def _resume_policy_task(self) -> None:
+        """Headless runs: end a pause the operator did not ask for once the device and the cart
+        have been healthy for ``auto_resume_s``, at most ``max_auto_resumes`` times; then stop
+        (issue 15 part 2: ``hilbo sim`` waited forever for an ``r`` that never came)."""
+        s, sup = self.settings, self.supervisor
+        if s.auto_resume_s is None:
+            return
+        while not sup.stopped:
+            await sup.wait_paused()
+            healthy_since: float | None = None
+            while sup.paused and not sup.stopped:
+                if not sup.by_operator:
+                    now = self._clock()
+                    if self._health(clearable_ok=True) is not None:
+                        healthy_since = None
+                    elif healthy_since is None:
+                        healthy_since = now
+                    elif now - healthy_since >= s.auto_resume_s:
+                        break
+                await asyncio.sleep(s.watchdog_period_s)
+            if not sup.paused or sup.stopped:
+                continue
+            if self._auto_resumes >= s.max_auto_resumes:
+                text = (f"{s.max_auto_resumes} automatic resumes used; stopping instead of "
+                        f"waiting ({sup.pause_reason})")
+                self._event("auto_resume_exhausted", text)
+                await sup.stop(AssistanceOffReason.SESSION_END, text)
+                return
+            n = self._auto_resumes + 1
+            if await self._resume(f"resume policy ({n} of {s.max_auto_resumes})"):
+                self._auto_resumes = n
 
     def _log_counters(self) -> None:
         """Rejected breaths and frames by reason (cumulative), for the log and the review."""
@@ -731,29 +826,69 @@ class BridgeSession:
     async def _bus_failure_task(self) -> None:
         err = await self.endpoint.wait_failed()
         self._event("bus_error", f"CAN bus failed: {err}")
-        self._paused.set()
-        self._stop.set()
+        await self.supervisor.stop(AssistanceOffReason.INTERNAL_ERROR, f"CAN bus failed: {err}")
         raise _Stopped from err
 
     async def _command_task(self) -> None:
         while True:
             cmd = await self._commands.get()
             if cmd is Command.PAUSE:
-                await self._pause(AssistanceOffReason.OPERATOR_STOP, "operator pause")
+                await self.supervisor.pause(AssistanceOffReason.OPERATOR_STOP, "operator pause")
             elif cmd is Command.RESUME:
-                if self.status.device != "ok":
-                    self._event("resume_refused", f"cannot resume: device {self.status.device}")
-                    continue
-                self._paused.clear()
-                self.status.state = "running"
-                self._event("resume", "resumed by the operator")
+                await self._resume("operator")
             elif cmd is Command.STOP:
-                self._stop.set()
-                self._paused.set()
-                await self._safe_off(AssistanceOffReason.OPERATOR_STOP, "operator stop")
+                await self.supervisor.stop(AssistanceOffReason.OPERATOR_STOP, "operator stop")
                 raise _Stopped
 
     # ------------------------------------------------------------------ helpers
+    def _health(self, *, clearable_ok: bool = False) -> str | None:
+        """Why the session may not resume now, or None (the supervisor's resume condition).
+
+        Args:
+            clearable_ok: Latched device faults that a ClearFaults request may clear do not
+                count (the resume clears them first: :meth:`_resume`).
+        """
+        s = self.settings
+        silent = self.device.silent_for(self._clock(), s.n_actuators)
+        if silent > s.device_timeout_s:
+            return f"device heartbeat lost ({silent * 1e3:.0f} ms)" if math.isfinite(silent) \
+                else "no device status yet"
+        faults = self.device.faults(s.n_actuators)
+        if clearable_ok:
+            faults &= ~CLEARABLE_FAULTS
+        if faults:
+            return "device faults: " + "; ".join(describe_faults(faults))
+        if self.status.cart == "SILENT":
+            return "no breaths from the cart"
+        return None
+
+    async def _resume(self, source: str) -> bool:
+        """Resume the session: clear the device's latched faults first, then ask the supervisor."""
+        if self.supervisor.paused and self._health(clearable_ok=True) is None:
+            await self._clear_device_faults()
+        return self.supervisor.resume(source) is None
+
+    async def _clear_device_faults(self) -> None:
+        """Ask the device to clear the latched faults that a request may clear (PROTOCOL.md,
+        "Clearing a latched fault": it clears one only once its cause is gone) and wait, briefly,
+        for a status that shows them gone."""
+        s = self.settings
+        faults = self.device.faults(s.n_actuators)
+        if faults & CLEARABLE_FAULTS:
+            try:
+                result = await self.endpoint.clear_faults(faults & CLEARABLE_FAULTS,
+                                                          n_actuators=s.n_actuators)
+            except DriverError as err:
+                self._event("clear_faults_failed", f"clearing {', '.join(fault_names(faults))} failed: {err}")
+            else:
+                self.log.log_event("clear_faults", f"asked the device to clear "
+                                   f"{', '.join(fault_names(faults))}; cleared "
+                                   f"{', '.join(fault_names(result.cleared)) or 'none'}")
+            # The cleared bits show in the next DeviceStatus (every 20 ms).
+            deadline = self._clock() + 0.2
+            while self.device.faults(s.n_actuators) & CLEARABLE_FAULTS and self._clock() < deadline:
+                await asyncio.sleep(s.watchdog_period_s)
+
     def _session_time(self, t_cart: float) -> float:
         return t_cart - (self._t_session0 if self._t_session0 is not None else t_cart)
 

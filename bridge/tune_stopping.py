@@ -50,7 +50,7 @@ import sys
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -59,6 +59,9 @@ from hilbo_core.metabolic import Estimator, MetabolicUKF
 from hilbo_core.resample import ResampleConfig, Trajectory, bo_resample
 from hilbo_core.space import Parameter, ParameterSpace
 from hilbo_core.stopping import threshold_schedule
+
+if TYPE_CHECKING:
+    from bridge.log.records import Evaluation
 
 __all__ = [
     "BreathTrace",
@@ -376,12 +379,16 @@ def evaluations_from_log(path: str | os.PathLike[str]) -> list[dict[str, Any]]:
 
     Suitable for :func:`hilbo_core.priors.priors_from_evaluations` (a previous session's prior).
     """
-    from bridge.logread import read_log
+    import msgspec
 
-    return [dict(d) for d in read_log(path, topics=["/observations"]).data("/observations")]
+    from bridge.log import Topic
+    from bridge.log.reader import read_log
+
+    records = read_log(path, topics=[Topic.OBSERVATIONS]).records(Topic.OBSERVATIONS)
+    return [msgspec.to_builtins(r) for r in records]
 
 
-def trajectories_from_log(path: str | os.PathLike[str]) -> tuple[list[np.ndarray], list[dict[str, Any]]]:
+def trajectories_from_log(path: str | os.PathLike[str]) -> tuple[list[np.ndarray], list[Evaluation]]:
     """Breath trajectories ``(t_setting_s, watts)`` of every completed evaluation of a log.
 
     The breaths come from ``/estimator`` (what the optimizer consumed). An evaluation index that
@@ -389,29 +396,29 @@ def trajectories_from_log(path: str | os.PathLike[str]) -> tuple[list[np.ndarray
     used, and only as many as ``/observations`` says the evaluation kept.
 
     Returns:
-        (trajectories, their ``/observations`` entries), in evaluation order.
+        (trajectories, their ``/observations`` records), in evaluation order.
     """
-    from bridge.logread import read_log
+    from bridge.log import Topic
+    from bridge.log.reader import read_log
 
-    log = read_log(path, topics=["/estimator", "/observations"])
+    log = read_log(path, topics=[Topic.ESTIMATOR, Topic.OBSERVATIONS])
     by_index: dict[int, list[tuple[float, float]]] = {}
-    for d in log.data("/estimator"):
-        idx, breath = int(d["index"]), int(d["breath"])
-        if breath == 0:
-            by_index[idx] = []
-        by_index.setdefault(idx, []).append((float(d["t_setting_s"]), float(d["watts"])))
+    for est in log.records(Topic.ESTIMATOR):
+        if est.breath == 0:
+            by_index[est.index] = []
+        by_index.setdefault(est.index, []).append((est.t_setting_s, est.watts))
     trajs, evs = [], []
-    for ev in log.data("/observations"):
-        breaths = by_index.get(int(ev["index"]), [])
-        n = int(ev.get("breaths") or len(breaths))
+    for ev in log.records(Topic.OBSERVATIONS):
+        breaths = by_index.get(ev.index, [])
+        n = ev.breaths or len(breaths)
         if len(breaths) >= n > 0:
             trajs.append(np.array(breaths[:n], dtype=float))
-            evs.append(dict(ev))
+            evs.append(ev)
     return trajs, evs
 
 
-def _n_max_from(evs: Iterable[Mapping[str, Any]]) -> int | None:
-    full = [int(e["breaths"]) for e in evs if e.get("reason") == "max_measurements"]
+def _n_max_from(evs: Iterable[Evaluation]) -> int | None:
+    full = [e.breaths for e in evs if e.reason == "max_measurements"]
     return max(set(full), key=full.count) if full else None
 
 
@@ -421,12 +428,12 @@ def _cmd_tune_stopping(args: argparse.Namespace) -> int:
     console = Console(stderr=True)
     trajs: list[np.ndarray] = []
     sources: list[str] = []
-    evs: list[dict[str, Any]] = []
+    evs: list[Evaluation] = []
     for path in args.logs:
         t, e = trajectories_from_log(path)
         trajs += t
         evs += e
-        sources += [f"{Path(path).name}:evaluation {ev['index']}" for ev in e]
+        sources += [f"{Path(path).name}:evaluation {ev.index}" for ev in e]
     n_max = args.n_max if args.n_max is not None else (_n_max_from(evs) or 45)
     cfg = TuneStoppingConfig(family=StoppingFamily(args.family), n_max=n_max,
                              error_weight=args.error_weight, n_real=args.real,

@@ -54,6 +54,15 @@ def _log_phi(z: np.ndarray) -> np.ndarray:
 def _log_h(z: np.ndarray) -> np.ndarray:
     """log(z Φ(z) + φ(z)) for finite z, stable for z ≪ 0."""
     z = np.asarray(z, dtype=float)
+    if z.size == 1:
+        # The SLSQP objective's case (one point per call): the same ufuncs on the same
+        # one-element array as the masked branches below, hence the same bits, without the
+        # three boolean masks and fancy-index copies (a third of the objective's time).
+        zf = float(z.reshape(-1)[0])
+        if zf > _Z_DIRECT:
+            return np.log(z * ndtr(z) + np.exp(_log_phi(z)))
+        if zf >= _Z_SERIES:
+            return _log_phi(z) + np.log1p(z * _SQRT_HALF_PI * erfcx(-z / math.sqrt(2.0)))
     out = np.empty_like(z)
     hi = z > _Z_DIRECT
     lo = z < _Z_SERIES
@@ -183,6 +192,11 @@ def _check_predict(mean: np.ndarray, var: np.ndarray, m: int) -> tuple[np.ndarra
         raise ConfigError(
             f"predict must return mean and var of shape ({m},), got {mean.shape} and {var.shape}"
         )
+    if m == 1:  # the SLSQP objective's case: scalar checks, no temporary arrays
+        mf, vf = float(mean[0]), float(var[0])
+        if not (math.isfinite(mf) and math.isfinite(vf) and vf >= 0.0):
+            raise EstimatorError("predict returned a non-finite mean or a negative/non-finite variance")
+        return mean, var
     if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(var)) and np.all(var >= 0.0)):
         raise EstimatorError("predict returned a non-finite mean or a negative/non-finite variance")
     return mean, var

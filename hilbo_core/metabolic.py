@@ -8,7 +8,16 @@
   §III.2): a Gaussian state fused with each measurement by the product of Gaussians.
 
 Both satisfy the :class:`Estimator` protocol. The optimizer takes an *estimator factory* (a
-callable returning a fresh estimator for each setting) so benchmarks can swap the model.
+callable returning a fresh estimator for each setting) so benchmarks can swap the model. The
+default estimator, :class:`~hilbo_core.estimation.TransitionEstimator`, lives in
+``hilbo_core.estimation`` (issue 16).
+
+Data-only observations (issue 16 part 2, shared/DESIGN.md "Observations to the GP are
+data-only"): every estimator here starts from a prior on c, and the GP has its own prior, so the
+observation handed to the GP is the posterior with the estimator's prior on c divided out
+(:func:`divide_gaussian`, each estimator's ``data_only()``). The stopping rule keeps using the
+posterior (``mean``/``var``): it compares estimates, and the prior is part of what the estimator
+believes.
 """
 
 from __future__ import annotations
@@ -16,7 +25,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields
-from typing import Any, Protocol
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 import numpy.typing as npt
@@ -25,13 +34,20 @@ from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
 from hilbo_core.errors import ConfigError, EstimatorError, MeasurementError
 
 __all__ = [
+    "DataOnlyEstimator",
     "Estimator",
     "EstimatorFactory",
     "GaussianProductEstimator",
     "MetabolicUKF",
     "UKFConfig",
     "brockway_watts",
+    "divide_gaussian",
 ]
+
+# Data-only division: an observation whose data precision is below this fraction of the prior's
+# carries ~no information; it goes to the GP with the variance below (times the prior's).
+_MIN_DATA_PRECISION_FRAC = 1e-6
+_UNINFORMATIVE_VAR_FACTOR = 1e6
 
 # Brockway (1987): P[W] = 16.58·VO2[ml/s] + 4.51·VCO2[ml/s]; inputs arrive in ml/min.
 _BROCKWAY_O2_J_PER_ML = 16.58
@@ -113,6 +129,53 @@ class Estimator(Protocol):
     def n_updates(self) -> int:
         """Number of measurements fused so far."""
         ...
+
+
+@runtime_checkable
+class DataOnlyEstimator(Protocol):
+    """An estimator that can report its data-only information about c (for the GP)."""
+
+    def data_only(self) -> tuple[float, float]:
+        """(mean, variance) of c from the measurements alone: the posterior ÷ the prior on c."""
+        ...
+
+
+def divide_gaussian(
+    post_mean: float, post_var: float, prior_mean: float, prior_var: float
+) -> tuple[float, float]:
+    """Gaussian division: the likelihood N(m_d, v_d) with posterior = prior × likelihood.
+
+    ``1/v_d = 1/post_var − 1/prior_var`` and ``m_d = v_d·(post_mean/post_var −
+    prior_mean/prior_var)``. When the data carry almost no information (data precision at most
+    1e-6 of the prior's, or negative from round-off or an approximate filter), the result is
+    (post_mean, 1e6·prior_var): a GP observation that changes nothing, at a sane location.
+
+    Args:
+        post_mean: Posterior mean.
+        post_var: Posterior variance (> 0).
+        prior_mean: Prior mean.
+        prior_var: Prior variance (> 0).
+
+    Returns:
+        (data-only mean, data-only variance > 0).
+
+    Raises:
+        EstimatorError: A non-finite argument or a non-positive variance.
+    """
+    vals = (post_mean, post_var, prior_mean, prior_var)
+    if not all(math.isfinite(v) for v in vals) or post_var <= 0.0 or prior_var <= 0.0:
+        raise EstimatorError(
+            f"divide_gaussian(post_mean={post_mean!r}, post_var={post_var!r}, "
+            f"prior_mean={prior_mean!r}, prior_var={prior_var!r}): expected finite values "
+            "and variances > 0"
+        )
+    prec_prior = 1.0 / prior_var
+    prec_data = 1.0 / post_var - prec_prior
+    if not prec_data > _MIN_DATA_PRECISION_FRAC * prec_prior:
+        return float(post_mean), _UNINFORMATIVE_VAR_FACTOR * float(prior_var)
+    var = 1.0 / prec_data
+    mean = var * (post_mean / post_var - prior_mean * prec_prior)
+    return float(mean), float(var)
 
 
 EstimatorFactory = Callable[[], Estimator]
@@ -271,6 +334,7 @@ class MetabolicUKF:
         self._z = np.zeros(1)
         self._n_updates = 0
         self._last_t_s: float | None = None
+        self._prior_c = (math.nan, math.nan)
 
     @property
     def config(self) -> UKFConfig:
@@ -301,6 +365,20 @@ class MetabolicUKF:
     def n_updates(self) -> int:
         """Number of breaths fused (the first breath, which sets the prior, counts)."""
         return self._n_updates
+
+    def data_only(self) -> tuple[float, float]:
+        """The breaths' information about c without the prior on c (for the GP).
+
+        The posterior marginal of c divided by its prior N(first breath, (c_rel_std·first)²)
+        (:func:`divide_gaussian`). The prior of c is independent of the other state components
+        (diagonal P0), so dividing the marginal removes it exactly in the linear-Gaussian
+        limit; the first breath's own information stays (it lives in the prior of c0).
+
+        Raises:
+            EstimatorError: No breath has been fused yet.
+        """
+        self._require_started()
+        return divide_gaussian(self.mean, self.var, self._prior_c[0], self._prior_c[1])
 
     @property
     def last_t(self) -> float | None:
@@ -368,6 +446,7 @@ class MetabolicUKF:
                 cfg.log_tau_std**2,
             ]
         )
+        self._prior_c = (z, (cfg.c_rel_std * z) ** 2)
         q_c = (cfg.process_rel_std_per_sqrt_s * z) ** 2
         q_tau = cfg.process_log_tau_std_per_sqrt_s**2
         np.fill_diagonal(self._q_rate, [q_c, q_c, q_tau, q_tau])
@@ -425,6 +504,7 @@ class GaussianProductEstimator:
                 raise ConfigError(f"GaussianProductEstimator {name}={value!r} must be {what}")
         self._mean = float(prior_mean)
         self._var = float(prior_var)
+        self._prior = (self._mean, self._var)
         self._meas_var = float(meas_var)
         self._n_updates = 0
         self._last_t_s: float | None = None
@@ -448,6 +528,15 @@ class GaussianProductEstimator:
     def last_t(self) -> float | None:
         """Time of the last accepted measurement, or None."""
         return self._last_t_s
+
+    def data_only(self) -> tuple[float, float]:
+        """The measurements' information without the prior (for the GP): (mean, variance).
+
+        The posterior divided by the prior (μ̃, σ̃²) (:func:`divide_gaussian`): after n
+        measurements, (mean of the z, meas_var/n). Before any measurement the data carry no
+        information: (μ̃, 1e6·σ̃²).
+        """
+        return divide_gaussian(self._mean, self._var, *self._prior)
 
     def update(self, t_s: float, value: float) -> tuple[float, float]:
         """Fuse one measurement.

@@ -10,7 +10,18 @@ Phases (seed 000 §II.A, Algorithm 1):
    and stop early when μ − μ* > A_i·σ (the σ-scaled offset rule, §II.D), or at N breaths.
 
 The GP is told each evaluation's estimator mean *and* variance: an early-stopped estimate is
-noisier, and the model must know (shared/DESIGN.md).
+noisier, and the model must know (shared/DESIGN.md). It is told the *data-only* part
+(``Evaluation.obs_mean``/``obs_var``: the estimator's posterior with its own prior on c divided
+out, issue 16 part 2), because the GP has its own prior and must not count the estimator's a
+second time. The stopping rule and :meth:`HILOptimizer.best` keep the posterior
+(``Evaluation.mean``/``var``): they compare what the estimator believes.
+
+Estimators: ``OptimizerConfig.estimator`` picks the default
+:class:`~hilbo_core.estimation.TransitionEstimator` (issue 16) or the seed's
+:class:`~hilbo_core.metabolic.MetabolicUKF`; an explicit ``estimator_factory`` overrides both.
+Each setting's estimator starts from the body level the previous setting's estimator ended at
+(when both support it: ``handover()`` / ``start_from_state()``: the level, the noise CV and the
+person's τ), since the body does not reset between settings.
 
 Budget: like Algorithm 1's counter t, the budget counts only the optimisation phase (the
 exploration bout is a separate walking bout). It may be given in breaths, in seconds of breath
@@ -47,8 +58,9 @@ import numpy as np
 
 from hilbo_core.acquisition import maximize_ei
 from hilbo_core.errors import ConfigError, MeasurementError, OptimizerStateError
+from hilbo_core.estimation import EstimatorKind, StartState, TransitionEstimator
 from hilbo_core.gp import GaussianProcess, GPHyperparameters, KernelKind
-from hilbo_core.metabolic import Estimator, MetabolicUKF
+from hilbo_core.metabolic import DataOnlyEstimator, Estimator, MetabolicUKF
 from hilbo_core.space import ParameterSpace
 from hilbo_core.stopping import (
     FixedIntervalRule,
@@ -60,6 +72,7 @@ from hilbo_core.stopping import (
 
 __all__ = [
     "BreathStep",
+    "EstimatorKind",
     "Evaluation",
     "HILOptimizer",
     "HyperparameterFit",
@@ -119,6 +132,9 @@ class OptimizerConfig:
             + :meth:`HILOptimizer.apply_hyperparameters` (fitting *ahead*, e.g. while the next
             setting is measured, so no proposal waits for a fit). 0, the default, leaves refits to
             ``refit_growth``. The two are exclusive: L >= 1 needs ``refit_growth`` = 1.
+        estimator: ``"transition"`` (the default, :class:`~hilbo_core.estimation.TransitionEstimator`)
+            or ``"seed_ukf"`` (seed 000's :class:`~hilbo_core.metabolic.MetabolicUKF`). Ignored
+            when the optimizer is given an ``estimator_factory``.
     """
 
     n_explore: int = 6
@@ -134,8 +150,15 @@ class OptimizerConfig:
     n_local: int = 3
     refit_growth: float = 1.0
     refit_lag: int = 0
+    estimator: EstimatorKind = EstimatorKind.TRANSITION
 
     def __post_init__(self) -> None:
+        try:
+            object.__setattr__(self, "estimator", EstimatorKind(self.estimator))
+        except ValueError as err:
+            raise ConfigError(
+                f"estimator={self.estimator!r}; expected one of {[k.value for k in EstimatorKind]}"
+            ) from err
         try:
             object.__setattr__(self, "stopping", StoppingKind(self.stopping))
         except ValueError as err:
@@ -179,6 +202,7 @@ class OptimizerConfig:
         d = asdict(self)
         d["stopping"] = self.stopping.value
         d["kernel"] = self.kernel.value
+        d["estimator"] = self.estimator.value
         return d
 
     @classmethod
@@ -227,6 +251,10 @@ class Evaluation:
         phase: ``"exploration"`` or ``"optimization"``.
         stopped_early: True when the σ-scaled rule stopped it before N breaths.
         reason: ``"threshold"``, ``"max_measurements"``, ``"budget"`` or ``"told"``.
+        obs_mean: The data-only mean the GP is told (W): the posterior with the estimator's
+            prior on c divided out; None means ``mean`` (estimators without ``data_only()``,
+            :meth:`HILOptimizer.tell`, states written before issue 16).
+        obs_var: Its variance (W²); None means ``var``.
     """
 
     index: int
@@ -238,6 +266,15 @@ class Evaluation:
     phase: str
     stopped_early: bool
     reason: str
+    obs_mean: float | None = None
+    obs_var: float | None = None
+
+    @property
+    def gp_observation(self) -> tuple[float, float]:
+        """(mean, var) the GP is told: the data-only pair, else the posterior."""
+        if self.obs_mean is None or self.obs_var is None:
+            return self.mean, self.var
+        return self.obs_mean, self.obs_var
 
     def to_json(self) -> dict[str, Any]:
         """JSON-able form."""
@@ -326,8 +363,8 @@ class HILOptimizer:
         n_explore, max_breaths, window, budget_s, budget_breaths, stopping, seed, xi, kernel,
             n_candidates, n_local, refit_growth: See :class:`OptimizerConfig`.
         config: A whole :class:`OptimizerConfig` instead of the keywords.
-        estimator_factory: Returns a fresh estimator per evaluation (default: the UKF of seed
-            000 §II.C). Benchmarks pass the Gaussian-product model of §III.2.
+        estimator_factory: Returns a fresh estimator per evaluation (default: the one
+            ``config.estimator`` names). Benchmarks pass the Gaussian-product model of §III.2.
         prior_observations: Fast-prior observations (seed 003 §3.3) added to the GP.
 
     Example:
@@ -357,7 +394,11 @@ class HILOptimizer:
                 ) from err
         self.space = space
         self.config = config
-        self._estimator_factory = estimator_factory or MetabolicUKF
+        self._estimator_factory: Callable[[], Estimator] = (
+            estimator_factory if estimator_factory is not None else _ESTIMATORS[config.estimator])
+        # What the last setting's estimator handed over (body level, noise CV, τ), which the
+        # next setting's transition starts from (issue 16).
+        self._handover: StartState | None = None
         self._priors: list[PriorObservation] = []
         for p in prior_observations:
             self.add_prior(p)
@@ -472,7 +513,7 @@ class HILOptimizer:
             x = self._propose()
         x = self.space.check(x)
         self._current = _Current(params=self.space.to_dict(x), x=x, phase=phase)
-        self._estimator = self._estimator_factory()
+        self._estimator = self._new_estimator()
         return dict(self._current.params)
 
     def observe_breath(self, t: float, watts: float) -> BreathStep:
@@ -576,11 +617,28 @@ class HILOptimizer:
         if cur.phase is Phase.OPTIMIZATION:
             self._opt_breaths -= len(cur.breaths)
             self._opt_seconds -= cur.breaths[-1][0] if cur.breaths else 0.0
+        self._keep_body_level()  # the breaths are discarded, but the body did walk them
         self._current = None
         self._estimator = None
         return dict(cur.params)
 
     # ------------------------------------------------------------------ internals
+    def _new_estimator(self) -> Estimator:
+        """A fresh estimator for the next setting, started from the body level when it can be."""
+        est = self._estimator_factory()
+        start = getattr(est, "start_from_state", None)
+        if self._handover is not None and callable(start):
+            start(self._handover)
+        return est
+
+    def _keep_body_level(self) -> None:
+        """Remember where the current estimator leaves the body (for the next setting)."""
+        est = self._estimator
+        handover = getattr(est, "handover", None)
+        if est is None or not callable(handover) or est.n_updates == 0:
+            return
+        self._handover = handover()
+
     def hyperparameter_fit(self) -> HyperparameterFit | None:
         """The hyperparameter fit on every observation so far, to run ahead of the next proposal.
 
@@ -629,11 +687,16 @@ class HILOptimizer:
         i = len(cur.breaths) - 1
         if not stop:
             return BreathStep(False, mean, var, i, cur.phase, decision)
+        obs_mean: float | None = None
+        obs_var: float | None = None
+        if isinstance(self._estimator, DataOnlyEstimator):
+            obs_mean, obs_var = self._estimator.data_only()
         ev = Evaluation(
             index=len(self._evaluations), params=dict(cur.params), mean=mean, var=var,
             breaths=len(cur.breaths), duration_s=cur.breaths[-1][0], phase=cur.phase.value,
-            stopped_early=reason == "threshold", reason=reason,
+            stopped_early=reason == "threshold", reason=reason, obs_mean=obs_mean, obs_var=obs_var,
         )
+        self._keep_body_level()
         self._evaluations.append(ev)
         if cur.phase is Phase.EXPLORATION:
             self._traces_m.append(list(cur.means))
@@ -682,8 +745,10 @@ class HILOptimizer:
     def _training_set(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         xs = np.array([self.space.from_dict(p.params) for p in self._priors], dtype=float)
         U = np.concatenate([self._evaluation_units(), self.space.to_unit(xs.reshape(-1, self.space.dim))])
-        y = [e.mean for e in self._evaluations] + [p.mean for p in self._priors]
-        v = [e.var for e in self._evaluations] + [p.var for p in self._priors]
+        # Data-only observations (issue 16 part 2): the GP has its own prior.
+        obs = [e.gp_observation for e in self._evaluations]
+        y = [m for m, _ in obs] + [p.mean for p in self._priors]
+        v = [s for _, s in obs] + [p.var for p in self._priors]
         return U, np.array(y), np.array(v)
 
     def _n_obs(self) -> int:
@@ -763,6 +828,7 @@ class HILOptimizer:
             "incumbent": None if self._incumbent is None else list(self._incumbent),
             "opt_breaths": self._opt_breaths,
             "opt_seconds": self._opt_seconds,
+            "handover": None if self._handover is None else self._handover.to_json(),
         }
 
     @classmethod
@@ -777,7 +843,10 @@ class HILOptimizer:
             raise ConfigError(f"optimizer state version {data.get('version')!r}; expected {_STATE_VERSION}")
         try:
             space = ParameterSpace.from_json(data["space"])
-            opt = cls(space, config=OptimizerConfig.from_json(data["config"]),
+            config_data = dict(data["config"])
+            # States written before issue 16 come from sessions that ran the seed's UKF.
+            config_data.setdefault("estimator", EstimatorKind.SEED_UKF.value)
+            opt = cls(space, config=OptimizerConfig.from_json(config_data),
                       estimator_factory=estimator_factory,
                       prior_observations=[PriorObservation(**p) for p in data["priors"]])
             opt._rng.bit_generator.state = data["rng"]
@@ -798,19 +867,28 @@ class HILOptimizer:
                 opt._incumbent = (dict(p), float(m), float(v))
             opt._opt_breaths = int(data["opt_breaths"])
             opt._opt_seconds = float(data["opt_seconds"])
+            handover = data.get("handover")  # absent in states written before issue 16
+            if handover is not None:
+                opt._handover = StartState.from_json(handover)
             cur = data["current"]
         except (KeyError, TypeError, ValueError) as err:
             raise ConfigError(f"invalid optimizer state: {err!r}") from err
         if cur is not None:
             opt._current = _Current(params=dict(cur["params"]), x=np.array(cur["x"], dtype=float),
                                     phase=Phase(cur["phase"]))
-            opt._estimator = opt._estimator_factory()
+            opt._estimator = opt._new_estimator()
             for t, w in cur["breaths"]:
                 mean, var = opt._estimator.update(float(t), float(w))
                 opt._current.breaths.append((float(t), float(w)))
                 opt._current.means.append(float(mean))
                 opt._current.vars.append(float(var))
         return opt
+
+
+_ESTIMATORS: dict[EstimatorKind, Callable[[], Estimator]] = {
+    EstimatorKind.TRANSITION: TransitionEstimator,
+    EstimatorKind.SEED_UKF: MetabolicUKF,
+}
 
 
 def _check_mean_var(mean: float, var: float, what: str) -> None:

@@ -10,11 +10,22 @@
   ``HILBO_IN_UML=1`` is set inside the guest, so the inner run never boots UML again.
 * Skipped with the reason when neither is possible.
 
+Every test runs under the autouse fixture ``_no_leaks``: a thread or a child process that the
+test started and that is still alive after a short bounded grace, or a SIGINT/SIGTERM/SIGHUP
+handler it did not restore, (threads joined with a
+timeout, processes polled, never a fixed sleep) fails the test in its teardown, naming what
+leaked; leaked child processes are then killed so the next test starts clean. An event loop left
+running in a thread shows up as that thread. A loop left *set* in the main thread is not
+checked: an open one appeared there around a plain sync test (pytest-asyncio 1.5 at work), so
+such a check would blame the wrong test. Only the daemon threads of ``_BENIGN_THREADS`` (each
+with its reason) may outlive a test.
+
 Also the fixture ``optimize_calls``: the training-set size of every GP hyperparameter optimisation
 (a spy on ``GaussianProcess._optimize``), for the tests of when fits happen.
 
 Knobs (environment): ``HILBO_UML_TIMEOUT_S`` (whole boot, default 240 s), ``HILBO_UML_MEM``
-(default 1G), ``HILBO_UML_KEEP=1`` (keep the work directory with the console log).
+(default 1G), ``HILBO_UML_KEEP=1`` (keep the work directory with the console log),
+``HILBO_LEAK_GRACE_S`` (how long a test's threads and processes get to end, default 5 s).
 """
 
 from __future__ import annotations
@@ -27,10 +38,15 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import importlib.util
 import json
+import re
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
+import threading
+import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import ModuleType
@@ -280,3 +296,163 @@ def optimize_calls(monkeypatch: pytest.MonkeyPatch) -> list[int]:
 
     monkeypatch.setattr(GaussianProcess, "_optimize", spy)
     return calls
+
+
+# --- no leaked threads or processes ---------------------------------------------------------------
+
+#: Daemon threads that may outlive a test, by name pattern, each with why it is harmless. Keep
+#: this short: a thread belongs here only when it is a process-wide singleton of a library that
+#: is started once, idles, and is not the test's to stop.
+_BENIGN_THREADS: dict[str, str] = {
+    # distributed.utils._offload_executor: one module-global single-thread pool that Dask
+    # clients offload (de)serialisation to; created at import, idle between uses, never stopped.
+    r"Dask-Offload_\d+": "Dask's process-wide offload thread",
+    # Note: asyncio's ThreadedChildWatcher thread per child (``waitpid-N``) is *not* listed: a
+    # live one means a child process is still running.
+}
+#: Child processes that may outlive a test, by command-line pattern, each with why.
+_BENIGN_PROCESSES: dict[str, str] = {
+    # multiprocessing's resource tracker: one per interpreter, started by the first spawned
+    # pool and kept until this process exits (it cleans up semaphores of killed workers).
+    r".*from multiprocessing\.resource_tracker import main.*": "multiprocessing's resource tracker",
+}
+_BENIGN_RE = [re.compile(p) for p in _BENIGN_THREADS]
+_BENIGN_PROC_RE = [re.compile(p) for p in _BENIGN_PROCESSES]
+
+
+#: Threads and child processes started by the setup of fixtures broader than a function (a
+#: module's server, say): they outlive the test that first requested them by design.
+_broad_threads: set[threading.Thread] = set()
+_broad_pids: set[int] = set()
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_fixture_setup(fixturedef: pytest.FixtureDef[Any], request: pytest.FixtureRequest) -> Any:
+    """Record what a class/module/package/session fixture starts, so it is not a test's leak."""
+    if fixturedef.scope == "function":
+        return (yield)
+    threads, pids = set(threading.enumerate()), _child_pids()
+    try:
+        return (yield)
+    finally:
+        _broad_threads.update(set(threading.enumerate()) - threads)
+        _broad_pids.update(_child_pids() - pids)
+
+
+def _child_pids() -> set[int]:
+    """Running (not zombie) descendants of this process."""
+    try:
+        import psutil
+    except ImportError:  # /proc: direct children only, which is what a test starts
+        return _proc_children(os.getpid())
+    try:
+        kids = psutil.Process().children(recursive=True)
+    except psutil.Error:
+        return set()
+    alive: set[int] = set()
+    for kid in kids:
+        try:
+            if kid.status() != psutil.STATUS_ZOMBIE:
+                alive.add(kid.pid)
+        except psutil.Error:
+            continue  # ended meanwhile
+    return alive
+
+
+def _proc_children(ppid: int) -> set[int]:
+    out: set[int] = set()
+    try:
+        names = os.listdir("/proc")
+    except OSError:
+        return out
+    for name in names:
+        if not name.isdigit():
+            continue
+        try:
+            with open(f"/proc/{name}/stat", encoding="ascii", errors="replace") as fh:
+                stat = fh.read()
+        except OSError:
+            continue
+        fields = stat.rsplit(")", 1)[-1].split()  # after "pid (comm)": state, ppid, ...
+        if len(fields) > 1 and fields[0] != "Z" and int(fields[1]) == ppid:
+            out.add(int(name))
+    return out
+
+
+def _cmdline(pid: int) -> str:
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as fh:
+            return fh.read().replace(b"\0", b" ").decode(errors="replace").strip()
+    except OSError:
+        return "?"
+
+
+def _describe_pid(pid: int) -> str:
+    return f"pid {pid}: {_cmdline(pid)[:200]}"
+
+
+def leaked_after(
+    threads_before: set[threading.Thread], pids_before: set[int], grace_s: float
+) -> tuple[list[threading.Thread], list[int]]:
+    """Threads and child processes started since the snapshot and still alive after ``grace_s``.
+
+    Threads are joined (bounded by what is left of the grace), processes polled every 10 ms;
+    allowlisted daemon threads are not reported.
+    """
+    deadline = time.monotonic() + grace_s
+    threads = [
+        t for t in threading.enumerate()
+        if t not in threads_before and t not in _broad_threads and t is not threading.current_thread()
+        and not (t.daemon and any(r.fullmatch(t.name) for r in _BENIGN_RE))
+    ]
+    for t in threads:
+        t.join(timeout=max(0.0, deadline - time.monotonic()))
+    pids = {p for p in _child_pids() - pids_before - _broad_pids
+            if not any(r.fullmatch(_cmdline(p)) for r in _BENIGN_PROC_RE)}
+    while pids and time.monotonic() < deadline:
+        # Waiting for other code's children to end: they are reaped by their owner, so poll.
+        threading.Event().wait(0.01)
+        pids &= _child_pids()
+    return [t for t in threads if t.is_alive()], sorted(pids)
+
+
+def _kill_leaked(pids: list[int]) -> None:
+    for pid in pids:
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            continue  # ended meanwhile, or the pid is no longer our child's
+
+
+#: Signals whose handler a test must leave as it found it (a session installs its own for
+#: SIGINT/SIGTERM and must remove them; one left behind swallows the next Ctrl-C or timeout).
+_GUARDED_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+@pytest.fixture(autouse=True)
+def _no_leaks(request: pytest.FixtureRequest) -> Iterator[None]:
+    """Fail a test that leaves a thread, a child process or a signal handler behind (see the
+    module docstring)."""
+    threads_before = set(threading.enumerate())
+    pids_before = _child_pids()
+    handlers_before = {sig: signal.getsignal(sig) for sig in _GUARDED_SIGNALS}
+    yield
+    grace_s = float(os.environ.get("HILBO_LEAK_GRACE_S", "5"))
+    threads, pids = leaked_after(threads_before, pids_before, grace_s)
+    handlers = [sig for sig, h in handlers_before.items() if signal.getsignal(sig) != h]
+    if not threads and not pids and not handlers:
+        return
+    lines = [f"thread {t.name!r} (daemon={t.daemon}, target={getattr(t, '_target', None)!r})"
+             for t in threads]
+    lines += [_describe_pid(p) for p in pids]
+    lines += [f"signal {signal.Signals(sig).name} handler {signal.getsignal(sig)!r} "
+              f"(was {handlers_before[sig]!r})" for sig in handlers]
+    _kill_leaked(pids)
+    for sig in handlers:
+        signal.signal(sig, handlers_before[sig])
+    pytest.fail(
+        f"{request.node.nodeid} leaked {len(threads)} thread(s), {len(pids)} process(es) and "
+        f"{len(handlers)} signal handler(s) still in place {grace_s:g} s after it ended:\n  "
+        + "\n  ".join(lines),
+        pytrace=False,
+    )

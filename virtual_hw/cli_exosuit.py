@@ -57,7 +57,7 @@ def _add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="python-can interface: socketcan, virtual, pcan, kvaser, slcan, remote, "
                              "... (default socketcan)")
     parser.add_argument("--channel", default="vcan0",
-                        help="interface channel, e.g. vcan0, can0, ws://localhost:54701/ "
+                        help="interface channel, e.g. vcan0, can0, ws://127.0.0.1:54701/ "
                              "(default vcan0)")
     parser.add_argument("--bitrate", type=int, default=1_000_000,
                         help="bitrate in bit/s where the interface takes one (default 1000000)")

@@ -30,14 +30,21 @@ demonstrated and benchmarked without hardware:
 * **Safe state.** Identifier 0x010 with *any* payload (seen on the raw frame, before decoding),
   100 ms without a bridge heartbeat whose counter advanced, or a heartbeat announcing ``paused``
   or ``shutdown`` (or anything but ``running`` while assisting) ramp every actuator to zero at
-  once (Mode = assistance_off, latched; a lost heartbeat also sets FaultHeartbeatLost until the
-  latch clears, with Mode = assistance_off as PROTOCOL.md's heartbeat sequence shows; Mode =
+  once (Mode = assistance_off, latched; a lost heartbeat also sets FaultHeartbeatLost until a
+  ClearFaults clears it, with Mode = assistance_off as PROTOCOL.md's heartbeat sequence shows; Mode =
   fault is reserved for the hardware faults, here the bus error after a bus-off). The latch
-  clears only when a commit is acked while the bridge heartbeat is fresh and ``running``;
-  assistance restarts at the next gait-cycle boundary. A bridge that is still ``idle`` (session
-  not started) does not latch the device: its tables are taken and switched, but the device
-  stays transparent (zero force) and starts assisting at the first boundary after the bridge
-  turns ``running``.
+  clears only when a commit is acked while the bridge heartbeat is fresh and ``running`` and no
+  fault bit is set; assistance restarts at the next gait-cycle boundary. A bridge that is still
+  ``idle`` (session not started) does not latch the device: its tables are taken and switched,
+  but the device stays transparent (zero force) and starts assisting at the first boundary after
+  the bridge turns ``running``.
+* **Clearing faults** (PROTOCOL.md, "Clearing a latched fault"). Fault bits are latched: while
+  any is set, commits are nacked ``busy``. A ClearFaults request clears FaultHeartbeatLost only
+  once the bridge heartbeat has been back (advancing, without a watchdog expiry) for
+  ``heartbeat_clear_s``, and a hardware fault only once its cause (an injected window, below)
+  is over; the device answers with ClearFaultsAck (what it cleared, what it still holds) for
+  each addressed actuator. FaultBusError clears itself after ``bus_error_hold_s``. The device's
+  faults are the node's: a request addressed to either actuator clears them for both.
 * **Faults** for the bridge's reliability tests (:data:`EXOSUIT_FAULTS`, in the shared syntax of
   :mod:`virtual_hw.faults`, ``--fault`` on the command line): ``drop-status@T+D`` stops the
   device heartbeat (DeviceStatus); ``bus-off@T+D`` makes the node deaf and mute, then reports
@@ -45,13 +52,19 @@ demonstrated and benchmarked without hardware:
   it in assistance-off; ``nack-<reason>@TxN`` or ``@T+D`` (``nack-bad-crc``, ``nack-busy``,
   ``nack-out-of-limits``, ...) nacks the next N commits or every commit in a window;
   ``wrong-dlc``, ``unknown-id`` and ``garbage`` (``@TxN`` or ``@T+D``) transmit malformed frames
-  at ``malformed_rate_hz``.
+  at ``malformed_rate_hz``; ``overcurrent``, ``overtemperature``, ``force-sensor``, ``encoder``,
+  ``force-limit`` and ``emergency-stop`` (``@T+D``) are hardware faults whose cause lasts the
+  window: the bit latches at its start (Mode = fault, assistance off) and can be cleared only
+  after its end.
 
 Joints and the two-table convention
 -----------------------------------
 ``joints`` names the load path of each actuator, in actuator order. A profile push carries ONE
 table of ``n`` points; the device splits it into one equal chunk per *distinct* joint, in order of
-first appearance, and each actuator executes its joint's chunk:
+first appearance, and each actuator executes its joint's chunk. The layout is the protocol's,
+defined once in :mod:`drivers.exosuit.profile` (:func:`~drivers.exosuit.profile.table_order`,
+:func:`~drivers.exosuit.profile.pack_tables`, :func:`~drivers.exosuit.profile.unpack_tables`)
+and in PROTOCOL.md:
 
 * hip suit, ``joints=("hip", "hip")`` (:data:`SUIT_JOINTS` ``["hip_6d"]``): one 101-point table,
   executed by both legs; ``on_applied`` gets ``(ForceProfile("hip", ...),)``.
@@ -102,9 +115,12 @@ from drivers.exosuit.codec import (
     N_ACTUATORS,
     BridgeHeartbeat,
     BridgeState,
+    ClearFaults,
+    ClearFaultsAck,
     DeviceFault,
     DeviceMode,
     DeviceStatus,
+    EncodeError,
     ForceFeedback,
     NackReason,
     ProfileAck,
@@ -114,6 +130,7 @@ from drivers.exosuit.codec import (
     frame_id,
 )
 from drivers.exosuit.endpoint import CanBusConfig, CanEndpoint, Subscription
+from drivers.exosuit.faults import FAULT_INFO, HEARTBEAT_CLEAR_S
 from drivers.exosuit.profile import (
     MAX_FORCE_ON_WIRE_N,
     MAX_PROFILE_POINTS,
@@ -123,6 +140,8 @@ from drivers.exosuit.profile import (
     profile_crc32,
     raw_to_forces,
     segment_count,
+    table_order,
+    unpack_tables,
 )
 from hilbo_core.profiles import ForceProfile
 from virtual_hw.clock import SimClock
@@ -132,6 +151,7 @@ from virtual_hw.faults import FaultCatalog, FaultKind, FaultSchedule, FaultShape
 __all__ = [
     "DEFAULT_FEEDBACK_HZ",
     "EXOSUIT_FAULTS",
+    "HARDWARE_FAULTS",
     "HEARTBEAT_TIMEOUT_S",
     "MALFORMED_FAULTS",
     "NACK_FAULTS",
@@ -169,7 +189,8 @@ _OTHER_LEG_OFFSET = 0.5
 # A device never transmits the bridge's identifiers, even as "garbage".
 _BRIDGE_IDS = frozenset(
     frame_id(name)
-    for name in ("AssistanceOff", "BridgeHeartbeat", "ProfileCommit", "ProfileSegment")
+    for name in ("AssistanceOff", "BridgeHeartbeat", "ProfileCommit", "ProfileSegment",
+                 "ClearFaults")
 )
 # How many acked tables the listener keeps while it waits for them to become active.
 _LISTENER_KEEP = 8
@@ -290,6 +311,13 @@ class TrackingConfig:
 NACK_FAULTS: Mapping[str, NackReason] = types.MappingProxyType({
     "nack-" + r.name.lower().replace("_", "-"): r for r in NackReason if r != NackReason.NONE
 })
+#: Hardware faults a window fault injects: the cause lasts the window, the bit stays latched
+#: until a ClearFaults after it (fault kind name -> bit).
+HARDWARE_FAULTS: Mapping[str, DeviceFault] = types.MappingProxyType({
+    FAULT_INFO[bit].name.replace("_", "-"): bit
+    for bit in (DeviceFault.OVERCURRENT, DeviceFault.OVERTEMPERATURE, DeviceFault.FORCE_SENSOR,
+                DeviceFault.ENCODER, DeviceFault.FORCE_LIMIT, DeviceFault.EMERGENCY_STOP)
+})
 #: Malformed-frame fault kinds (:meth:`VirtualExosuit._malformed_frame`).
 MALFORMED_FAULTS = ("wrong-dlc", "unknown-id", "garbage")
 
@@ -303,6 +331,10 @@ EXOSUIT_FAULTS = FaultCatalog("virtual exosuit", (
               "busy nacks and assistance off for bus_error_hold_s"),
     *(FaultKind(name, FaultShape.EVENTS, f"nack commits with reason {reason.name.lower()}")
       for name, reason in NACK_FAULTS.items()),
+    *(FaultKind(name, FaultShape.WINDOW,
+                f"{FAULT_INFO[bit].meaning} for the window: Fault{FAULT_INFO[bit].name} latches "
+                "(Mode=fault, assistance off); a ClearFaults clears it only after the window")
+      for name, bit in HARDWARE_FAULTS.items()),
     FaultKind("wrong-dlc", FaultShape.EVENTS,
               "transmit DeviceStatus/ForceFeedback frames of a wrong length, at malformed_rate_hz"),
     FaultKind("unknown-id", FaultShape.EVENTS,
@@ -440,7 +472,10 @@ class AppliedTable:
 
 
 def _distinct(joints: Sequence[str]) -> tuple[str, ...]:
-    return tuple(dict.fromkeys(joints))
+    try:
+        return table_order(joints)
+    except EncodeError as err:
+        raise VirtualConfigError(str(err)) from err
 
 
 def split_table(forces_raw: Sequence[int], joints: Sequence[str]) -> tuple[ForceProfile, ...]:
@@ -453,33 +488,28 @@ def split_table(forces_raw: Sequence[int], joints: Sequence[str]) -> tuple[Force
 
     Returns:
         One profile per distinct joint in order of first appearance, each over 0..100 %GC with
-        ``n / len(distinct joints)`` points.
+        ``n / len(distinct joints)`` points (:func:`~drivers.exosuit.profile.unpack_tables`).
 
     Raises:
         VirtualConfigError: ``n`` is not a multiple of the number of joints, or a chunk has fewer than
             2 points.
     """
     names = _distinct(joints)
-    n = len(forces_raw)
-    m, rest = divmod(n, len(names))
-    if rest or m < MIN_PROFILE_POINTS:
-        raise VirtualConfigError(
-            f"a table of {n} points does not split into {len(names)} tables of >= "
-            f"{MIN_PROFILE_POINTS} points for joints {names}"
-        )
-    forces = np.asarray(raw_to_forces(forces_raw), dtype=float)
-    grid = np.linspace(0.0, 100.0, m)
-    return tuple(ForceProfile(name, grid, forces[i * m:(i + 1) * m]) for i, name in enumerate(names))
+    try:
+        chunks = unpack_tables(np.asarray(raw_to_forces(forces_raw), dtype=float), len(names))
+    except EncodeError as err:
+        raise VirtualConfigError(f"{err} for joints {names}") from err
+    grid = np.linspace(0.0, 100.0, chunks[0].size)
+    return tuple(ForceProfile(name, grid, chunk) for name, chunk in zip(names, chunks, strict=True))
 
 
 def _first_slope_violation(forces_raw: Sequence[int], n_tables: int,
                            max_slope_n_per_pct: float) -> int | None:
     """Index of the first point whose step from its neighbour in the same table is too steep."""
-    forces = np.asarray(raw_to_forces(forces_raw), dtype=float)
-    m = len(forces) // n_tables
+    chunks = unpack_tables(np.asarray(raw_to_forces(forces_raw), dtype=float), n_tables)
+    m = chunks[0].size
     max_step = max_slope_n_per_pct * 100.0 / (m - 1)
-    for i in range(n_tables):
-        chunk = forces[i * m:(i + 1) * m]
+    for i, chunk in enumerate(chunks):
         bad = np.flatnonzero(np.abs(np.diff(chunk)) > max_step)
         if bad.size:
             return i * m + int(bad[0]) + 1
@@ -586,6 +616,8 @@ class VirtualExosuit:
         feedback_hz: ForceFeedback rate per actuator (wall clock); 0 disables feedback.
         status_period_s: DeviceStatus period (wall clock).
         heartbeat_timeout_s: bridge-heartbeat watchdog (wall clock).
+        heartbeat_clear_s: how long the bridge heartbeat must have been back before a
+            ClearFaults clears FaultHeartbeatLost (wall clock).
         malformed_rate_hz: malformed frames per wall second while such a fault is on.
         bus_error_hold_s: how long FaultBusError and Mode = fault last after a bus-off
             (simulated s).
@@ -610,6 +642,7 @@ class VirtualExosuit:
         feedback_hz: float = DEFAULT_FEEDBACK_HZ,
         status_period_s: float = STATUS_PERIOD_S,
         heartbeat_timeout_s: float = HEARTBEAT_TIMEOUT_S,
+        heartbeat_clear_s: float = HEARTBEAT_CLEAR_S,
         malformed_rate_hz: float = 50.0,
         bus_error_hold_s: float = 0.5,
         gait: GaitConfig | None = None,
@@ -640,6 +673,8 @@ class VirtualExosuit:
                                              0.0, 10.0, lo_open=True)
         self.heartbeat_timeout_s = _check_number(
             "VirtualExosuit", "heartbeat_timeout_s", heartbeat_timeout_s, 0.0, 60.0, lo_open=True)
+        self.heartbeat_clear_s = _check_number(
+            "VirtualExosuit", "heartbeat_clear_s", heartbeat_clear_s, 0.0, 60.0)
         self.malformed_rate_hz = _check_number(
             "VirtualExosuit", "malformed_rate_hz", malformed_rate_hz, 0.0, 10_000.0, lo_open=True)
         self.bus_error_hold_s = _check_number(
@@ -653,6 +688,10 @@ class VirtualExosuit:
         self._n_tables = len(_distinct(joints))
         self._bus_off_ends = sorted(
             e for s in self.faults.specs if s.kind == "bus-off" and (e := s.end_s) is not None
+        )
+        self._hw_fault_starts = sorted(
+            (s.start_s, HARDWARE_FAULTS[s.kind]) for s in self.faults.specs
+            if s.kind in HARDWARE_FAULTS
         )
 
         self._endpoint: CanEndpoint | None = None
@@ -669,11 +708,13 @@ class VirtualExosuit:
         self._active: list[AppliedTable | None] = [None] * n_actuators
         self._assist = [False] * n_actuators
         self._latched = False
-        self._latch_faults = DeviceFault(0)
-        self._hw_faults = DeviceFault(0)
+        self._latch_faults = DeviceFault(0)  # FaultHeartbeatLost
+        self._hw_faults = DeviceFault(0)  # FaultBusError while it lasts (clears itself)
+        self._hw_latched = DeviceFault(0)  # hardware faults, until a ClearFaults after the cause
         self._hb_state: BridgeState | None = None
         self._hb_counter: int | None = None
         self._hb_fresh = False
+        self._hb_back_since = math.inf  # loop time since which the heartbeat has been back
         self._hb_timer: asyncio.TimerHandle | None = None
         self._hb_deadline = math.inf
         self._hb_deferrals = 0
@@ -729,7 +770,7 @@ class VirtualExosuit:
         await endpoint.open()
         self._endpoint = endpoint
         subscription = endpoint.subscribe(BridgeHeartbeat, ProfileSegment, ProfileCommit,
-                                          maxsize=4096)
+                                          ClearFaults, maxsize=4096)
         self._start(self._receive_loop(subscription), "exosuit-rx")
         self._start(self._status_loop(), "exosuit-status")
         if self.feedback_hz > 0:
@@ -738,6 +779,8 @@ class VirtualExosuit:
         self._start(self._watch_endpoint(endpoint), "exosuit-bus")
         if self._bus_off_ends:
             self._start(self._bus_error_loop(), "exosuit-bus-error")
+        if self._hw_fault_starts:
+            self._start(self._hardware_fault_loop(), "exosuit-hardware-faults")
         if any(s.kind in MALFORMED_FAULTS for s in self.faults.specs):
             self._start(self._malformed_loop(), "exosuit-malformed")
         log.info("virtual exosuit open on %s:%s (%d actuators, joints %s, faults %s)",
@@ -753,9 +796,10 @@ class VirtualExosuit:
         tasks, self._tasks = self._tasks, []
         for task in tasks:
             task.cancel()
-        for task in tasks:
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
+        # A task that failed has its error recorded (_on_task_done -> _fail, returned below);
+        # awaiting it here must not raise it before the bus is closed (it leaked the bus's
+        # receive thread).
+        await asyncio.gather(*tasks, return_exceptions=True)
         if self._hb_timer is not None:
             self._hb_timer.cancel()
             self._hb_timer = None
@@ -804,6 +848,7 @@ class VirtualExosuit:
     def stats(self) -> Mapping[str, int]:
         """Counts of what the device did: ``commits``, ``acks``, ``nack_<reason>``,
         ``switches``, ``assistance_off``, ``assistance_off_received``, ``heartbeat_lost``,
+        ``clear_requests``, ``cleared_<fault>``, ``held_<fault>``, ``hardware_fault``,
         ``bus_off_dropped``, ``status_sent``, ``feedback_sent``, ``malformed_sent`` and
         ``malformed_<kind>``."""
         return types.MappingProxyType(self._stats)
@@ -824,7 +869,7 @@ class VirtualExosuit:
 
     def mode(self, actuator: int) -> DeviceMode:
         """The operating mode reported for ``actuator``."""
-        if self._hw_faults:
+        if self._hw_faults or self._hw_latched:
             return DeviceMode.FAULT
         if self._latched:
             return DeviceMode.ASSISTANCE_OFF
@@ -832,7 +877,7 @@ class VirtualExosuit:
 
     def fault_bits(self) -> DeviceFault:
         """The fault bits reported in DeviceStatus."""
-        return self._hw_faults | self._latch_faults
+        return self._hw_faults | self._hw_latched | self._latch_faults
 
     def bus_off(self) -> bool:
         """Whether an injected bus-off is on now (the node neither receives nor transmits)."""
@@ -867,16 +912,20 @@ class VirtualExosuit:
                 self._assembler.on_segment(message)
             elif isinstance(message, ProfileCommit):
                 await self._on_commit(message)
+            elif isinstance(message, ClearFaults):
+                await self._on_clear_faults(message)
 
     def _on_heartbeat(self, hb: BridgeHeartbeat) -> None:
         advanced = hb.counter != self._hb_counter
         self._hb_counter = hb.counter
         self._hb_state = hb.state
         if advanced:
+            loop = asyncio.get_running_loop()
+            if not self._hb_fresh:  # back after a loss (or the first heartbeat)
+                self._hb_back_since = loop.time()
             self._hb_fresh = True
             if self._hb_timer is not None:
                 self._hb_timer.cancel()
-            loop = asyncio.get_running_loop()
             self._hb_deadline = loop.time() + self.heartbeat_timeout_s
             self._hb_deferrals = 0
             self._hb_timer = loop.call_at(self._hb_deadline, self._on_heartbeat_lost)
@@ -902,6 +951,7 @@ class VirtualExosuit:
                 self._hb_timer = loop.call_at(self._hb_deadline, self._on_heartbeat_lost)
                 return
             self._hb_fresh = False
+            self._hb_back_since = math.inf
             self._stats["heartbeat_lost"] += 1
             self._latch_faults |= DeviceFault.HEARTBEAT_LOST
             self._go_off("bridge heartbeat lost")
@@ -909,7 +959,7 @@ class VirtualExosuit:
             self._fail(err)
 
     def _can_assist(self) -> bool:
-        return (not self._latched and not self._hw_faults and self._hb_fresh
+        return (not self._latched and not self.fault_bits() and self._hb_fresh
                 and self._hb_state == BridgeState.RUNNING)
 
     def _update_arming(self) -> None:
@@ -939,7 +989,7 @@ class VirtualExosuit:
     async def _on_commit(self, commit: ProfileCommit) -> None:
         now = self.clock.now()
         self._stats["commits"] += 1
-        self._assembler.busy = bool(self._hw_faults)
+        self._assembler.busy = bool(self.fault_bits())  # a latched fault must be cleared first
         injected = self._injected_nack(now)
         table: tuple[float, ...] | None
         if injected is not None:
@@ -981,13 +1031,54 @@ class VirtualExosuit:
             pass  # a repeated commit of the active table (its ack was lost)
         else:
             self._pending, self._pending_t = table, now
-        if self._latched and self._hb_fresh and self._hb_state == BridgeState.RUNNING:
+        if (self._latched and self._hb_fresh and self._hb_state == BridgeState.RUNNING
+                and not self.fault_bits()):
             log.info("virtual exosuit: latch cleared by the ack of v%d", table.version)
             self._latched = False
-            self._latch_faults = DeviceFault(0)
         self._update_arming()
         if self._gait_wake is not None:
             self._gait_wake.set()
+
+    def heartbeat_back_s(self) -> float:
+        """How long the bridge heartbeat has been back (advancing, no watchdog expiry), wall s;
+        0 while it is lost."""
+        if not self._hb_fresh or self._loop is None:
+            return 0.0
+        return max(0.0, self._loop.time() - self._hb_back_since)
+
+    def _cause_present(self, bit: DeviceFault, t_s: float) -> bool:
+        """Whether the cause of a latched fault is still there (so a request cannot clear it)."""
+        if bit == DeviceFault.HEARTBEAT_LOST:
+            return self.heartbeat_back_s() < self.heartbeat_clear_s
+        return any(self.faults.active(name, t_s) for name, b in HARDWARE_FAULTS.items()
+                   if b == bit)
+
+    async def _on_clear_faults(self, request: ClearFaults) -> None:
+        """Clear the requested latched faults whose cause is gone; answer per actuator."""
+        self._stats["clear_requests"] += 1
+        now = self.clock.now()
+        cleared = DeviceFault(0)
+        for bit in DeviceFault(request.mask):
+            latched = (self._latch_faults if bit == DeviceFault.HEARTBEAT_LOST
+                       else self._hw_latched)
+            if bit in latched and not self._cause_present(bit, now):
+                cleared |= bit
+        self._latch_faults &= ~cleared
+        self._hw_latched &= ~cleared
+        held = self.fault_bits()
+        for bit in cleared:
+            self._stats[f"cleared_{FAULT_INFO[bit].name}"] += 1
+        for bit in held & DeviceFault(request.mask):
+            self._stats[f"held_{FAULT_INFO[bit].name}"] += 1
+        log.info("virtual exosuit: clear faults %#04x: cleared %#04x, still held %#04x",
+                 int(request.mask), int(cleared), int(held))
+        self._update_arming()
+        actuators = range(self.n_actuators) if request.actuator is None else (
+            [request.actuator] if request.actuator < self.n_actuators else [])
+        if self.bus_off():
+            return
+        for a in actuators:
+            await self.endpoint.send(ClearFaultsAck(a, request.sequence, cleared, held))
 
     async def _watch_endpoint(self, endpoint: CanEndpoint) -> None:
         raise await endpoint.wait_failed()
@@ -1147,6 +1238,15 @@ class VirtualExosuit:
                 await me.sleep_until(end_s + self.bus_error_hold_s)
                 self._hw_faults &= ~DeviceFault.BUS_ERROR
                 self._update_arming()
+
+    async def _hardware_fault_loop(self) -> None:
+        """At the start of each hardware-fault window: latch its bit and go to assistance-off."""
+        with self.clock.participant("virtual-exosuit hardware faults") as me:
+            for start_s, bit in self._hw_fault_starts:
+                await me.sleep_until(start_s)
+                self._stats["hardware_fault"] += 1
+                self._hw_latched |= bit
+                self._go_off(f"hardware fault {FAULT_INFO[bit].name}")
 
     def _malformed_frame(self, kind: str) -> can.Message:
         """One malformed frame of a MALFORMED_FAULTS kind."""

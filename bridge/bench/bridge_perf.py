@@ -64,7 +64,7 @@ import numpy as np
 
 from bridge.bench.common import blas_threads, markdown_table
 from bridge.log import Topic
-from bridge.logread import read_log
+from bridge.log.reader import read_log
 from bridge.runtime import BridgeSession
 from bridge.sim import VirtualSimConfig, run_virtual_sim
 from drivers.exosuit import CanBusConfig
@@ -386,20 +386,21 @@ def _log_counts(path: Path) -> dict[str, Any]:
     after_stop = False
     ask_ms = compute_ms = math.nan
     for m in contents.messages:
+        r = m.record
+        if r is None:
+            continue
         if m.topic == Topic.FORCE_FEEDBACK:
-            per_act[str(m.data["actuator"])] += int(m.data["n"])
+            per_act[str(r.actuator)] += r.n
         elif m.topic == Topic.EVENTS:
-            kind = str(m.data.get("kind"))
-            events[kind] += 1
-            after_stop = after_stop and kind not in _WARM_UP_EVENTS
+            events[r.kind] += 1
+            after_stop = after_stop and r.kind not in _WARM_UP_EVENTS
         elif m.topic == Topic.OBSERVATIONS:
             after_stop = True
         elif m.topic == Topic.PROPOSALS:
-            ask_ms = float(m.data.get("total_ms", math.nan))
-            compute_ms = float(m.data.get("compute_ms", math.nan))
-        elif m.topic == Topic.ACKS and m.data.get("accepted") and m.data.get("elapsed_s") is not None:
-            pushes.append(_Push(after_stop, ask_ms, compute_ms, 1e3 * float(m.data["elapsed_s"]),
-                                m.log_time_ns))
+            ask_ms = math.nan if r.total_ms is None else r.total_ms
+            compute_ms = math.nan if r.compute_ms is None else r.compute_ms
+        elif m.topic == Topic.ACKS and r.accepted and r.elapsed_s is not None:
+            pushes.append(_Push(after_stop, ask_ms, compute_ms, 1e3 * r.elapsed_s, m.log_time_ns))
             after_stop, ask_ms, compute_ms = False, math.nan, math.nan
     return {"feedback_logged": sum(per_act.values()), "feedback_logged_per_actuator": dict(per_act),
             "pushes": pushes, "events": dict(events)}

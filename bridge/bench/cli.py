@@ -23,6 +23,7 @@ from bridge.bench.common import choices, machine_info, numbers, round_sig, write
 from bridge.collector import GcMode
 from hilbo_core.benchmarks import FUNCTIONS, METHODS, NOISE_LEVELS, StoppingProtocol
 from hilbo_core.errors import ConfigError, HilboError
+from virtual_hw.wearer import WEARER_CHOICES, WearerKind
 
 __all__ = ["add_bench_parser", "bench_main"]
 
@@ -74,6 +75,7 @@ def _stopping_command(args: argparse.Namespace, campaign: Any) -> str:
 def _cmd_stopping(args: argparse.Namespace) -> int:
     from bridge.bench.plots import plot_stopping_function
     from bridge.bench.stopping import (
+        PEER_METHODS,
         StoppingCampaign,
         function_descriptions,
         load_trials,
@@ -85,7 +87,7 @@ def _cmd_stopping(args: argparse.Namespace) -> int:
 
     # Everything is validated before any work starts (exit code 2 with the offending value).
     functions = choices(args.functions, FUNCTIONS, "function", list(FUNCTIONS))
-    methods = choices(args.methods, METHODS, "method", ["fixed", "adaptive"])
+    methods = choices(args.methods, {**METHODS, **PEER_METHODS}, "method", ["fixed", "adaptive"])
     noises = numbers(args.noise, "noise level", NOISE_LEVELS)
     if args.grid_step < 1:
         raise ConfigError(f"--grid-step {args.grid_step}; expected an integer >= 1")
@@ -153,6 +155,7 @@ def _cmd_hil(args: argparse.Namespace) -> int:
         HIL_METHODS,
         HilProtocol,
         HilTask,
+        check_methods_for_wearer,
         hil_comparisons,
         hil_table,
         load_sessions,
@@ -171,7 +174,8 @@ def _cmd_hil(args: argparse.Namespace) -> int:
     protocol = HilProtocol(minutes=args.minutes, warmup_s=args.warmup_s, condition_s=args.condition_s,
                            popsize=args.popsize, sigma0=args.sigma0, penalty_w=args.penalty_w,
                            n_explore=args.n_explore, max_breaths=args.max_breaths, window=args.window,
-                           grid_min=args.grid_min)
+                           grid_min=args.grid_min, wearer=args.wearer)
+    check_methods_for_wearer(methods, protocol.wearer)  # before any tuning runs
     seeds = list(range(args.seed, args.seed + args.subjects))
     out = Path(args.out)
     console = _console()
@@ -215,6 +219,7 @@ def _cmd_hil(args: argparse.Namespace) -> int:
                f"--condition-s {args.condition_s:g} --popsize {args.popsize} --sigma0 {args.sigma0:g} "
                f"--penalty-w {args.penalty_w:g} --n-explore {args.n_explore} "
                f"--max-breaths {args.max_breaths} --window {args.window} --grid-min {args.grid_min:g} "
+               f"--wearer {args.wearer} "
                + (f"--tuned-k {args.tuned_k} --tune-subjects {args.tune_subjects} --tune-seed "
                   f"{args.tune_seed} --error-weight {args.error_weight:g} "
                   if "adaptive-tuned-k" in methods else "")
@@ -356,7 +361,8 @@ def add_bench_parser(subparsers: Any) -> Any:
     st.add_argument("--noise", default=None,
                     help="comma-separated σ_z²/σ̃² factors (default 0.1,1,10)")
     st.add_argument("--methods", default=None,
-                    help=f"comma-separated, from {','.join(METHODS)} (default fixed,adaptive)")
+                    help=f"comma-separated, from {','.join(METHODS)} and the Optuna peers "
+                         "tpe-wilcoxon,tpe-halving (pip install hilbo[peers]) (default fixed,adaptive)")
     st.add_argument("--noise-model", default="matched", choices=["matched", "assumed"],
                     help="matched: measurements have variance σ_z²; assumed: they have σ̃² and σ_z² "
                          "is only the estimator's assumption (default matched)")
@@ -416,6 +422,9 @@ def add_bench_parser(subparsers: Any) -> Any:
     hil.add_argument("--max-breaths", type=_int, default=45, help="BO's N (45)")
     hil.add_argument("--window", type=_int, default=2, help="BO's window W (2)")
     hil.add_argument("--grid-min", type=float, default=1.0, help="minutes grid of the summary (1)")
+    hil.add_argument("--wearer", choices=WEARER_CHOICES, default=WearerKind.REALISTIC.value,
+                     help="simulated wearer: realistic (default; issue 16) or legacy (the earlier "
+                          "one; the seed-003 methods need it)")
     hil.add_argument("--tuned-k", default="bo", metavar="bo|grid|K",
                      help="K of adaptive-tuned-k: bo = BO-RESAMPLE's recommendation, grid = the best "
                           "of an exhaustive grid, both tuned offline on the full-length trajectories "
@@ -471,6 +480,10 @@ def add_bench_parser(subparsers: Any) -> Any:
                          "N = 45, 180 s warm-ups; needs --bridge-minutes of at least 20.5)")
     pf.add_argument("--out", default="runs/bench/perf", help="output directory")
     pf.set_defaults(func=_cmd_perf)
+
+    from bridge.bench.estimator import add_estimator_bench_parser
+
+    add_estimator_bench_parser(bsub)  # hilbo bench estimator (issue 16)
     return bsub
 
 

@@ -16,6 +16,7 @@ Both show a rich progress bar on stderr when it is a terminal.
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import multiprocessing
 import os
@@ -29,11 +30,16 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from hilbo_core.errors import ConfigError
 
-__all__ = ["DaskExecutor", "Executor", "LocalExecutor", "make_executor"]
+__all__ = ["DaskExecutor", "Executor", "LocalExecutor", "keep_freed_memory", "make_executor"]
 
 logger = logging.getLogger(__name__)
 
 _BLAS_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+# glibc mallopt parameters (malloc.h): M_TRIM_THRESHOLD = -1, M_MMAP_THRESHOLD = -3.
+_M_TRIM_THRESHOLD = -1
+_M_MMAP_THRESHOLD = -3
+_KEEP_BYTES = 1 << 30
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -59,6 +65,34 @@ class Executor(Protocol):
             Whatever ``fn`` raised for the first task that failed (the rest are cancelled).
         """
         ...
+
+
+def keep_freed_memory(limit_bytes: int = _KEEP_BYTES) -> bool:
+    """Let glibc's malloc keep freed blocks up to ``limit_bytes`` instead of returning them.
+
+    A benchmark worker allocates and frees the same multi-MB arrays thousands of times (the
+    (1024 candidates × n) kernel block of every EI maximisation, the n × n matrices of every GP
+    fit). By default glibc serves such blocks with mmap, or trims them off the heap when freed, so
+    every allocation page-faults afresh: measured on one Ackley trial (σ_z² = σ̃², adaptive, seed
+    1), 8.5 s CPU of which 1.0 s system time by default, 6.4 s and 0.2 s with this. Arithmetic is
+    untouched (same results); the worker's resident memory stays at its peak.
+
+    Returns:
+        True if set; False where there is no glibc (nothing changes then).
+    """
+    import ctypes
+    import ctypes.util
+
+    name = ctypes.util.find_library("c")
+    if name is None:
+        return False
+    try:
+        libc = ctypes.CDLL(name)
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):
+        return False
+    ok = mallopt(_M_MMAP_THRESHOLD, int(limit_bytes)) == 1
+    return bool(mallopt(_M_TRIM_THRESHOLD, int(limit_bytes)) == 1 and ok)
 
 
 @contextmanager
@@ -149,31 +183,39 @@ class DaskExecutor:
     def map(self, fn: Callable[[T], R], tasks: Sequence[T], *, label: str = "tasks",
             on_result: Callable[[int, R], None] | None = None) -> list[R]:
         """See :meth:`Executor.map`."""
-        from distributed import Client, as_completed
-
         tasks = list(tasks)
         results: list[Any] = [None] * len(tasks)
+        # An asynchronous client on an event loop of this call: a synchronous Client runs its own
+        # "IO loop" thread, which it leaves running when it cannot connect (distributed 2026.8).
+        asyncio.run(self._map(fn, tasks, label, on_result, results))
+        return results
+
+    async def _map(self, fn: Callable[[T], R], tasks: list[T], label: str,
+                   on_result: Callable[[int, R], None] | None, results: list[Any]) -> None:
+        from distributed import Client, as_completed
+
         try:
-            client = Client(self.address, timeout=self.timeout_s, set_as_default=False)
+            client = await Client(self.address, timeout=self.timeout_s, set_as_default=False,
+                                  asynchronous=True)
         except OSError as err:
             raise ConfigError(f"cannot reach the Dask scheduler at {self.address!r}: {err}") from err
-        with client, _progress(len(tasks), label, self.progress) as advance:
-            # pure=False: identical tasks are still separate runs; the result depends only on
-            # the task's own seeds, never on which worker runs it.
-            futures = client.map(fn, tasks, pure=False)
-            index = {f.key: i for i, f in enumerate(futures)}
-            try:
-                with client.as_current():  # as_completed finds the client by context
-                    for fut in as_completed(futures):
-                        i = index[fut.key]
-                        results[i] = fut.result()  # re-raises the task's exception here
-                        if on_result is not None:
-                            on_result(i, results[i])
-                        advance()
-            except BaseException:
-                client.cancel(futures)
-                raise
-        return results
+        async with client:
+            with _progress(len(tasks), label, self.progress) as advance:
+                # pure=False: identical tasks are still separate runs; the result depends only
+                # on the task's own seeds, never on which worker runs it.
+                futures = client.map(fn, tasks, pure=False)
+                index = {f.key: i for i, f in enumerate(futures)}
+                try:
+                    with client.as_current():  # as_completed finds the client by context
+                        async for fut in as_completed(futures):
+                            i = index[fut.key]
+                            results[i] = await fut  # re-raises the task's exception here
+                            if on_result is not None:
+                                on_result(i, results[i])
+                            advance()
+                except BaseException:
+                    await client.cancel(futures)
+                    raise
 
 
 def make_executor(workers: int | None = None, scheduler: str | None = None,

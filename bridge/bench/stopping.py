@@ -14,14 +14,27 @@ of the seed's Fig. 2) are written from all trials of the campaign at the end.
 of the same name, applied identically to every method of the campaign; it is part of a trial's
 identity (a trial of one growth factor is never resumed or merged into a campaign of another), and
 trials recorded before the option existed count as 1.0 (they refitted at every proposal).
+
+Reference methods (:data:`PEER_METHODS`, issue 17 part 5): Optuna's TPE sampler with the Wilcoxon
+(``tpe-wilcoxon``) or the successive-halving pruner (``tpe-halving``), in the same harness: the
+same exploration (design points, measurements and hence x_0 as the BO methods of the trial; they
+enter the study as completed trials), then every Optuna trial is a setting measured breath by
+breath with the harness's Gaussian-product measurements, each measurement reported as an
+intermediate value so that the pruner can stop the setting early, until the same
+``budget`` of measurements is spent (a setting running when it ends is closed with the estimate it
+has, as the BO methods' is). The recommendation x_t is the completed setting with the lowest
+estimate (pruned settings have no final value). Optuna is the optional extra ``peers``
+(``pip install hilbo[peers]``), imported only when such a method runs.
 """
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import math
 import time
+import warnings
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,30 +43,202 @@ from typing import Any
 import numpy as np
 
 from bridge.bench.common import blas_threads, markdown_table, round_sig
+from bridge.bench.executors import keep_freed_memory
 from hilbo_core.benchmarks import (
+    _NOISE_STREAM,  # the trial's measurement stream: peers must measure what the BO methods measure
     FUNCTIONS,
     METHODS,
     NOISE_LEVELS,
+    NoiseModel,
     StoppingMethod,
     StoppingProtocol,
     check_noise,
+    measure,
     resolve_function,
     resolve_method,
     stopping_trial,
+    y_metric,
 )
-from hilbo_core.errors import ConfigError
-from hilbo_core.optimizer import OptimizerConfig
+from hilbo_core.errors import ConfigError, OptimizerStateError
+from hilbo_core.metabolic import GaussianProductEstimator
+from hilbo_core.optimizer import HILOptimizer, OptimizerConfig, Phase
 
 __all__ = [
+    "PEER_METHODS",
+    "PeerMethod",
     "StoppingCampaign",
     "StoppingTask",
     "load_trials",
+    "peer_trial",
     "run_stopping_task",
     "stopping_table",
     "summarize_stopping",
 ]
 
 logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class PeerMethod:
+    """An Optuna reference method of the stopping benchmark.
+
+    Attributes:
+        name: Identifier on the command line and in results.
+        description: One line for tables.
+        pruner: ``"wilcoxon"`` or ``"halving"``.
+    """
+
+    name: str
+    description: str
+    pruner: str
+
+
+PEER_METHODS: Mapping[str, PeerMethod] = {
+    "tpe-wilcoxon": PeerMethod(
+        "tpe-wilcoxon", "Optuna TPE, Wilcoxon pruner (p 0.1) on the single measurements", "wilcoxon"),
+    "tpe-halving": PeerMethod(
+        "tpe-halving", "Optuna TPE, successive-halving pruner (rungs 1, 4, 16 measurements) on the "
+        "running estimate", "halving"),
+}
+"""Optuna TPE + pruner peers, by name (issue 17 part 5); they need the ``peers`` extra."""
+
+_PEERS_HINT = "pip install hilbo[peers]"
+# Wilcoxon pruner: Optuna's default p threshold; the test compares the new setting's single
+# measurements with the best setting's at the same breath indices (the pruner's intended use:
+# one step = one independent evaluation of the same objective).
+_WILCOXON_P = 0.1
+# Successive halving: rungs at 1, 4, 16 measurements (Optuna's default reduction factor 4);
+# min_resource is fixed, not "auto", because the exploration trials are added, not run.
+_HALVING_MIN_RESOURCE = 1
+_HALVING_REDUCTION = 4
+
+
+def _import_optuna() -> Any:
+    try:
+        import optuna
+    except ImportError as err:
+        raise ConfigError(
+            f"the Optuna reference methods {sorted(PEER_METHODS)} need Optuna: {_PEERS_HINT}"
+        ) from err
+    return optuna
+
+
+def peer_trial(function: str, noise: float, method: str, seed: int,
+               protocol: StoppingProtocol | None = None) -> dict[str, Any]:
+    """One trial of an Optuna peer in the harness of :func:`hilbo_core.benchmarks.stopping_trial`.
+
+    Same trial identity and output fields as ``stopping_trial`` (``y`` on the same measurement
+    grid, normalised by the same x_0), plus ``pruned`` (settings the pruner stopped).
+
+    Raises:
+        ConfigError: Unknown function, method, bad noise, seed, or Optuna not installed.
+    """
+    if method not in PEER_METHODS:
+        raise ConfigError(f"unknown peer method {method!r}; choose one of {sorted(PEER_METHODS)}")
+    peer = PEER_METHODS[method]
+    fn = resolve_function(function)
+    level = check_noise(noise)
+    proto = protocol or StoppingProtocol()
+    if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
+        raise ConfigError(f"seed={seed!r}; expected an integer >= 0")
+    optuna = _import_optuna()
+    prior_var = fn.prior_std**2
+    assumed_var = level * prior_var
+    true_var = assumed_var if proto.noise_model is NoiseModel.MATCHED else prior_var
+    estimator = functools.partial(GaussianProductEstimator, fn.prior_mean, prior_var, assumed_var)
+    rng = np.random.default_rng([int(seed), _NOISE_STREAM])
+
+    # Exploration exactly as stopping_trial runs it (same optimizer seed, design, noise stream):
+    # the same points, the same measurements, the same x_0.
+    explorer = HILOptimizer(fn.space(), estimator_factory=estimator, n_explore=proto.n_explore,
+                            max_breaths=proto.max_breaths, window=proto.window,
+                            budget_breaths=proto.budget, seed=int(seed),
+                            n_candidates=proto.n_candidates, n_local=proto.n_local)
+    explored: list[tuple[dict[str, float], float, list[float]]] = []
+    while len(explorer.evaluations) < proto.n_explore:
+        params = explorer.ask()
+        f_true = fn.value(params)
+        zs: list[float] = []
+        i = 0
+        while True:
+            i += 1
+            z = measure(f_true, true_var, rng)
+            zs.append(z)
+            step = explorer.observe(float(i), z)
+            if step.stop:
+                break
+        if step.phase is not Phase.EXPLORATION or step.evaluation is None:
+            raise OptimizerStateError("internal: exploration did not end where expected")
+        explored.append((step.evaluation.params, step.evaluation.mean, zs))
+    x0 = explorer.best()[0]
+    f_x0 = fn.value(x0)
+
+    names = [f"x{i + 1}" for i in range(fn.dim)]
+    dists = {n: optuna.distributions.FloatDistribution(lo, hi)
+             for n, lo, hi in zip(names, fn.lower, fn.upper, strict=True)}
+    with warnings.catch_warnings():
+        # WilcoxonPruner is marked experimental in some Optuna versions; the benchmark pins
+        # its behaviour by its own tests, so the warning says nothing to the user here.
+        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+        if peer.pruner == "wilcoxon":
+            pruner = optuna.pruners.WilcoxonPruner(p_threshold=_WILCOXON_P)
+        else:
+            pruner = optuna.pruners.SuccessiveHalvingPruner(
+                min_resource=_HALVING_MIN_RESOURCE, reduction_factor=_HALVING_REDUCTION)
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    study = optuna.create_study(direction="minimize", pruner=pruner,
+                                sampler=optuna.samplers.TPESampler(seed=int(seed)))
+    for params, mean, zs in explored:
+        inter = _intermediates(peer, zs, estimator)
+        study.add_trial(optuna.trial.create_trial(
+            params={n: float(params[n]) for n in names}, distributions=dists, value=float(mean),
+            intermediate_values=dict(enumerate(inter))))
+
+    y = np.full(proto.budget + 1, np.nan)
+    y[0] = 1.0
+    rec = x0
+    t = evaluations = pruned = 0
+    while t < proto.budget:
+        trial = study.ask(dists)
+        params = {n: float(trial.params[n]) for n in names}
+        f_true = fn.value(params)
+        est = estimator()
+        state = optuna.trial.TrialState.COMPLETE
+        mean = math.nan
+        for i in range(proto.max_breaths):
+            z = measure(f_true, true_var, rng)
+            mean, _ = est.update(float(i + 1), z)
+            t += 1
+            y[t] = y[t - 1]
+            trial.report(z if peer.pruner == "wilcoxon" else float(mean), i)
+            if t >= proto.budget:
+                break  # the budget ends this setting with the estimate it has
+            if i < proto.max_breaths - 1 and trial.should_prune():
+                state = optuna.trial.TrialState.PRUNED
+                break
+        evaluations += 1
+        if state is optuna.trial.TrialState.PRUNED:
+            pruned += 1
+            study.tell(trial, state=state)
+        else:
+            study.tell(trial, float(mean))
+        best = study.best_trial
+        rec = {n: float(best.params[n]) for n in names}
+        y[t] = float(y_metric(fn.value(rec), f_x0, fn.f_min))
+    return {
+        "function": fn.name, "noise": level, "method": method, "seed": int(seed),
+        "y": y.tolist(), "evaluations": evaluations, "early_stops": pruned, "pruned": pruned,
+        "measurements": t, "f_x0": f_x0, "f_final": fn.value(rec), "x0": x0, "x_final": rec,
+    }
+
+
+def _intermediates(peer: PeerMethod, zs: Sequence[float], estimator: Callable[[], Any]) -> list[float]:
+    """The intermediate values a setting measured ``zs`` reports: the single measurements
+    (Wilcoxon) or the running estimate (successive halving)."""
+    if peer.pruner == "wilcoxon":
+        return [float(z) for z in zs]
+    est = estimator()
+    return [float(est.update(float(i + 1), z)[0]) for i, z in enumerate(zs)]
 
 
 @dataclass(frozen=True)
@@ -82,9 +267,14 @@ def run_stopping_task(task: StoppingTask) -> dict[str, Any]:
     """Run one trial (in a worker); the result of :func:`stopping_trial` plus ``wall_s``,
     ``protocol`` and ``refit_growth``."""
     blas_threads(1)  # wherever it runs: see bridge.bench.common.blas_threads
+    keep_freed_memory()  # no page faults for the same big arrays again (see there)
     t0 = time.perf_counter()
-    result = stopping_trial(task.function, task.noise, _with_refit_growth(task.method, task.refit_growth),
-                            task.seed, task.protocol)
+    if task.method in PEER_METHODS:
+        result = peer_trial(task.function, task.noise, task.method, task.seed, task.protocol)
+    else:
+        result = stopping_trial(task.function, task.noise,
+                                _with_refit_growth(task.method, task.refit_growth), task.seed,
+                                task.protocol)
     result["wall_s"] = time.perf_counter() - t0
     result["protocol"] = task.protocol.to_json()
     result["refit_growth"] = task.refit_growth
@@ -98,7 +288,7 @@ class StoppingCampaign:
     Attributes:
         functions: Names in :data:`hilbo_core.benchmarks.FUNCTIONS`.
         noises: σ_z²/σ̃² factors (the seed's: 0.1, 1, 10).
-        methods: Names in :data:`hilbo_core.benchmarks.METHODS`.
+        methods: Names in :data:`hilbo_core.benchmarks.METHODS` or :data:`PEER_METHODS`.
         trials: Trials per function × noise (>= 1); trial k uses seed ``seed + k``.
         seed: Seed of the first trial (>= 0).
         protocol: The study's protocol.
@@ -125,7 +315,14 @@ class StoppingCampaign:
         for f in self.functions:
             resolve_function(f)
         for m in self.methods:
-            resolve_method(m)
+            if m not in PEER_METHODS:
+                try:
+                    resolve_method(m)
+                except ConfigError as err:
+                    raise ConfigError(f"unknown method {m!r}; choose one of "
+                                      f"{sorted({**METHODS, **PEER_METHODS})}") from err
+        if any(m in PEER_METHODS for m in self.methods):
+            _import_optuna()  # before any work: the clear message, not a failed worker
         object.__setattr__(self, "noises", tuple(check_noise(n) for n in self.noises))
         for what, values in (("function", self.functions), ("method", self.methods),
                              ("noise level", self.noises)):
@@ -333,7 +530,7 @@ def run_campaign(campaign: StoppingCampaign, executor: Any, out_dir: Path, *, re
 
 def method_descriptions(methods: Sequence[str]) -> dict[str, str]:
     """One line per method, for results.json."""
-    return {m: METHODS[m].description for m in methods}
+    return {m: (PEER_METHODS[m] if m in PEER_METHODS else METHODS[m]).description for m in methods}
 
 
 def function_descriptions(functions: Sequence[str]) -> dict[str, Any]:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from enum import StrEnum
 
-__all__ = ["RejectReason"]
+__all__ = ["ReanchorKind", "RejectReason"]
 
 
 class RejectReason(StrEnum):
@@ -44,7 +44,12 @@ class RejectReason(StrEnum):
     NEGATIVE_TIME = "negative_time"
     """The breath time is below zero."""
     OUT_OF_ORDER = "out_of_order"
-    """The breath time is earlier than the last accepted breath."""
+    """The breath time is earlier than the last accepted breath (a late breath, or the first
+    breaths after a cart clock reset, before the validator re-anchors)."""
+    TIME_JUMP = "time_jump"
+    """The breath time is later than the last accepted breath by more than ``max_time_jump_s``:
+    a single absurd time, or the first breaths on a new cart time base before the validator
+    re-anchors on it."""
     DUPLICATE = "duplicate"
     """Same sequence number or same breath time as a recently accepted breath."""
     VO2_RANGE = "vo2_range"
@@ -57,3 +62,14 @@ class RejectReason(StrEnum):
     """Minute ventilation is outside the physiological limits."""
     HR_RANGE = "hr_range"
     """Heart rate is outside the physiological limits."""
+
+
+class ReanchorKind(StrEnum):
+    """Why the validator moved its time base (the keys of ``BreathValidator.reanchor_counts``)."""
+
+    CLOCK_RESET = "clock_reset"
+    """The cart's clock went backwards and stayed there (a cart restart resets it near 0)."""
+    TIME_JUMP = "time_jump"
+    """The cart's clock jumped forwards by more than ``max_time_jump_s`` and stayed there."""
+    RESET = "reset"
+    """The caller said so (:meth:`BreathValidator.reset`)."""

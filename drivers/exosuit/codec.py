@@ -41,6 +41,8 @@ __all__ = [
     "AssistanceOffReason",
     "BridgeHeartbeat",
     "BridgeState",
+    "ClearFaults",
+    "ClearFaultsAck",
     "DeviceFault",
     "DeviceMode",
     "DeviceStatus",
@@ -525,6 +527,87 @@ class ProfileAck:
             raise DecodeError("bad_value", str(err)) from err
 
 
+def _fault_bits(value: object, where: str) -> DeviceFault:
+    try:
+        bits = int(value)  # type: ignore[call-overload]
+    except (TypeError, ValueError) as err:
+        raise EncodeError(f"{where} = {value!r}; expected fault bits 0..0xFF") from err
+    if isinstance(value, bool) or not 0 <= bits <= 0xFF:
+        raise EncodeError(f"{where} = {value!r}; expected fault bits 0..0xFF (DeviceFault)")
+    return DeviceFault(bits)
+
+
+@dataclass(frozen=True)
+class ClearFaults:
+    """Fault-clear request (bridge → device), identifier 0x790, sent while no push runs.
+
+    The device clears each fault in ``mask`` only if its cause is gone and answers with a
+    :class:`ClearFaultsAck` per addressed actuator (PROTOCOL.md, "Clearing a latched fault").
+
+    Attributes:
+        sequence: 0..255, echoed in the answers.
+        mask: the fault bits to clear (0 only asks for the answer).
+        actuator: 0 or 1, or None for every actuator of the device (``all`` on the wire).
+    """
+
+    sequence: int
+    mask: DeviceFault
+    actuator: int | None = None
+    MESSAGE: ClassVar[str] = "ClearFaults"
+
+    def to_frame(self) -> can.Message:
+        """Encode as a CAN frame."""
+        if self.actuator is not None:
+            _actuator_name(self.MESSAGE, self.actuator)  # 0..N_ACTUATORS-1 or EncodeError
+        return _encode(self.MESSAGE, {
+            "Sequence": self.sequence,
+            "Actuator": "all" if self.actuator is None else self.actuator,
+            "Mask": int(_fault_bits(self.mask, "ClearFaults.mask")),
+        })
+
+    @classmethod
+    def from_frame(cls, frame: can.Message) -> ClearFaults:
+        """Decode a frame (raises DecodeError)."""
+        v = _decode(_message(cls.MESSAGE), frame)
+        target = v["Actuator"]
+        actuator = None if isinstance(target, NamedSignalValue) else int(target)
+        return cls(int(v["Sequence"]), DeviceFault(int(v["Mask"])), actuator)
+
+
+@dataclass(frozen=True)
+class ClearFaultsAck:
+    """One actuator's answer to a :class:`ClearFaults` (device → bridge), 0x791 + actuator.
+
+    Attributes:
+        actuator: 0 or 1.
+        sequence: the sequence of the request answered.
+        cleared: the fault bits this request cleared.
+        held: every fault bit still set after the request (0: the actuator is fault-free).
+    """
+
+    actuator: int
+    sequence: int
+    cleared: DeviceFault
+    held: DeviceFault
+    BASE: ClassVar[str] = "ClearFaultsAck"
+
+    def to_frame(self) -> can.Message:
+        """Encode as a CAN frame."""
+        return _encode(_actuator_name(self.BASE, self.actuator), {
+            "Sequence": self.sequence,
+            "Cleared": int(_fault_bits(self.cleared, "ClearFaultsAck.cleared")),
+            "Held": int(_fault_bits(self.held, "ClearFaultsAck.held")),
+        })
+
+    @classmethod
+    def from_frame(cls, frame: can.Message) -> ClearFaultsAck:
+        """Decode a frame (raises DecodeError)."""
+        actuator = frame.arbitration_id - frame_id("ClearFaultsAck0")
+        v = _decode(_message(_actuator_name(cls.BASE, actuator)), frame)
+        return cls(actuator, int(v["Sequence"]), DeviceFault(int(v["Cleared"])),
+                   DeviceFault(int(v["Held"])))
+
+
 class _AckResult(enum.IntEnum):
     ACK = 0
     NACK = 1
@@ -538,6 +621,8 @@ ExosuitMessage: TypeAlias = (
     | ProfileSegment
     | ProfileCommit
     | ProfileAck
+    | ClearFaults
+    | ClearFaultsAck
 )
 
 
@@ -545,11 +630,13 @@ ExosuitMessage: TypeAlias = (
 def _decoders() -> Mapping[int, Callable[[can.Message], ExosuitMessage]]:
     table: dict[int, Callable[[can.Message], ExosuitMessage]] = {
         frame_id(cls.MESSAGE): cls.from_frame
-        for cls in (AssistanceOff, BridgeHeartbeat, ProfileSegment, ProfileCommit, ProfileAck)
+        for cls in (AssistanceOff, BridgeHeartbeat, ProfileSegment, ProfileCommit, ProfileAck,
+                    ClearFaults)
     }
     for actuator in range(N_ACTUATORS):
         table[frame_id(f"ForceFeedback{actuator}")] = ForceFeedback.from_frame
         table[frame_id(f"DeviceStatus{actuator}")] = DeviceStatus.from_frame
+        table[frame_id(f"ClearFaultsAck{actuator}")] = ClearFaultsAck.from_frame
     if ASSISTANCE_OFF_ID not in table:
         raise RuntimeError(f"{DBC_FILENAME} does not define 0x{ASSISTANCE_OFF_ID:03X}")
     return table

@@ -23,6 +23,7 @@ import asyncio
 import collections
 import contextlib
 import enum
+import functools
 import logging
 import math
 import types
@@ -42,16 +43,21 @@ from drivers.errors import (
     TransportError,
 )
 from drivers.exosuit.codec import (
+    N_ACTUATORS,
     AssistanceOff,
     AssistanceOffReason,
     BridgeHeartbeat,
     BridgeState,
+    ClearFaults,
+    ClearFaultsAck,
+    DeviceFault,
     ExosuitMessage,
     NackReason,
     ProfileAck,
     decode_frame,
 )
-from drivers.exosuit.profile import ProfileTransfer
+from drivers.exosuit.faults import CLEARABLE_FAULTS, describe_faults, fault_names
+from drivers.exosuit.profile import ProfileTransfer, pack_tables
 
 __all__ = [
     "DEFAULT_ACK_TIMEOUT_S",
@@ -62,6 +68,7 @@ __all__ = [
     "RETRYABLE_NACKS",
     "CanBusConfig",
     "CanEndpoint",
+    "ClearFaultsResult",
     "ProfileNackError",
     "PushPermit",
     "PushResult",
@@ -245,6 +252,55 @@ class PushResult:
     timeouts: int = 0
 
 
+@dataclass(frozen=True)
+class ClearFaultsResult:
+    """Outcome of :meth:`CanEndpoint.clear_faults`.
+
+    Attributes:
+        sequence: the request's sequence number.
+        mask: the faults asked to be cleared.
+        answers: each answering actuator's :class:`~drivers.exosuit.codec.ClearFaultsAck`.
+        missing: addressed actuators that did not answer within the timeout.
+    """
+
+    sequence: int
+    mask: DeviceFault
+    answers: Mapping[int, ClearFaultsAck]
+    missing: tuple[int, ...] = ()
+
+    @property
+    def cleared(self) -> DeviceFault:
+        """Faults cleared on any actuator."""
+        out = DeviceFault(0)
+        for a in self.answers.values():
+            out |= a.cleared
+        return out
+
+    @property
+    def held(self) -> DeviceFault:
+        """Faults still set on any answering actuator."""
+        out = DeviceFault(0)
+        for a in self.answers.values():
+            out |= a.held
+        return out
+
+    @property
+    def ok(self) -> bool:
+        """Every addressed actuator answered and none holds a fault any more."""
+        return not self.missing and not self.held
+
+    def describe(self) -> str:
+        """One line for the operator, e.g. ``"cleared heartbeat_lost; still held: force_limit
+        (cleared by the bridge once the measured force is back under the limit)"``."""
+        parts = [f"cleared {', '.join(fault_names(self.cleared))}" if self.cleared
+                 else "cleared nothing"]
+        if self.held:
+            parts.append(f"still held: {'; '.join(describe_faults(self.held))}")
+        if self.missing:
+            parts.append(f"no answer from actuator(s) {', '.join(map(str, self.missing))}")
+        return "; ".join(parts)
+
+
 class ProfileNackError(ProfilePushError):
     """The device refused a profile (after the retries, or at once for a non-retryable reason).
 
@@ -349,6 +405,17 @@ class Subscription:
         return await self.get()
 
 
+class _PushAcks(Subscription):
+    """The answers a running push accepts: filled by the endpoint's answer accounting only."""
+
+    def __init__(self, endpoint: CanEndpoint) -> None:
+        super().__init__(endpoint, (ProfileAck,), 64, False)
+
+    def accepts(self, message: ExosuitMessage) -> bool:
+        """Never through the ordinary dispatch (the accounting puts accepted answers in)."""
+        return False
+
+
 class _ErrorListener(can.Listener):
     """Receives python-can's reader errors (from the Notifier, in the loop thread)."""
 
@@ -419,6 +486,13 @@ class CanEndpoint:
         self._rx_task: asyncio.Task[None] | None = None
         self._hb_task: asyncio.Task[None] | None = None
         self._hb_counter = 0
+        self._clear_sequence = 0
+        # Answer accounting of the latest push (version, commits sent, answers accepted), and
+        # the queue of the push waiting for an answer (PROTOCOL.md, "Transfer, commit, ack").
+        self._ack_version: int | None = None
+        self._ack_commits = 0
+        self._ack_answers = 0
+        self._push_acks: Subscription | None = None
         self._subs: list[Subscription] = []
         self._counters: collections.Counter[str] = collections.Counter()
         self._received: collections.Counter[str] = collections.Counter()
@@ -507,7 +581,11 @@ class CanEndpoint:
     def counters(self) -> Mapping[str, int]:
         """Frames that did not decode, by reason (``unknown_id``, ``bad_length``, ``bad_value``,
         ``extended_id``, ``remote_frame``, ``error_frame``, ``fd_frame``), plus
-        ``subscriber_overflow``, ``stale_ack``, ``send_retry`` and ``heartbeat_overrun``."""
+        ``subscriber_overflow``, ``send_retry``, ``heartbeat_overrun``, ``clear_ack_stale`` and
+        the profile answers this endpoint rejected (once it has pushed a profile):
+        ``ack_before_commit`` (an answer of the version being pushed before its first commit was
+        sent), ``ack_repeated`` (an answer beyond one per commit sent, e.g. a second ack of the
+        same commit) and ``ack_stale`` (an answer of another version than the latest push's)."""
         return types.MappingProxyType(self._counters)
 
     @property
@@ -567,6 +645,10 @@ class CanEndpoint:
             log.debug("undecodable frame counted as %s: %s", err.reason, err)
             return
         self._received[type(message).__name__] += 1
+        if isinstance(message, ProfileAck) and self._answers_push(message) and (
+            self._push_acks is not None
+        ):
+            self._push_acks._put(message)
         stamped: Stamped | None = None
         for sub in self._subs:
             if sub.accepts(message):
@@ -577,6 +659,32 @@ class CanEndpoint:
                     item = message
                 if sub._put(item):
                     self._counters["subscriber_overflow"] += 1
+
+    def _answers_push(self, ack: ProfileAck) -> bool:
+        """Whether ``ack`` answers a commit of the latest push; counts the answers it rejects.
+
+        Each commit sent earns one answer: an answer of the push's version before its first
+        commit left, one beyond the number of commits sent, or one of another version is
+        rejected (never completes a push) and counted. An endpoint that never pushed (a
+        listener, the device's own) judges nothing.
+        """
+        if self._ack_version is None:
+            return False
+        if ack.version != self._ack_version:
+            reason = "ack_stale"
+        elif self._ack_commits == 0:
+            reason = "ack_before_commit"
+        elif self._ack_answers >= self._ack_commits:
+            reason = "ack_repeated"
+        else:
+            self._ack_answers += 1
+            return True
+        self._counters[reason] += 1
+        # debug, like undecodable frames: a misbehaving device must not flood the log; the
+        # counters are what the bridge logs.
+        log.debug("profile answer %s rejected: %s (push v%d, %d commit(s), %d answer(s))",
+                  ack, reason, self._ack_version, self._ack_commits, self._ack_answers)
+        return False
 
     def _on_bus_error(self, exc: BaseException) -> None:
         if self._error is not None:
@@ -625,11 +733,19 @@ class CanEndpoint:
             EncodeError: the message does not encode.
             TransportError: still refused at the deadline, or the bus has failed.
         """
+        await self._send(message)
+
+    async def _send(self, message: ExosuitMessage | can.Message,
+                    before_try: Callable[[], None] | None = None) -> None:
+        """:meth:`send`, calling ``before_try()`` right before every transmit attempt (a
+        retry after a full queue included), with nothing awaited in between."""
         bus = self._check_usable()
         frame = message if isinstance(message, can.Message) else message.to_frame()
         loop = asyncio.get_running_loop()
         deadline = loop.time() + self._send_timeout_s
         while True:
+            if before_try is not None:
+                before_try()
             try:
                 bus.send(frame, timeout=0)
                 return
@@ -656,6 +772,82 @@ class CanEndpoint:
         if self.bridge_state == BridgeState.RUNNING:
             self.bridge_state = BridgeState.PAUSED
         await self.send(AssistanceOff(AssistanceOffReason(reason)))
+
+    async def clear_faults(
+        self,
+        mask: DeviceFault | int = CLEARABLE_FAULTS,
+        actuator: int | None = None,
+        *,
+        timeout_s: float = DEFAULT_ACK_TIMEOUT_S,
+        n_actuators: int = N_ACTUATORS,
+    ) -> ClearFaultsResult:
+        """Ask the device to clear latched faults, and wait for its answers.
+
+        Sends one ClearFaults (PROTOCOL.md, "Clearing a latched fault") and waits up to
+        ``timeout_s`` for the ClearFaultsAck of every addressed actuator with this request's
+        sequence; answers to earlier requests are ignored and counted (``clear_ack_stale``).
+        The device clears a fault only once its cause is gone and never restarts assistance by
+        itself: it assists again only after a new profile commit is acked while the heartbeat
+        says RUNNING. The request is serialised with :meth:`push_profile` (it waits for a
+        running push and holds pushes back until it is answered), so it never lands among the
+        segments.
+
+        Args:
+            mask: the faults to clear (default every fault a request can clear); 0 only asks
+                for the answer.
+            actuator: 0 or 1, or None for every actuator.
+            timeout_s: how long to wait for the answers (s).
+            n_actuators: actuators the device has (the answers awaited when ``actuator`` is
+                None).
+
+        Returns:
+            A :class:`ClearFaultsResult` (``ok`` when nothing is held and every actuator
+            answered; ``missing`` lists those that did not).
+
+        Raises:
+            DriverConfigError: bad timeout or actuator count.
+            EncodeError: bad mask or actuator.
+            TransportError: the bus failed.
+        """
+        if not timeout_s > 0 or isinstance(n_actuators, bool) or n_actuators not in range(
+            1, N_ACTUATORS + 1
+        ):
+            raise DriverConfigError(
+                f"clear_faults: expected timeout_s > 0 and n_actuators 1..{N_ACTUATORS}; got "
+                f"timeout_s={timeout_s}, n_actuators={n_actuators}"
+            )
+        sequence = self._clear_sequence
+        request = ClearFaults(sequence, mask, actuator)  # type: ignore[arg-type]
+        frame = request.to_frame()  # validates mask and actuator before anything is sent
+        expected = set(range(n_actuators)) if actuator is None else {actuator}
+        self._check_usable()
+        if self._push_lock is None:
+            raise DriverError("endpoint is not open")
+        loop = asyncio.get_running_loop()
+        async with self._push_lock:
+            self._clear_sequence = (sequence + 1) % 256
+            answers: dict[int, ClearFaultsAck] = {}
+            with self.subscribe(ClearFaultsAck) as sub:
+                await self.send(frame)
+                deadline = loop.time() + timeout_s
+                while expected - answers.keys():
+                    remaining = deadline - loop.time()
+                    if remaining <= 0:
+                        break
+                    try:
+                        async with asyncio.timeout(remaining):
+                            answer = await sub.get()
+                    except TimeoutError:
+                        break
+                    if answer.sequence != sequence or answer.actuator not in expected:
+                        self._counters["clear_ack_stale"] += 1
+                        continue
+                    answers[answer.actuator] = answer
+        result = ClearFaultsResult(sequence, DeviceFault(int(request.mask)),
+                                   types.MappingProxyType(answers),
+                                   tuple(sorted(expected - answers.keys())))
+        log.info("clear faults %s: %s", fault_names(request.mask) or "(query)", result.describe())
+        return result
 
     # --- heartbeat --------------------------------------------------------------------------
 
@@ -723,7 +915,8 @@ class CanEndpoint:
         ``permit`` lets the caller (the bridge's supervisor) stop a push at the last moment: it
         is called with :attr:`PushStage.FIRST_SEGMENT` right before the first segment of every
         attempt and with :attr:`PushStage.COMMIT` right before every commit, synchronously,
-        with no await between its True and the frame going to the bus. When it returns False
+        with no await between its True and the frame going to the bus (if the transmit queue
+        is full, it is asked again before each retry of that frame). When it returns False
         the push sends nothing more (in particular not that commit) and raises
         :class:`~drivers.errors.ProfilePushAborted`. An exception it raises propagates the same
         way, unchanged.
@@ -778,7 +971,15 @@ class CanEndpoint:
                              version, stage.value, attempt)
                     raise ProfilePushAborted(version, stage.value, attempt, commits_sent)
 
-            with self.subscribe(ProfileAck) as acks:
+            # A new push supersedes the earlier ones: their late answers are stale from now on,
+            # and nothing answers this one before its first commit is on the bus.
+            self._ack_version, self._ack_commits, self._ack_answers = version, 0, 0
+            acks = _PushAcks(self)
+            self._subs.append(acks)
+            if self._error is not None:
+                acks._put(_FAILED)
+            self._push_acks = acks
+            try:
                 for attempt in range(1, retries + 2):
                     # Paced against deadlines (frame k at start + k·pace_s), not by sleeping pace_s
                     # after each send: on a busy event loop every sleep overshoots (measured: a
@@ -792,14 +993,17 @@ class CanEndpoint:
                             delay = due - loop.time()
                             if delay > 0:
                                 await asyncio.sleep(delay)
-                        # Asked after the pacing sleep, so nothing is awaited between the
-                        # permission and the frame reaching the bus.
-                        if k == 0:
-                            check(PushStage.FIRST_SEGMENT, attempt)
+                        # Asked after the pacing sleep (and again before a transmit retry), so
+                        # nothing is awaited between the permission and the frame reaching the
+                        # bus.
+                        stage = (PushStage.COMMIT if frame is commit
+                                 else PushStage.FIRST_SEGMENT if k == 0 else None)
+                        await self._send(frame, None if stage is None
+                                         else functools.partial(check, stage, attempt))
                         if frame is commit:
-                            check(PushStage.COMMIT, attempt)
-                        await self.send(frame)
-                        if frame is commit:
+                            # Counted before anything is awaited: an answer dispatched from
+                            # now on may answer this commit.
+                            self._ack_commits += 1
                             commits_sent += 1
                         sent_at = loop.time()
                     ack = await self._await_ack(acks, version, loop.time() + timeout_s)
@@ -822,12 +1026,42 @@ class CanEndpoint:
                         raise ProfileNackError(version, ack.reason, ack.detail, attempt)
                     if ack.reason == NackReason.BUSY:
                         await asyncio.sleep(timeout_s)
+            finally:
+                self._push_acks = None
+                acks.close()
             if last is not None:
                 raise ProfileNackError(version, last.reason, last.detail, retries + 1)
             raise ProfilePushError(
                 f"profile version {version}: no ack after {retries + 1} attempt(s) of "
                 f"{timeout_s} s each"
             )
+
+    async def push_tables(
+        self,
+        tables: Sequence[Sequence[float] | np.ndarray],
+        version: int,
+        *,
+        timeout_s: float = DEFAULT_ACK_TIMEOUT_S,
+        retries: int = DEFAULT_RETRIES,
+        pace_s: float = DEFAULT_PACE_S,
+        permit: PushPermit | None = None,
+    ) -> PushResult:
+        """Push one table per joint of a multi-actuator device as one profile.
+
+        The tables are packed with :func:`~drivers.exosuit.profile.pack_tables` (the layout of
+        PROTOCOL.md, "Force profile tables") and sent with :meth:`push_profile`, whose
+        arguments and errors apply.
+
+        Args:
+            tables: ``k`` tables in the device's table order, each shape ``(m,)``, newtons.
+            version: profile version 1..255.
+            timeout_s: ack timeout per attempt (s).
+            retries: attempts after the first.
+            pace_s: gap between segments (s).
+            permit: see :meth:`push_profile`.
+        """
+        return await self.push_profile(pack_tables(tables), version, timeout_s=timeout_s,
+                                       retries=retries, pace_s=pace_s, permit=permit)
 
     async def _await_ack(
         self, acks: Subscription, version: int, deadline: float
@@ -843,6 +1077,5 @@ class CanEndpoint:
                     ack = await acks.get()
             except TimeoutError:
                 return None
-            if ack.version == version:
+            if ack.version == version:  # always: only accepted answers are queued
                 return ack
-            self._counters["stale_ack"] += 1

@@ -15,6 +15,19 @@ bytes as they arrive.
 commit, answer ack/nack); the virtual exosuit and the tests use it, a firmware implements the
 same checks. Bridge-side safety limits (force, timing, rate of change) are applied before a table
 reaches this module; the device's limits here are its own last line of defence.
+
+Multi-actuator table layout (defined here once; PROTOCOL.md, "Force profile tables")
+------------------------------------------------------------------------------------
+A push carries ONE table. A device whose actuators run different profiles (a hip + ankle suit)
+gets them concatenated: ``k`` tables of the same length ``m`` (each over 0..100 % of its own
+joint's gait cycle), in the device's table order, so the pushed table has shape ``(k·m,)`` and
+point ``j`` of table ``i`` is point ``i·m + j``. The table order is the order of first
+appearance of each actuator's load path (joint) in actuator order (:func:`table_order`): a hip
+suit, actuators ``("hip", "hip")``, has one table that both legs execute; a hip + ankle suit,
+``("hip", "ankle")``, has ``[hip, ankle]``. :func:`pack_tables` builds the table the bridge
+sends, :func:`unpack_tables` splits what the device receives; the commit's ``NumPoints`` is
+``k·m`` and the CRC runs over all of it, so the device checks the whole set at once and the
+actuators switch to their parts from one commit.
 """
 
 from __future__ import annotations
@@ -47,9 +60,12 @@ __all__ = [
     "ProfileAssembler",
     "ProfileTransfer",
     "forces_to_raw",
+    "pack_tables",
     "profile_crc32",
     "raw_to_forces",
     "segment_count",
+    "table_order",
+    "unpack_tables",
 ]
 
 #: Force resolution on the wire (DBC ProfileSegment.ForceN scale).
@@ -67,6 +83,90 @@ MAX_PROFILE_POINTS = 256 * POINTS_PER_SEGMENT
 def segment_count(n_points: int) -> int:
     """Number of ProfileSegment frames for a table of ``n_points`` (ceil(n/3))."""
     return -(-n_points // POINTS_PER_SEGMENT)
+
+
+def table_order(joints: Sequence[str]) -> tuple[str, ...]:
+    """The tables a device with these actuators takes, in wire order (module docstring).
+
+    Args:
+        joints: the load path (joint) of each actuator, in actuator order, e.g.
+            ``("hip", "hip")`` or ``("hip", "ankle")``.
+
+    Returns:
+        The distinct joints in order of first appearance: ``("hip",)``, ``("hip", "ankle")``.
+
+    Raises:
+        EncodeError: no actuators, or a joint that is not a non-empty string.
+    """
+    joints = tuple(joints)
+    if not joints or any(not isinstance(j, str) or not j for j in joints):
+        raise EncodeError(f"joints {joints!r}; expected one non-empty joint name per actuator")
+    return tuple(dict.fromkeys(joints))
+
+
+def pack_tables(tables: Sequence[Sequence[float] | np.ndarray]) -> np.ndarray:
+    """Concatenate per-table forces into the one table a push carries (module docstring).
+
+    Args:
+        tables: ``k ≥ 1`` tables in the device's table order (:func:`table_order`), each of
+            shape ``(m,)`` with the same ``m ≥ 2``, forces in newtons over 0..100 % gait cycle.
+
+    Returns:
+        Shape ``(k·m,)``, float64 newtons: table 0's points, then table 1's, ...
+
+    Raises:
+        EncodeError: no tables, a table that is not 1-D, tables of different lengths, fewer
+            than 2 points per table, or more than 768 points in all.
+    """
+    if isinstance(tables, np.ndarray) and tables.ndim == 1:
+        raise EncodeError("pack_tables needs a sequence of tables, got one 1-D array")
+    arrays = [np.asarray(t, dtype=float) for t in tables]
+    if not arrays:
+        raise EncodeError("pack_tables: expected at least one table, got none")
+    for i, a in enumerate(arrays):
+        if a.ndim != 1:
+            raise EncodeError(f"pack_tables: table {i} has shape {a.shape}; expected (m,)")
+    lengths = {a.size for a in arrays}
+    if len(lengths) != 1:
+        raise EncodeError(
+            f"pack_tables: tables have {[a.size for a in arrays]} points; expected one length m"
+        )
+    m = lengths.pop()
+    if m < MIN_PROFILE_POINTS or m * len(arrays) > MAX_PROFILE_POINTS:
+        raise EncodeError(
+            f"pack_tables: {len(arrays)} table(s) of {m} points; expected >= "
+            f"{MIN_PROFILE_POINTS} points each and <= {MAX_PROFILE_POINTS} in all"
+        )
+    return np.concatenate(arrays)
+
+
+def unpack_tables(table: Sequence[float] | Sequence[int] | np.ndarray,
+                  n_tables: int) -> tuple[np.ndarray, ...]:
+    """Split a received table into its ``n_tables`` parts (the inverse of :func:`pack_tables`).
+
+    Args:
+        table: shape ``(k·m,)``, newtons or raw 0.1 N counts (the dtype is kept).
+        n_tables: ``k``, the number of tables the device takes (``len(table_order(joints))``).
+
+    Returns:
+        ``k`` arrays of shape ``(m,)``, copies, in table order.
+
+    Raises:
+        EncodeError: ``n_tables`` is not a positive integer, the table is not 1-D, or its
+            length is not ``k·m`` with ``m ≥ 2``.
+    """
+    if isinstance(n_tables, bool) or not isinstance(n_tables, numbers.Integral) or n_tables < 1:
+        raise EncodeError(f"unpack_tables: n_tables={n_tables!r}; expected an integer >= 1")
+    arr = np.asarray(table)
+    if arr.ndim != 1:
+        raise EncodeError(f"unpack_tables: table has shape {arr.shape}; expected (n,)")
+    m, rest = divmod(arr.size, int(n_tables))
+    if rest or m < MIN_PROFILE_POINTS:
+        raise EncodeError(
+            f"a table of {arr.size} points does not split into {n_tables} tables of >= "
+            f"{MIN_PROFILE_POINTS} points each"
+        )
+    return tuple(arr[i * m:(i + 1) * m].copy() for i in range(int(n_tables)))
 
 
 def forces_to_raw(forces_n: Sequence[float] | np.ndarray) -> tuple[int, ...]:

@@ -20,7 +20,7 @@ def test_a_reader_that_leaves_early_is_exit_141_without_traceback(
     assert "Traceback" not in capsys.readouterr().err
 
 
-def test_errors_of_the_packages_are_exit_2_with_one_line(capsys: pytest.CaptureFixture[str]) -> None:
-    assert cli.main(["vcan-setup", "no such iface!"]) == 2
+def test_errors_of_the_packages_are_exit_1_with_one_line(capsys: pytest.CaptureFixture[str]) -> None:
+    assert cli.main(["vcan-setup", "no such iface!"]) == 1
     err = capsys.readouterr().err
     assert err.startswith("hilbo vcan-setup: error:") and len(err.strip().splitlines()) == 1

@@ -383,13 +383,13 @@ def test_example_piped_into_check_round_trips(monkeypatch):
     assert out.startswith("config OK: <stdin>\n") and "pre-flight 256 sampled settings: 0 refused" in out
 
 
-def test_check_exit_2_with_the_reason(tmp_path):
+def test_check_exit_1_with_the_reason(tmp_path):
     path = tmp_path / "bad.toml"
     path.write_text(_with("can", "bitrat = 1"))
     code, out, err = _run(["config", "check", str(path)])
-    assert code == 2 and out == "" and "did you mean 'bitrate'" in err
+    assert code == 1 and out == "" and "did you mean 'bitrate'" in err
     code, _, err = _run(["config", "check", str(tmp_path / "nope.toml")])
-    assert code == 2 and "cannot read config" in err
+    assert code == 1 and "cannot read config" in err
 
 
 def test_check_warns_when_the_limits_refuse_part_of_the_space(tmp_path):

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import contextlib
 import json
 import logging
 import os
@@ -21,7 +22,6 @@ import struct
 import threading
 import time
 from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -60,6 +60,12 @@ class FoxgloveClient:
         self._sub_ids: dict[int, int] = {}
 
     def close(self) -> None:
+        """Close politely (a close frame first): the SDK logs a reset connection as an error."""
+        with contextlib.suppress(OSError, EOFError):
+            self._send(8, struct.pack(">H", 1000))
+            self.sock.settimeout(1.0)
+            while True:  # until the server's close frame (EOFError) or the socket ends
+                self.frame()
         self.sock.close()
 
     # framing ---------------------------------------------------------------------------
@@ -135,7 +141,7 @@ class FoxgloveClient:
         return next((cid for cid, c in self.channels.items() if c["topic"] == topic), None)
 
 
-@contextmanager
+@contextlib.contextmanager
 def client_of(live: LiveServer) -> Iterator[FoxgloveClient]:
     assert live.url is not None
     client = FoxgloveClient(live.url)

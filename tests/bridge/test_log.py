@@ -149,9 +149,12 @@ def test_values_survive_exactly(every_channel) -> None:
     assert st["fault_names"] == ["overcurrent", "encoder"]
     nack = contents.data(Topic.ACKS)[-1]
     assert nack["accepted"] is False and nack["reason"] == "bad_crc" and nack["detail"] == 3
-    ev = contents.data(Topic.EVENTS)[0]
+    fault, ev = contents.data(Topic.EVENTS)
     assert ev["kind"] == "pause" and ev["message"] == "operator pause" and ev["level"] == 3
     assert ev["details"] == {"by": "operator"} and ev["name"] == "hilbo"
+    # A latched device fault is an /events ERROR naming the faults.
+    assert fault["kind"] == "device_fault" and fault["level"] == int(EventLevel.ERROR)
+    assert fault["details"]["fault_names"] == ["overcurrent", "encoder"] and "overcurrent" in fault["message"]
     assert contents.data(Topic.REJECTS)[0]["total"] == 3
     obs = contents.data(Topic.OBSERVATIONS)
     snap = contents.data(Topic.OPTIMIZER_STATE)[-1]
@@ -167,7 +170,7 @@ def test_time_stamps(every_channel) -> None:
         assert m.publish_time_ns == m.log_time_ns
     log_times = [m.log_time_ns for m in contents.messages]
     assert log_times == sorted(log_times) and len(set(log_times)) == len(log_times)
-    ev = contents.topic(Topic.EVENTS)[0]
+    ev = contents.topic(Topic.EVENTS)[-1]
     assert ev.data["timestamp"] == {"sec": ev.log_time_ns // 10**9, "nsec": ev.log_time_ns % 10**9}
 
 

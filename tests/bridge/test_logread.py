@@ -80,7 +80,7 @@ def test_any_cut_reads_a_prefix_without_error(log_file, tmp_path: Path, frac: fl
     assert c.messages == full[: len(c.messages)]
 
 
-def test_a_damaged_chunk_stops_reading_before_it(log_file, tmp_path: Path) -> None:
+def test_a_damaged_chunk_is_skipped_and_named(log_file, tmp_path: Path) -> None:
     path, sizes = log_file
     data = bytearray(path.read_bytes()[: sizes[6]])
     data[sizes[5] + 60] ^= 0xFF  # inside the 6th breath's chunk
@@ -88,7 +88,34 @@ def test_a_damaged_chunk_stops_reading_before_it(log_file, tmp_path: Path) -> No
     bad.write_bytes(bytes(data))
     c = read_log(bad)
     assert len(c.topic(Topic.BREATHS)) == 5
-    assert c.readable_bytes == sizes[5] and "damaged" in c.stop_reason
+    [damage] = c.damage
+    assert damage.start == sizes[5] and "damaged" in damage.reason and c.damaged
+    assert f"bytes {sizes[5]:,}" in c.damage_text()
+
+
+@pytest.mark.parametrize("where", ["overwrite", "insert"])
+def test_garbage_in_the_middle_reads_what_lies_after_it(log_file, tmp_path: Path, where: str) -> None:
+    """A closed log with garbage over (or inserted into) breaths 4-5: the rest is read, the damage named."""
+    path, sizes = log_file
+    data = path.read_bytes()
+    garbage = bytes(range(7, 250)) * 2
+    start = sizes[4] + 3
+    if where == "overwrite":
+        damaged = data[:start] + garbage[: sizes[6] - start] + data[sizes[6]:]
+    else:
+        damaged = data[:start] + garbage + data[start:]
+    bad = tmp_path / "garbage.mcap"
+    bad.write_bytes(damaged)
+    c = read_log(bad)
+    got = [b.vo2_ml_min for b in c.records(Topic.BREATHS)]
+    full = [1000.0 + i for i in range(N_BREATHS)]
+    assert got[:4] == full[:4] and got[-(N_BREATHS - 6):] == full[6:]  # everything after the damage
+    assert len(got) >= N_BREATHS - 2
+    assert c.complete and c.damaged and c.damage[0].start == sizes[4]
+    assert c.topic(Topic.EVENTS)[-1].record.kind == "end"
+    report = recover(bad, tmp_path / "fixed.mcap")
+    fixed = read_log(tmp_path / "fixed.mcap")
+    assert report.damage and fixed.records(Topic.BREATHS) == c.records(Topic.BREATHS)
 
 
 def test_recover_writes_an_indexed_file_with_the_same_messages(log_file, tmp_path: Path) -> None:

@@ -29,19 +29,19 @@ def test_faults_are_named_with_what_clears_them_not_bits() -> None:
     st = SessionStatus(device=f"faults [{lost}, {lost}]", device_faults={0: lost, 1: lost})
     text = text_of(st)
     assert "[16, 16]" not in text
-    assert "heartbeat_lost on actuators 0, 1: latched: clears on resume [r]" in text
+    assert "heartbeat_lost on actuators 0, 1: cleared by the bridge once the bridge heartbeat" in text
 
 
 def test_describe_faults_groups_by_fault_and_names_unknown_bits() -> None:
     bits = DeviceFault.OVERTEMPERATURE | DeviceFault.EMERGENCY_STOP
     lines = describe_faults({1: int(bits), 0: int(DeviceFault.OVERTEMPERATURE)})
     assert lines == [
-        "overtemperature on actuators 0, 1: clears when the device reports the condition gone",
-        "emergency_stop on actuator 1: clears when the device reports the condition gone",
+        "overtemperature on actuators 0, 1: cleared by the bridge once motor and driver have cooled "
+        "below their limit",
+        "emergency_stop on actuator 1: cleared by the bridge once the emergency stop is released",
     ]
     assert describe_faults({0: 0}) == []
-    assert describe_faults({0: 1 << 9}) == [
-        "unknown bits 0x200 on actuator 0: see the device's documentation"]
+    assert describe_faults({0: 1 << 9}) == ["bit9 on actuator 0: not defined by the protocol"]
 
 
 def test_a_lost_device_still_reads_lost() -> None:

@@ -48,7 +48,7 @@ def test_random_bytes_are_not_mcap(tmp_path: Path, capsys: pytest.CaptureFixture
     bad = tmp_path / "noise.mcap"
     bad.write_bytes(bytes(range(256)) * 8)
     code, out, err = run_review([str(bad)], capsys)
-    assert code == 2 and out == ""
+    assert code == 1 and out == ""
     assert_one_line_error(err, "noise.mcap", "not an MCAP file", "expected")
 
 
@@ -56,20 +56,20 @@ def test_an_empty_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
     empty = tmp_path / "empty.mcap"
     empty.write_bytes(b"")
     code, out, err = run_review([str(empty)], capsys)
-    assert code == 2 and out == ""
+    assert code == 1 and out == ""
     assert_one_line_error(err, "empty.mcap", "empty", "expected a hilbo session log")
 
 
 def test_another_programs_mcap(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     foreign = other_programs_mcap(tmp_path / "camera.mcap")
     code, out, err = run_review([str(foreign)], capsys)
-    assert code == 2 and out == ""
+    assert code == 1 and out == ""
     assert_one_line_error(err, "camera.mcap", "not a hilbo session log", "/camera/info", "expected")
 
 
 def test_a_missing_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     code, out, err = run_review([str(tmp_path / "nope.mcap"), "--out", str(tmp_path / "r")], capsys)
-    assert code == 2 and out == ""
+    assert code == 1 and out == ""
     assert_one_line_error(err, "nope.mcap", "no such file", "expected a hilbo session log")
     assert not (tmp_path / "r").exists()  # nothing written for bad input
 
@@ -77,7 +77,7 @@ def test_a_missing_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> N
 def test_a_session_log_with_nothing_in_it(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     log = empty_session_log(tmp_path / "started.mcap")
     code, out, err = run_review([str(log)], capsys)
-    assert code == 2 and out == ""
+    assert code == 1 and out == ""
     assert_one_line_error(err, "started.mcap", "without breaths or evaluations", "expected")
 
 

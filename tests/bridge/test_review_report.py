@@ -36,9 +36,11 @@ def test_faults_nacks_events_and_rejects_reach_the_report(tmp_path: Path) -> Non
     s = result.session
     assert s.rejects == {"cart": {"bad_crc": 4, "out_of_order": 4}, "can": {"unknown_id": 10}}
     kinds = [(e.file, e.kind) for e in s.events]
-    assert kinds.count((0, "fault")) == kinds.count((1, "fault")) == 1
-    assert (0, "fault_cleared") in kinds and (1, "nack") in kinds and (1, "resumed") in kinds
-    fault = next(e for e in s.events if e.kind == "fault")
+    # Format 2: the writer logs a latched fault as an /events ERROR (once, not again from /device_status).
+    assert kinds.count((0, "device_fault")) == kinds.count((1, "device_fault")) == 1
+    assert "fault" not in {k for _, k in kinds}
+    assert (0, "device_fault_cleared") in kinds and (1, "nack") in kinds and (1, "resumed") in kinds
+    fault = next(e for e in s.events if e.kind == "device_fault")
     assert fault.time_s == 3.0 and fault.level == "error"  # placed at the breath logged before it
     pause = next(e for e in s.events if e.kind == "pause" and e.file == 1)
     assert pause.time_s == 9.0 + 6.0  # old file: 0-9 s; new file starts there

@@ -15,7 +15,7 @@ from bridge.sim import VirtualSimConfig, run_virtual_sim
 pytestmark = pytest.mark.slow
 
 
-def test_session_collects_at_each_applied_profile_and_the_bout_pause(tmp_path) -> None:
+def test_session_collects_at_each_applied_profile_and_the_bout_pause_never_the_whole_heap(tmp_path) -> None:
     seen: list[BridgeSession] = []
     frozen_during: list[int] = []
 
@@ -41,9 +41,10 @@ def test_session_collects_at_each_applied_profile_and_the_bout_pause(tmp_path) -
     [event] = [e for e in log.data("/events") if e["kind"] == "gc"]
     d = event["details"]
     assert d["mode"] == "freeze"
-    # One quiet point per profile the device applied, one full collection between the bouts,
-    # and no full collection started by CPython during the session.
-    assert d["quiet_points"] == len(acks) > 0
-    assert d["full"] == 1 and d["full_max_ms"] > 0
+    # One quiet point per profile the device applied and one between the bouts; no whole-heap
+    # walk while the device is connected (issue 15: it outlasted the device's heartbeat
+    # watchdog), and no full collection started by CPython during the session.
+    assert d["quiet_points"] == len(acks) + 1 > 1
+    assert d["full"] == 0
     assert d["automatic"][2] == 0
-    assert 0 <= d["quiet_max_ms"] < d["full_max_ms"]  # the quiet points walk only the new objects
+    assert d["quiet_max_ms"] >= 0

@@ -126,7 +126,7 @@ def test_trajectories_from_log_and_cli(tmp_path: Path) -> None:
     trajs, evs = trajectories_from_log(path)
     assert len(trajs) == len(evs) >= 4
     for tr, ev in zip(trajs, evs, strict=True):
-        assert tr.shape == (ev["breaths"], 2)
+        assert tr.shape == (ev.breaths, 2)
         assert np.all(np.diff(tr[:, 0]) > 0)
     parser = argparse.ArgumentParser()
     add_tune_stopping_parser(parser.add_subparsers())

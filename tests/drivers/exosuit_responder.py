@@ -6,7 +6,10 @@ records the heartbeats and assistance-off commands it sees. Behaviours injected 
 corrupt the first N transfers, or the first transfer of given versions (CRC mismatch → nack
 bad_crc), drop segment 1 of the first N
 transfers (→ nack missing_segment), stay silent on the first N commits (→ bridge timeout),
-answer busy to the first N commits.
+answer busy to the first N commits; misbehave with answers the bridge must reject: ack a
+version on its first segment, before any commit (``early_ack_first`` transfers), answer each
+commit ``duplicate_acks`` extra times, or send an ack of the previous version before each
+answer (``stale_ack``).
 
 In-process: ``await Responder(behaviour).run(config, ready)``. As a process (the cross-process
 vcan test): ``python exosuit_responder.py --interface socketcan --channel vcan0 [...]`` prints
@@ -27,6 +30,7 @@ from dataclasses import dataclass, field
 from drivers.exosuit.codec import (
     AssistanceOff,
     BridgeHeartbeat,
+    ProfileAck,
     ProfileCommit,
     ProfileSegment,
 )
@@ -46,6 +50,9 @@ class Behaviour:
     drop_first: int = 0
     silent_first: int = 0
     busy_first: int = 0
+    early_ack_first: int = 0
+    duplicate_acks: int = 0
+    stale_ack: bool = False
 
 
 @dataclass
@@ -76,12 +83,18 @@ class Responder:
         self.assembler = ProfileAssembler(max_force_n=behaviour.max_force_n)
         self.seen = Seen()
         self._versions_seen: set[int] = set()
+        self._early: set[int] = set()
 
     async def handle(self, endpoint: CanEndpoint, message: object) -> None:
         b, seen = self.behaviour, self.seen
         if isinstance(message, ProfileSegment):
             if seen.commits < b.drop_first and message.index == 1:
                 return
+            if message.index == 0 and len(self._early) < b.early_ack_first and (
+                message.version not in self._early
+            ):
+                self._early.add(message.version)
+                await endpoint.send(ProfileAck.ack(message.version))  # before any commit
             self.assembler.on_segment(message)
         elif isinstance(message, ProfileCommit):
             n = seen.commits
@@ -101,7 +114,10 @@ class Responder:
                 seen.acked.append((ack.version, table))
             else:
                 seen.nacked.append((ack.version, ack.reason.name))
-            await endpoint.send(ack)
+            if b.stale_ack:
+                await endpoint.send(ProfileAck.ack((message.version - 2) % 255 + 1))  # the previous version
+            for _ in range(1 + b.duplicate_acks):
+                await endpoint.send(ack)
         elif isinstance(message, BridgeHeartbeat):
             seen.heartbeats.append((message.counter, int(message.state)))
         elif isinstance(message, AssistanceOff):

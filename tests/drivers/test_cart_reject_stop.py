@@ -115,7 +115,7 @@ def test_config_check_shows_first_breaths_and_rejects(tmp_path: Path,
     assert f"cart file {tmp_path / 'a.csv'}: 400 breaths read, 0 rejected" in out
     assert "t = 3 s, VO2 = 1000 ml/min, VCO2 = 850 ml/min" in out
     bad = _config_toml(tmp_path, tmp_path / "a.csv", 'vo2_unit = "l/min"\nvco2_unit = "l/min"')
-    assert cli.main(["config", "check", str(bad), "--samples", "0"]) == 2
+    assert cli.main(["config", "check", str(bad), "--samples", "0"]) == 1
     cap = capsys.readouterr()
     assert "0 breaths read, 400 rejected (vo2_range 400)" in cap.out
     assert "reject vo2_range: t = 3 s, VO2 = 1e+06 ml/min" in cap.out
@@ -125,7 +125,7 @@ def test_config_check_shows_first_breaths_and_rejects(tmp_path: Path,
 def test_missing_column_is_one_line_naming_it_and_the_columns(tmp_path: Path,
                                                               capsys: pytest.CaptureFixture[str]) -> None:
     cfg = _config_toml(tmp_path, _write_csv(tmp_path / "a.csv"), 'hr_column = "HR"')
-    assert cli.main(["config", "check", str(cfg), "--samples", "0"]) == 2
+    assert cli.main(["config", "check", str(cfg), "--samples", "0"]) == 1
     err = capsys.readouterr().err
     assert "no column 'HR' in the header; the file's columns are: 't', 'VO2', 'VCO2', 'R'" in err
     assert "Traceback" not in err
@@ -141,6 +141,6 @@ def test_hilbo_run_stops_with_the_cart_message_no_traceback(
     cfg = _config_toml(tmp_path, _write_csv(tmp_path / "a.csv"), extra)
     rc = cli.main(["run", str(cfg), "--no-view"])
     err = capsys.readouterr().err
-    assert rc == 2
+    assert rc == 1
     assert expected in err
     assert "Traceback" not in err and "ExceptionGroup" not in err

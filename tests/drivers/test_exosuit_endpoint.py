@@ -325,4 +325,4 @@ async def test_ack_for_another_version_is_ignored_and_counted(
         result = await ep.push_profile([5.0] * 101, 42, pace_s=0)
         await task
         assert (result.version, result.attempts) == (42, 1)
-        assert ep.counters["stale_ack"] == 1
+        assert ep.counters["ack_stale"] == 1

@@ -15,8 +15,11 @@ from drivers.exosuit.profile import (
     ProfileAssembler,
     ProfileTransfer,
     forces_to_raw,
+    pack_tables,
     profile_crc32,
     segment_count,
+    table_order,
+    unpack_tables,
 )
 
 
@@ -180,3 +183,92 @@ def test_any_table_survives_segmenting_and_reassembly(raw: list[int], version: i
     ack, table = assembler.on_commit(ProfileCommit.from_frame(commit))
     assert ack.accepted
     assert forces_to_raw(table) == tuple(raw)  # type: ignore[arg-type]
+
+
+# --- multi-actuator table layout ---------------------------------------------------------------
+
+
+def test_table_order_is_the_first_appearance_of_each_joint() -> None:
+    assert table_order(("hip", "hip")) == ("hip",)
+    assert table_order(("hip", "ankle")) == ("hip", "ankle")
+    assert table_order(["ankle", "hip", "ankle"]) == ("ankle", "hip")
+    for bad in [(), ("hip", ""), ("hip", 3)]:
+        with pytest.raises(EncodeError, match="joint"):
+            table_order(bad)  # type: ignore[arg-type]
+
+
+def test_golden_layout_tables_are_concatenated_in_order() -> None:
+    packed = pack_tables([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]])
+    assert packed.shape == (6,) and packed.dtype == np.float64
+    assert packed.tolist() == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]
+    assert [t.tolist() for t in unpack_tables(packed, 2)] == [[1, 2, 3], [4, 5, 6]]
+    assert [t.tolist() for t in unpack_tables(packed, 1)] == [[1, 2, 3, 4, 5, 6]]
+
+
+def test_golden_layout_on_the_wire_hip_then_ankle_101_points_each() -> None:
+    # Point j of table i is point i*m + j: the ankle's 0 %GC (point 101) is the third force of
+    # segment 33, after the hip's 100 %GC (points 99, 100).
+    hip = np.linspace(0.0, 100.0, 101)
+    ankle = np.linspace(200.0, 300.0, 101)
+    transfer = ProfileTransfer.from_forces(pack_tables([hip, ankle]), 5)
+    segments = transfer.segments()
+    assert (transfer.n_points, len(segments)) == (202, 68)
+    assert segments[0].forces_n == (0.0, 1.0, 2.0)
+    assert segments[33].forces_n == (99.0, 100.0, 200.0)
+    assert segments[34].forces_n == (201.0, 202.0, 203.0)
+    assert segments[66].forces_n == (297.0, 298.0, 299.0)
+    assert segments[67].forces_n == (300.0, 0.0, 0.0)  # 202 = 67*3 + 1: two padding points
+    # The device side (raw counts, as received) splits it back, bit for bit.
+    hip_raw, ankle_raw = unpack_tables(np.asarray(transfer.forces_raw), 2)
+    assert tuple(hip_raw.tolist()) == forces_to_raw(hip)
+    assert tuple(ankle_raw.tolist()) == forces_to_raw(ankle)
+    assert hip_raw.dtype.kind == "i"
+
+
+@pytest.mark.parametrize(
+    ("tables", "match"),
+    [
+        ([], "at least one table"),
+        ([[1.0, 2.0], [1.0, 2.0, 3.0]], "expected one length"),
+        ([[1.0]], ">= 2 points"),
+        ([np.zeros(385), np.zeros(385)], "<= 768 in all"),
+        ([np.zeros((2, 3))], "shape"),
+        (np.zeros(4), "sequence of tables"),
+    ],
+)
+def test_pack_rejects_tables_that_do_not_fit_the_layout(tables: object, match: str) -> None:
+    with pytest.raises(EncodeError, match=match):
+        pack_tables(tables)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(
+    ("n", "k", "match"),
+    [(7, 2, "7 points does not split into 2"), (2, 2, "does not split"), (6, 0, "n_tables"),
+     (6, True, "n_tables")],
+)
+def test_unpack_rejects_a_table_that_does_not_split(n: int, k: int, match: str) -> None:
+    with pytest.raises(EncodeError, match=match):
+        unpack_tables(np.zeros(n), k)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.integers(1, 4).flatmap(
+        lambda k: st.integers(2, MAX_PROFILE_POINTS // k).flatmap(
+            lambda m: st.lists(
+                st.lists(st.floats(0.0, 6553.5, allow_nan=False), min_size=m, max_size=m),
+                min_size=k, max_size=k,
+            )
+        )
+    )
+)
+def test_pack_unpack_round_trip(tables: list[list[float]]) -> None:
+    packed = pack_tables(tables)
+    assert packed.shape == (len(tables) * len(tables[0]),)
+    back = unpack_tables(packed, len(tables))
+    assert [t.tolist() for t in back] == tables
+    np.testing.assert_array_equal(pack_tables(back), packed)
+    # ...and through the wire: the device's split of the transfer is the quantised tables.
+    transfer = ProfileTransfer.from_forces(packed, 1)
+    raw_parts = unpack_tables(np.asarray(transfer.forces_raw), len(tables))
+    assert [tuple(p.tolist()) for p in raw_parts] == [forces_to_raw(t) for t in tables]

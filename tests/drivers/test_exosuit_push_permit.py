@@ -6,7 +6,7 @@ from __future__ import annotations
 import asyncio
 import itertools
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import can
 import numpy as np
@@ -171,3 +171,54 @@ async def test_the_push_lock_is_released_after_an_abort_and_permit_errors_propag
             await asyncio.wait_for(ep.push_profile(TABLE, 12, permit=Permit(refuse_at=1),
                                                    pace_s=0), 2.0)
     assert not any(isinstance(m, ProfileCommit) for m in transcript(tap))
+
+
+class CommitQueueFull(can.BusABC):
+    """A virtual bus whose transmit queue is full the first time a commit is sent."""
+
+    def __init__(self, channel: str, on_full: Callable[[], None]) -> None:
+        self._inner = can.Bus(interface="virtual", channel=channel)
+        self._on_full = on_full
+        self._full_once = True
+        self.channel_info = "queue-full"
+        super().__init__(channel=channel)
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        return self._inner.recv(timeout), False
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        if msg.arbitration_id == COMMIT_ID and self._full_once:
+            self._full_once = False
+            self._on_full()
+            raise can.CanOperationError("Transmit buffer full")
+        self._inner.send(msg, timeout)
+
+    def shutdown(self) -> None:
+        super().shutdown()
+        self._inner.shutdown()
+
+
+async def test_permit_is_asked_again_before_a_transmit_retry_of_the_commit(
+    channel: str, tap: can.BusABC
+) -> None:
+    paused = False
+
+    def pause() -> None:  # the operator presses pause while the commit waits for the queue
+        nonlocal paused
+        paused = True
+
+    asked: list[str] = []
+
+    def permit(stage: str) -> bool:
+        asked.append(stage)
+        return not paused
+
+    ep = CanEndpoint(CanBusConfig("virtual", channel),
+                     bus_factory=lambda **kw: CommitQueueFull(channel, pause))
+    async with ep:
+        with pytest.raises(ProfilePushAborted) as aborted:
+            await ep.push_profile(TABLE, 13, pace_s=0, permit=permit)
+    assert aborted.value.stage == "commit"
+    assert asked == ["first_segment", "commit", "commit"]
+    assert ep.counters["send_retry"] == 1
+    assert [type(m) for m in transcript(tap)] == [ProfileSegment] * N_SEGMENTS

@@ -31,7 +31,7 @@ from drivers.exosuit.codec import (
     ProfileCommit,
 )
 from drivers.exosuit.endpoint import CanBusConfig, CanEndpoint, ProfileNackError, Subscription
-from drivers.exosuit.profile import ProfileTransfer, forces_to_raw
+from drivers.exosuit.profile import ProfileTransfer, forces_to_raw, pack_tables
 from hilbo_core.profiles import ForceProfile, hip_ankle_profiles
 from virtual_hw.clock import ScaledClock, SimClock, VirtualClock
 from virtual_hw.exosuit import DeviceLimits, VirtualExosuit
@@ -103,6 +103,15 @@ async def push_and_assist(r: Rig, table: np.ndarray, version: int) -> None:
     with r.ep.subscribe(DeviceStatus) as sub:
         await r.ep.push_profile(table, version)
         await until_all(sub, assisting(version))
+
+
+async def heartbeat_back(r: Rig, timeout_s: float = 5.0) -> None:
+    """Wait until the device has seen the bridge heartbeat back for its clear period."""
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout_s
+    while r.exo.heartbeat_back_s() < r.exo.heartbeat_clear_s:
+        assert loop.time() < deadline, "the bridge heartbeat did not come back"
+        await asyncio.sleep(0.01)
 
 
 async def test_profile_is_pending_then_active_at_a_gait_boundary_and_applied_bit_for_bit() -> None:
@@ -181,9 +190,12 @@ async def test_tables_outside_the_device_limits_are_nacked_out_of_limits() -> No
 async def test_hip_ankle_suit_splits_the_concatenated_table_hip_first() -> None:
     hip, ankle = hip_ankle_profiles(
         {"hip_t_peak": 25.0, "hip_t_offset": 45.0, "ankle_t1": 35.0, "ankle_t2": 55.0})
-    table = np.r_[hip.force_n, ankle.force_n]
+    table = pack_tables([hip.force_n, ankle.force_n])
+    assert np.array_equal(table, np.r_[hip.force_n, ankle.force_n])
     async with rig(joints=("hip", "ankle")) as r:
-        await push_and_assist(r, table, 10)
+        with r.ep.subscribe(DeviceStatus) as sub:
+            await r.ep.push_tables([hip.force_n, ankle.force_n], 10)  # the bridge's path
+            await until_all(sub, assisting(10))
         with pytest.raises(ProfileNackError) as odd:
             await r.ep.push_profile(table[:-1], 11)
     ((profiles, _),) = r.applied
@@ -270,6 +282,8 @@ async def test_lost_bridge_heartbeat_stops_assistance_even_if_a_stale_counter_re
         assert DeviceFault.HEARTBEAT_LOST in off.faults
         assert 0.07 <= elapsed <= 0.6
         r.ep.start_heartbeat()
+        await heartbeat_back(r)
+        assert (await r.ep.clear_faults()).ok  # the fault-clear step (PROTOCOL.md)
         await push_and_assist(r, TABLE, 17)
         with r.ep.subscribe(DeviceStatus) as sub:
             back = await asyncio.wait_for(sub.get(), 1.0)

@@ -99,6 +99,9 @@ async def test_bus_off_silences_the_node_then_reports_a_bus_error_and_refuses_pr
             with pytest.raises(ProfileNackError) as busy:  # still in the error state
                 await ep.push_profile(TABLE, 2, retries=0, timeout_s=0.1, pace_s=0.0)
             after = await wait_mode(sub, DeviceMode.ASSISTANCE_OFF, timeout_s=3.0)
+        # FaultBusError cleared itself; FaultHeartbeatLost (deaf for 0.3 s) stays latched until
+        # the bridge clears it, the heartbeat having been back since the bus-off ended.
+        cleared = await ep.clear_faults()
         await ep.push_profile(TABLE, 3)  # acked with the bridge running: the latch clears
         with ep.subscribe(DeviceStatus) as sub:
             await wait_mode(sub, DeviceMode.ASSIST)
@@ -106,6 +109,8 @@ async def test_bus_off_silences_the_node_then_reports_a_bus_error_and_refuses_pr
     assert DeviceFault.HEARTBEAT_LOST in fault.faults  # deaf for 0.3 s: the watchdog fired too
     assert busy.value.reason == NackReason.BUSY
     assert DeviceFault.BUS_ERROR not in after.faults
+    assert DeviceFault.HEARTBEAT_LOST in after.faults
+    assert (cleared.ok, cleared.cleared) == (True, DeviceFault.HEARTBEAT_LOST)
     assert exo.stats["bus_off_dropped"] > 0  # bridge heartbeats it could not hear
     assert exo.stats["bus_off_recovered"] == 1
     assert [v for v, _ in exo.applied_log] == [1, None, 3]

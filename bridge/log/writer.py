@@ -1,9 +1,11 @@
-"""The session's MCAP log: one file per session, one JSON-schema channel per kind of record.
+"""The session's MCAP log writer: one file per session, one typed JSON channel per kind of record.
 
-Layout (shared/DESIGN.md "MCAP log"; issue 6 item 4):
+Layout (shared/DESIGN.md "MCAP log"; issue 6 item 4; issue 18 item 2):
 
-* Every channel has message encoding ``json`` and a draft-07 JSON schema (schema encoding
-  ``jsonschema``), so Foxglove can open the file and plot any numeric field. The schemas keep to
+* Every channel carries one record type of :mod:`bridge.log.records` (a msgspec Struct), encoded
+  with msgspec (about 3x faster than ``json.dumps`` of the dicts of format 1). Its draft-07 JSON
+  schema (schema encoding ``jsonschema``) is generated from that type, so Foxglove can open the
+  file and plot any numeric field, and the readers decode the same types. The schemas keep to
   what Foxglove's JSON-schema parser accepts: every property has one ``type`` (no
   ``["number", "null"]`` unions: an unknown value is *omitted*, not written as ``null``), every
   object lists ``properties``, arrays hold one item type. ``/events`` uses Foxglove's
@@ -14,8 +16,13 @@ Layout (shared/DESIGN.md "MCAP log"; issue 6 item 4):
   messages tied to a breath (``/breaths``, ``/estimator``, ``/stopping``, and whatever the caller
   stamps with ``t_s``/``publish_time_ns``); for the others it equals ``log_time``. ``sequence`` is
   one counter over the whole file, so the write order survives readers that sort by time.
-* ``/config`` (first message) and an MCAP metadata record ``hilbo.session`` carry the session id
-  and the path of the previous log when this session resumes a crashed one.
+* ``/config`` (first message) and an MCAP metadata record ``hilbo.session`` carry the session id,
+  the format version (:data:`bridge.log.records.FORMAT_VERSION`) and the path of the previous log
+  when this session resumes a crashed one.
+* ``/events`` levels come from the event kind (:func:`bridge.log.records.event_level`), and a
+  change of a device's fault bits on ``/device_status`` is also an event (``device_fault``,
+  ERROR; ``device_fault_cleared``, INFO).
+* The file is created with mode 0600 (``file_mode``): it holds health data.
 
 Crash safety. mcap's ``Writer`` keeps a chunk in memory until it reaches ``chunk_size`` (1 MiB
 by default) and writes through a buffered file, so a process killed before then leaves nothing
@@ -67,11 +74,36 @@ from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import msgspec
 import numpy as np
 from mcap.well_known import MessageEncoding, SchemaEncoding
 from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
 
-from bridge.errors import BridgeError
+from bridge.log.errors import LogError, LogStateError, LogValueError, LogWriteError
+from bridge.log.records import (
+    CHANNELS,
+    FORMAT_VERSION,
+    METADATA_NAME,
+    Breath,
+    Config,
+    DeviceStatus,
+    Estimate,
+    EventLevel,
+    ForceFeedback,
+    Incumbent,
+    Log,
+    OptimizerState,
+    ProfileAck,
+    ProfileSent,
+    ProfileTable,
+    Proposal,
+    Rejects,
+    Timestamp,
+    Topic,
+    event_level,
+)
+from bridge.log.records import Evaluation as EvaluationRecord
+from bridge.log.records import StopDecision as StopRecord
 from hilbo_core.optimizer import BreathStep, Evaluation, HILOptimizer
 from hilbo_core.profiles import ForceProfile
 from hilbo_core.stopping import StopDecision
@@ -81,19 +113,9 @@ if TYPE_CHECKING:
     from bridge.live import LiveSink
 
 __all__ = [
-    "CHANNELS",
-    "FORMAT_VERSION",
-    "METADATA_NAME",
-    "ChannelSpec",
-    "EventLevel",
-    "LogError",
-    "LogFormatError",
-    "LogStateError",
+    "DEFAULT_FILE_MODE",
     "LogStats",
-    "LogValueError",
-    "LogWriteError",
     "SessionLog",
-    "Topic",
     "check_message",
     "hilbo_version",
     "new_session_id",
@@ -101,352 +123,17 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-FORMAT_VERSION = 1
-"""Version of the channel layout; stored in ``/config`` and the ``hilbo.session`` metadata."""
-
-METADATA_NAME = "hilbo.session"
-"""Name of the MCAP metadata record that marks a hilbo session log."""
+DEFAULT_FILE_MODE = 0o600
+"""Permission bits of a new session log (and summary): owner read/write only (health data)."""
 
 _PROFILE = "hilbo"
 _DEFAULT_CHUNK_SIZE = 256 * 1024
-
-
-# ---------------------------------------------------------------------------------- errors
-class LogError(BridgeError):
-    """Root of every error the session log (writing, reading, recovering, resuming) raises."""
-
-
-class LogFormatError(LogError, ValueError):
-    """A file is not a readable hilbo session log (not MCAP, empty, or another program's MCAP)."""
-
-
-class LogValueError(LogError, ValueError):
-    """A value given to the log is invalid (a negative time, an unknown channel option...)."""
-
-
-class LogStateError(LogError, RuntimeError):
-    """The log cannot do this now (written to after close)."""
-
-
-class LogWriteError(LogError, OSError):
-    """Writing or flushing the file failed (disk full, file removed...)."""
-
-
-# ---------------------------------------------------------------------------------- topics
-class Topic(enum.StrEnum):
-    """The channels of a session log."""
-
-    CONFIG = "/config"
-    BREATHS = "/breaths"
-    ESTIMATOR = "/estimator"
-    STOPPING = "/stopping"
-    PROPOSALS = "/proposals"
-    OBSERVATIONS = "/observations"
-    OPTIMIZER_STATE = "/optimizer_state"
-    PROFILES_SENT = "/profiles_sent"
-    ACKS = "/acks"
-    FORCE_FEEDBACK = "/force_feedback"
-    DEVICE_STATUS = "/device_status"
-    EVENTS = "/events"
-    REJECTS = "/rejects"
-
-
-class EventLevel(enum.IntEnum):
-    """Severity of an ``/events`` message (the values of ``foxglove.LogLevel``)."""
-
-    UNKNOWN = 0
-    DEBUG = 1
-    INFO = 2
-    WARNING = 3
-    ERROR = 4
-    FATAL = 5
 
 
 # High-rate channels: left to the flush timer (flushing each would make a chunk per frame batch).
 # Everything else (breaths, estimates, decisions, proposals, profiles, acks, events) is at most a
 # few messages per breath and is flushed as soon as it is written when flush_immediately is on.
 _TIMER_TOPICS = frozenset({Topic.FORCE_FEEDBACK, Topic.DEVICE_STATUS})
-
-
-# ---------------------------------------------------------------------------------- schemas
-def _p(kind: str, description: str, **extra: Any) -> dict[str, Any]:
-    return {"type": kind, "description": description, **extra}
-
-
-def _obj(description: str, properties: Mapping[str, Any] | None = None,
-         required: Sequence[str] = (), **extra: Any) -> dict[str, Any]:
-    # Foxglove's JSON-schema parser iterates "properties" of every object: always list it.
-    d: dict[str, Any] = {"type": "object", "description": description,
-                         "properties": dict(properties or {}), **extra}
-    if required:
-        d["required"] = list(required)
-    return d
-
-
-def _arr(description: str, items: Mapping[str, Any]) -> dict[str, Any]:
-    return {"type": "array", "description": description, "items": dict(items)}
-
-
-_PARAMS = _obj("The setting, {parameter name: value in its unit} (derived parameters included)",
-               additionalProperties={"type": "number"})
-_T_S = _p("number", "Breath time in s on the cart's clock (the session's time base)")
-_INDEX = _p("integer", "0-based evaluation number (the index the evaluation gets when it completes)",
-            minimum=0)
-_BREATH = _p("integer", "0-based breath index within the evaluation", minimum=0)
-_PHASE = _p("string", "Phase of Algorithm 1: exploration, optimization or done")
-
-
-@dataclass(frozen=True)
-class ChannelSpec:
-    """One channel: its topic, schema name, description and JSON-schema properties.
-
-    Attributes:
-        topic: MCAP topic.
-        schema_name: Schema name (``hilbo.*``, or ``foxglove.Log`` for events).
-        description: What one message is.
-        properties: JSON-schema properties of the message object.
-        required: Keys every message has.
-        time_base: ``"breath"`` when publish_time is the breath-time base, else ``"log"``.
-    """
-
-    topic: str
-    schema_name: str
-    description: str
-    properties: Mapping[str, Mapping[str, Any]]
-    required: tuple[str, ...]
-    time_base: str = "log"
-
-    def json_schema(self, param_names: Sequence[str] = ()) -> dict[str, Any]:
-        """The draft-07 JSON schema; ``params`` objects name ``param_names`` when given."""
-        props = {k: dict(v) for k, v in self.properties.items()}
-        if param_names:
-            named = {n: _p("number", f"parameter {n}") for n in param_names}
-            for key, value in props.items():
-                if value.get("description") == _PARAMS["description"]:
-                    props[key] = {**value, "properties": named}
-        return {
-            "$schema": "http://json-schema.org/draft-07/schema#",
-            "title": self.schema_name,
-            "description": f"{self.description} (publish_time: "
-                           f"{'breath-time base' if self.time_base == 'breath' else 'log time'})",
-            "type": "object",
-            "properties": props,
-            "required": list(self.required),
-        }
-
-
-_CHANNEL_LIST = (
-    ChannelSpec(
-        Topic.CONFIG, "hilbo.Config",
-        "The session's identity and configuration; the first message of the file",
-        {
-            "session_id": _p("string", "Session id, the same in every file of a resumed session"),
-            "previous_log": _p("string", "Path of the log this session resumes (absent if new)"),
-            "resumed": _p("boolean", "True when this file continues a crashed session"),
-            "config": _obj("The session config as loaded (TOML as JSON)"),
-            "param_names": _arr("Names of the optimised parameters", {"type": "string"}),
-            "hilbo_version": _p("string", "hilbo package version"),
-            "format_version": _p("integer", "Version of this channel layout", minimum=1),
-            "started_unix_ns": _p("integer", "Wall clock when the log was opened, ns since 1970",
-                                  minimum=0),
-        },
-        ("session_id", "resumed", "config", "hilbo_version", "format_version", "started_unix_ns"),
-    ),
-    ChannelSpec(
-        Topic.BREATHS, "hilbo.Breath",
-        "One breath as the cart reported it (every breath: warm-up, pauses and gaps included)",
-        {
-            "t_s": _T_S,
-            "vo2_ml_min": _p("number", "Oxygen uptake in ml/min"),
-            "vco2_ml_min": _p("number", "Carbon-dioxide output in ml/min"),
-            "ve_l_min": _p("number", "Minute ventilation in l/min (absent if not reported)"),
-            "rer": _p("number", "Respiratory exchange ratio (absent if not reported)"),
-            "hr_bpm": _p("number", "Heart rate in beats/min (absent if not reported)"),
-            "watts": _p("number", "Metabolic power in W by Brockway's equation"),
-        },
-        ("t_s", "vo2_ml_min", "vco2_ml_min", "watts"), "breath",
-    ),
-    ChannelSpec(
-        Topic.ESTIMATOR, "hilbo.Estimate",
-        "A breath fed to the optimizer and the estimator's state after it; resume replays these",
-        {
-            "index": _INDEX,
-            "breath": _BREATH,
-            "t_s": _T_S,
-            "t_setting_s": _p("number", "Seconds since the setting was applied (what the optimizer got)"),
-            "watts": _p("number", "Metabolic power in W fed to the optimizer"),
-            "mean_w": _p("number", "Estimated steady-state cost of the setting in W"),
-            "var_w2": _p("number", "Variance of that estimate in W²"),
-            "sd_w": _p("number", "Standard deviation of that estimate in W"),
-            "lo95_w": _p("number", "mean − 1.96·sd in W (lower edge of the plotted band)"),
-            "hi95_w": _p("number", "mean + 1.96·sd in W (upper edge of the plotted band)"),
-            "phase": _PHASE,
-        },
-        ("index", "breath", "t_setting_s", "watts", "mean_w", "var_w2"), "breath",
-    ),
-    ChannelSpec(
-        Topic.STOPPING, "hilbo.StopDecision",
-        "The stopping rule's decision after a breath (optimisation phase, seed 000 §II.D)",
-        {
-            "index": _INDEX,
-            "breath": _BREATH,
-            "t_s": _T_S,
-            "stop": _p("boolean", "True when the evaluation ends with this breath"),
-            "reason": _p("string", "continue, threshold, max_measurements or budget"),
-            "z": _p("number", "(μ − μ*)/σ, standardised distance from the incumbent (positive = worse)"),
-            "threshold": _p("number", "A_i, the threshold at this breath (absent for the fixed rule)"),
-            "incumbent_mean_w": _p("number", "μ*, the incumbent's estimated cost in W"),
-            "incumbent_var_w2": _p("number", "σ*², the incumbent's variance in W²"),
-        },
-        ("index", "breath", "stop", "reason"), "breath",
-    ),
-    ChannelSpec(
-        Topic.PROPOSALS, "hilbo.Proposal",
-        "A setting the optimizer asked for (one per ask(); a re-ask after a cancel repeats the index)",
-        {
-            "index": _INDEX,
-            "params": _PARAMS,
-            "phase": _PHASE,
-            "t_s": _T_S,
-            "incumbent": _obj("The stopping rule's x* when proposed", {
-                "params": _PARAMS, "mean": _p("number", "μ* in W"), "var": _p("number", "σ*² in W²")}),
-            "compute_ms": _p("number", "Wall time of ask() itself in the proposal worker, ms"),
-            "total_ms": _p("number", "Wall time of the whole ask as the session saw it (moving the "
-                                     "optimizer to the worker and back included), ms"),
-            "to_worker_ms": _p("number", "From the start of the ask to the worker starting on it, ms"),
-            "from_worker_ms": _p("number", "From the worker's end of ask() to the result in the "
-                                           "session's event loop, ms"),
-            "worker": _p("string", "Where ask() ran: process or thread"),
-        },
-        ("index", "params", "phase"),
-    ),
-    ChannelSpec(
-        Topic.OBSERVATIONS, "hilbo.Evaluation",
-        "A completed evaluation (what the GP is told)",
-        {
-            "index": _INDEX,
-            "params": _PARAMS,
-            "mean": _p("number", "Estimated steady-state cost at the end, W"),
-            "var": _p("number", "Its variance, W²"),
-            "breaths": _p("integer", "Breaths measured", minimum=0),
-            "duration_s": _p("number", "Breath time from the setting's start to its last breath, s"),
-            "phase": _PHASE,
-            "stopped_early": _p("boolean", "Stopped by the σ-scaled rule before N breaths"),
-            "reason": _p("string", "threshold, max_measurements, budget or told"),
-            "t_start": _p("number", "Session time when the setting was applied, s"),
-            "t_end": _p("number", "Session time of its last breath, s"),
-        },
-        ("index", "params", "mean", "var", "breaths", "duration_s", "phase", "stopped_early", "reason"),
-        "breath",
-    ),
-    ChannelSpec(
-        Topic.OPTIMIZER_STATE, "hilbo.OptimizerState",
-        "A full HILOptimizer.to_json() snapshot (after each evaluation and at start); resume starts here",
-        {
-            "state": _obj("HILOptimizer.to_json(): space, config, RNG state, evaluations, traces, ..."),
-            "reason": _p("string", "Why the snapshot was taken: start, evaluation, cancel, budget, resume"),
-            "n_evaluations": _p("integer", "Completed evaluations in the snapshot", minimum=0),
-            "thresholds": _arr("Algorithm 2's threshold vector A over breath index (after exploration)",
-                               {"type": "number"}),
-        },
-        ("state",), "breath",
-    ),
-    ChannelSpec(
-        Topic.PROFILES_SENT, "hilbo.ProfileSent",
-        "A force profile pushed to the device (after the safety limits admitted it)",
-        {
-            "version": _p("integer", "Profile version on the bus, 1..255", minimum=0),
-            "n_points": _p("integer", "Points in the transmitted table", minimum=0),
-            "crc32": _p("integer", "CRC-32 of the table as committed", minimum=0),
-            "index": _INDEX,
-            "params": _PARAMS,
-            "force_n": _arr("The transmitted table (all actuators concatenated), N", {"type": "number"}),
-            "profiles": _arr("Per-actuator tables", _obj("One actuator's table", {
-                "actuator": _p("string", "Load path (hip, ankle)"),
-                "gait_pct": _arr("Gait-cycle positions, %", {"type": "number"}),
-                "force_n": _arr("Desired force, N", {"type": "number"}),
-            })),
-        },
-        ("version",),
-    ),
-    ChannelSpec(
-        Topic.ACKS, "hilbo.ProfileAck",
-        "The device's answer to a profile commit (or the push's failure)",
-        {
-            "version": _p("integer", "Profile version answered", minimum=0),
-            "accepted": _p("boolean", "True for an ack"),
-            "reason": _p("string", "Nack reason, lower case (none for an ack)"),
-            "detail": _p("integer", "Reason-specific detail", minimum=0),
-            "attempts": _p("integer", "Transfers needed", minimum=0),
-            "elapsed_s": _p("number", "Time from the first segment to the ack, s"),
-            "crc32": _p("integer", "CRC-32 acknowledged", minimum=0),
-            "error": _p("string", "Why the push failed, if it did"),
-        },
-        ("version", "accepted"),
-    ),
-    ChannelSpec(
-        Topic.FORCE_FEEDBACK, "hilbo.ForceFeedback",
-        "Desired vs measured force of one actuator; a batch of controller samples per message",
-        {
-            "actuator": _p("integer", "Actuator number", minimum=0),
-            "n": _p("integer", "Samples in this batch", minimum=0),
-            "desired_n": _arr("Desired force of the active profile, N", {"type": "number"}),
-            "measured_n": _arr("Measured cable force, N", {"type": "number"}),
-            "gait_phase_pct": _arr("Gait phase of each sample, % (−1 = unknown)", {"type": "number"}),
-            "profile_version": _p("integer", "Active profile version", minimum=0),
-            "desired_mean_n": _p("number", "Mean desired force of the batch, N (for plotting)"),
-            "measured_mean_n": _p("number", "Mean measured force of the batch, N (for plotting)"),
-        },
-        ("actuator", "n", "desired_n", "measured_n"),
-    ),
-    ChannelSpec(
-        Topic.DEVICE_STATUS, "hilbo.DeviceStatus",
-        "Device status/heartbeat of one actuator (logged on change and periodically)",
-        {
-            "actuator": _p("integer", "Actuator number", minimum=0),
-            "mode": _p("string", "Operating mode, lower case (off, assist, transparent, ...)"),
-            "faults": _p("integer", "Active fault bits", minimum=0),
-            "fault_names": _arr("Names of the active faults", {"type": "string"}),
-            "gait_phase_pct": _p("number", "Gait phase, % (absent if unknown)"),
-            "profile_version_active": _p("integer", "Version being executed, 0 = none", minimum=0),
-            "profile_version_pending": _p("integer", "Version waiting for the gait boundary", minimum=0),
-        },
-        ("actuator", "mode", "faults"),
-    ),
-    ChannelSpec(
-        Topic.EVENTS, "foxglove.Log",
-        "A session event (pause, resume, assistance off, fault...), shown by Foxglove's Log panel",
-        {
-            "timestamp": _obj("Log time of the event", {
-                "sec": _p("integer", "seconds", minimum=0),
-                "nsec": _p("integer", "nanoseconds", minimum=0, maximum=999_999_999)}),
-            "level": {"title": "foxglove.LogLevel", "description": "Severity",
-                      "oneOf": [{"title": lv.name, "const": int(lv)} for lv in EventLevel]},
-            "message": _p("string", "Human-readable text"),
-            "name": _p("string", "Component (hilbo)"),
-            "file": _p("string", "Unused (empty)"),
-            "line": _p("integer", "Unused (0)", minimum=0),
-            "kind": _p("string", "Machine-readable event kind (pause, resume, assistance_off...)"),
-            "t_s": _T_S,
-            "details": _obj("Event-specific values"),
-        },
-        ("timestamp", "level", "message", "name", "file", "line", "kind"),
-    ),
-    ChannelSpec(
-        Topic.REJECTS, "hilbo.Rejects",
-        "Cumulative counts of rejected records or frames by reason",
-        {
-            "source": _p("string", "Where they were rejected: cart, can"),
-            "counts": _obj("{reason: count}", additionalProperties={"type": "integer"}),
-            "total": _p("integer", "Sum of the counts", minimum=0),
-            "t_s": _T_S,
-        },
-        ("source", "counts", "total"),
-    ),
-)
-
-CHANNELS: Mapping[str, ChannelSpec] = {spec.topic: spec for spec in _CHANNEL_LIST}
-"""Every channel of a session log by topic."""
 
 
 # ---------------------------------------------------------------------------------- helpers
@@ -585,6 +272,11 @@ class SessionLog:
             without ``Writer.flush()`` gets).
         clock_ns: The ``log_time`` clock in ns (wall clock by default).
         overwrite: Replace an existing file.
+        file_mode: Permission bits of the file (default 0o600, owner read/write only: a session
+            log holds health data such as VO2, heart rate and body mass). Set exactly, whatever
+            the umask (``[session] file_mode`` in the config).
+        started_unix_ns: The ``started_unix_ns`` stored in ``/config`` and the metadata (default
+            the wall clock now; a fixed value makes the file reproducible, e.g. for tests).
         live: A live view (:class:`bridge.live.LiveServer`) that gets every record written, on
             the same topic with the same schema (issue 19 item 2); None: no live view.
 
@@ -614,6 +306,8 @@ class SessionLog:
         chunked: bool = True,
         clock_ns: Callable[[], int] = time.time_ns,
         overwrite: bool = False,
+        file_mode: int = DEFAULT_FILE_MODE,
+        started_unix_ns: int | None = None,
         live: LiveSink | None = None,
     ) -> None:
         if not isinstance(session_id, str) or not session_id.strip():
@@ -626,6 +320,9 @@ class SessionLog:
         codecs = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
         if compression not in codecs:
             raise LogValueError(f"compression={compression!r}; expected one of {sorted(codecs)}")
+        if isinstance(file_mode, bool) or not isinstance(file_mode, int) or not 0 <= file_mode <= 0o777:
+            raise LogValueError(f"file_mode={file_mode!r}; expected permission bits 0o000..0o777 "
+                                "such as 0o600")
         if isinstance(config_json, str):
             try:
                 config_json = json.loads(config_json)
@@ -647,10 +344,8 @@ class SessionLog:
         self._thread_error: BaseException | None = None
         self._live = live  # live view (bridge/live.py): mirrors every record in _write
         self._schemas: dict[str, tuple[str, Mapping[str, Any]]] = {}
-        try:
-            self._file = open(self.path, "wb" if overwrite else "xb")  # closed in close()
-        except OSError as err:
-            raise LogWriteError(f"cannot create the session log {str(self.path)!r}: {err}") from err
+        self._faults: dict[int, int] = {}
+        self._file = _create(self.path, overwrite=overwrite, mode=file_mode)  # closed in close()
         # mcap < 1.6 has no Writer.flush() (no public way to close a chunk early): fall back to
         # unchunked records, which reach the file on every file flush.
         self._chunked = chunked and hasattr(Writer, "flush")
@@ -660,7 +355,7 @@ class SessionLog:
             self._writer = Writer(self._file, chunk_size=chunk_size, compression=codecs[compression],
                                   use_chunking=self._chunked)
             self._writer.start(profile=_PROFILE, library=f"hilbo {hilbo_version()}; {LIBRARY_IDENTIFIER}")
-            started_ns = time.time_ns()
+            started_ns = time.time_ns() if started_unix_ns is None else int(started_unix_ns)
             self._writer.add_metadata(METADATA_NAME, {
                 "session_id": session_id,
                 "previous_log": self.previous_log or "",
@@ -669,18 +364,13 @@ class SessionLog:
                 "started_unix_ns": str(started_ns),
             })
             self._channel_ids: dict[str, int] = {}
-            for spec in _CHANNEL_LIST:
+            for spec in CHANNELS.values():
                 self._register(spec.topic, spec.schema_name, spec.json_schema(self._param_names))
-            self._write(Topic.CONFIG, {
-                "session_id": session_id,
-                "previous_log": self.previous_log,
-                "resumed": self.previous_log is not None,
-                "config": dict(config_json),
-                "param_names": list(self._param_names),
-                "hilbo_version": hilbo_version(),
-                "format_version": FORMAT_VERSION,
-                "started_unix_ns": started_ns,
-            }, None)
+            self._write_record(Topic.CONFIG, Config(
+                session_id=session_id, previous_log=self.previous_log,
+                resumed=self.previous_log is not None, config=_config_builtins(config_json),
+                param_names=list(self._param_names), hilbo_version=hilbo_version(),
+                format_version=FORMAT_VERSION, started_unix_ns=started_ns), None, None)
             self._flush_locked()
         except (OSError, LogError) as err:
             # The file is ours and holds nothing yet: remove it so a corrected retry can create it.
@@ -765,13 +455,31 @@ class SessionLog:
                 self._fsync()
 
     # typed helpers ------------------------------------------------------------------
+    def log_record(self, topic: str, record: Any, publish_time_ns: int | None = None) -> None:
+        """Write one typed record (a :mod:`bridge.log.records` struct) on ``topic``.
+
+        Args:
+            topic: The channel (its record type is ``RECORD_TYPES[topic]``).
+            record: The struct.
+            publish_time_ns: Breath-time base in ns for breath-tied messages; None = log time.
+
+        Raises:
+            LogStateError: The log is closed.
+            LogValueError: ``publish_time_ns`` is negative, or the record cannot be encoded.
+            LogWriteError: The file could not be written.
+        """
+        with self._lock:
+            self._check_open()
+            self._write_record(topic, record, publish_time_ns, None)
+            if self._flush_immediately and topic not in _TIMER_TOPICS:
+                self._flush_locked()
+
     def log_breath(self, record: BreathRecord) -> None:
         """``/breaths``: one breath as the cart reported it (publish_time = its breath time)."""
-        self.log(Topic.BREATHS, {
-            "t_s": record.t_s, "vo2_ml_min": record.vo2_ml_min, "vco2_ml_min": record.vco2_ml_min,
-            "ve_l_min": record.ve_l_min, "rer": record.rer, "hr_bpm": record.hr_bpm,
-            "watts": record.watts,
-        }, _t_ns(record.t_s))
+        self.log_record(Topic.BREATHS, Breath(
+            t_s=record.t_s, vo2_ml_min=record.vo2_ml_min, vco2_ml_min=record.vco2_ml_min,
+            ve_l_min=record.ve_l_min, rer=record.rer, hr_bpm=record.hr_bpm, watts=record.watts,
+        ), _t_ns(record.t_s))
 
     def log_step(self, step: BreathStep, *, index: int, t_setting_s: float, watts: float,
                  t_s: float | None = None,
@@ -799,24 +507,27 @@ class SessionLog:
     def log_estimate(self, *, index: int, breath: int, t_setting_s: float, watts: float,
                      mean_w: float, var_w2: float, phase: str, t_s: float | None = None) -> None:
         """``/estimator``: a breath the optimizer consumed and the estimate after it."""
-        sd = math.sqrt(var_w2) if var_w2 >= 0 else float("nan")
-        self.log(Topic.ESTIMATOR, {
-            "index": index, "breath": breath, "t_s": t_s, "t_setting_s": t_setting_s, "watts": watts,
-            "mean_w": mean_w, "var_w2": var_w2, "sd_w": sd, "lo95_w": mean_w - 1.96 * sd,
-            "hi95_w": mean_w + 1.96 * sd, "phase": phase,
-        }, None if t_s is None else _t_ns(t_s))
+        mean_w, var_w2 = float(mean_w), float(var_w2)
+        sd = math.sqrt(var_w2) if var_w2 >= 0 else math.nan
+        finite = math.isfinite(sd) and math.isfinite(mean_w)
+        self.log_record(Topic.ESTIMATOR, Estimate(
+            index=int(index), breath=int(breath), t_s=t_s, t_setting_s=float(t_setting_s),
+            watts=float(watts), mean_w=mean_w, var_w2=var_w2, sd_w=sd if finite else None,
+            lo95_w=mean_w - 1.96 * sd if finite else None, hi95_w=mean_w + 1.96 * sd if finite else None,
+            phase=phase), None if t_s is None else _t_ns(t_s))
 
     def log_stopping(self, decision: StopDecision, *, index: int, t_s: float | None = None,
                      stop: bool | None = None, reason: str | None = None,
                      incumbent: tuple[Mapping[str, float], float, float] | None = None) -> None:
         """``/stopping``: the rule's decision (``reason`` overrides it, e.g. ``budget``)."""
-        self.log(Topic.STOPPING, {
-            "index": index, "breath": decision.index, "t_s": t_s,
-            "stop": decision.stop if stop is None else bool(stop),
-            "reason": reason or decision.reason.value, "z": decision.z, "threshold": decision.threshold,
-            "incumbent_mean_w": None if incumbent is None else incumbent[1],
-            "incumbent_var_w2": None if incumbent is None else incumbent[2],
-        }, None if t_s is None else _t_ns(t_s))
+        self.log_record(Topic.STOPPING, StopRecord(
+            index=int(index), breath=int(decision.index), t_s=t_s,
+            stop=bool(decision.stop if stop is None else stop),
+            reason=reason or decision.reason.value, z=_finite(decision.z),
+            threshold=_finite(decision.threshold),
+            incumbent_mean_w=None if incumbent is None else _finite(incumbent[1]),
+            incumbent_var_w2=None if incumbent is None else _finite(incumbent[2]),
+        ), None if t_s is None else _t_ns(t_s))
 
     def log_proposal(self, params: Mapping[str, float], *, index: int, phase: str,
                      t_s: float | None = None,
@@ -826,21 +537,24 @@ class SessionLog:
                      worker: str | None = None) -> None:
         """``/proposals``: the setting ``ask()`` returned, logged right after every ask(), with
         how long it took (``compute_ms`` in the worker, ``total_ms`` as the session saw it)."""
-        msg: dict[str, Any] = {
-            "index": index, "params": dict(params), "phase": phase, "t_s": t_s,
-            "incumbent": None if incumbent is None else {
-                "params": dict(incumbent[0]), "mean": incumbent[1], "var": incumbent[2]},
-        }
-        timing = {"compute_ms": compute_ms, "total_ms": total_ms, "to_worker_ms": to_worker_ms,
-                  "from_worker_ms": from_worker_ms, "worker": worker}
-        msg.update({k: v for k, v in timing.items() if v is not None})
-        self.log(Topic.PROPOSALS, msg)
+        self.log_record(Topic.PROPOSALS, Proposal(
+            index=int(index), params=_params(params), phase=str(phase), t_s=t_s,
+            incumbent=None if incumbent is None else Incumbent(
+                params=_params(incumbent[0]), mean=float(incumbent[1]), var=float(incumbent[2])),
+            compute_ms=compute_ms, total_ms=total_ms, to_worker_ms=to_worker_ms,
+            from_worker_ms=from_worker_ms, worker=worker))
 
     def log_observation(self, evaluation: Evaluation, *, t_start: float | None = None,
                         t_end: float | None = None, t_s: float | None = None) -> None:
         """``/observations``: a completed evaluation (session times ``t_start``/``t_end`` in s)."""
-        self.log(Topic.OBSERVATIONS, {**evaluation.to_json(), "t_start": t_start, "t_end": t_end},
-                 None if t_s is None else _t_ns(t_s))
+        e = evaluation
+        self.log_record(Topic.OBSERVATIONS, EvaluationRecord(
+            index=int(e.index), params=_params(e.params), mean=float(e.mean), var=float(e.var),
+            breaths=int(e.breaths), duration_s=float(e.duration_s), phase=str(e.phase),
+            stopped_early=bool(e.stopped_early), reason=str(e.reason), t_start=t_start, t_end=t_end,
+            obs_mean=None if e.obs_mean is None else float(e.obs_mean),
+            obs_var=None if e.obs_var is None else float(e.obs_var),
+        ), None if t_s is None else _t_ns(t_s))
 
     def log_optimizer_state(self, optimizer: HILOptimizer, *, reason: str,
                             t_s: float | None = None) -> None:
@@ -852,31 +566,29 @@ class SessionLog:
         ``"budget"``).
         """
         thresholds = optimizer.thresholds
-        self.log(Topic.OPTIMIZER_STATE, {
-            "state": optimizer.to_json(), "reason": reason,
-            "n_evaluations": len(optimizer.evaluations),
-            "thresholds": None if thresholds is None else thresholds.tolist(),
-        }, None if t_s is None else _t_ns(t_s))
+        self.log_record(Topic.OPTIMIZER_STATE, OptimizerState(
+            state=optimizer.to_json(), reason=reason, n_evaluations=len(optimizer.evaluations),
+            thresholds=None if thresholds is None else thresholds.tolist(),
+        ), None if t_s is None else _t_ns(t_s))
 
     def log_profile_sent(self, profiles: Sequence[ForceProfile], *, version: int,
                          crc32: int | None = None, index: int | None = None,
                          params: Mapping[str, float] | None = None, t_s: float | None = None) -> None:
         """``/profiles_sent``: the tables pushed to the device under ``version``."""
-        table = [float(f) for p in profiles for f in p.force_n]
-        self.log(Topic.PROFILES_SENT, {
-            "version": version, "n_points": len(table), "crc32": crc32, "index": index,
-            "params": None if params is None else dict(params), "force_n": table,
-            "profiles": [p.to_json() for p in profiles], "t_s": t_s,
-        })
+        tables = [ProfileTable(actuator=str(p.actuator), gait_pct=p.gait_pct.tolist(),
+                               force_n=p.force_n.tolist()) for p in profiles]
+        table = [f for t in tables for f in t.force_n]
+        self.log_record(Topic.PROFILES_SENT, ProfileSent(
+            version=int(version), n_points=len(table), crc32=crc32, index=index,
+            params=None if params is None else _params(params), force_n=table, profiles=tables, t_s=t_s))
 
     def log_ack(self, *, version: int, accepted: bool, reason: str | enum.Enum = "none", detail: int = 0,
                 attempts: int | None = None, elapsed_s: float | None = None,
                 crc32: int | None = None, error: str | None = None) -> None:
         """``/acks``: the device's ack/nack of a commit, or why the push failed."""
-        self.log(Topic.ACKS, {
-            "version": version, "accepted": bool(accepted), "reason": _name(reason), "detail": detail,
-            "attempts": attempts, "elapsed_s": elapsed_s, "crc32": crc32, "error": error,
-        })
+        self.log_record(Topic.ACKS, ProfileAck(
+            version=int(version), accepted=bool(accepted), reason=_name(reason), detail=int(detail),
+            attempts=attempts, elapsed_s=elapsed_s, crc32=crc32, error=error))
 
     def log_force_feedback(self, *, actuator: int, desired_n: Sequence[float],
                            measured_n: Sequence[float],
@@ -886,41 +598,83 @@ class SessionLog:
 
         Unknown gait phases (None) are written as −1 (the schema has one number type).
         """
-        desired = [float(v) for v in desired_n]
-        measured = [float(v) for v in measured_n]
-        if len(desired) != len(measured):
-            raise LogValueError(f"force feedback batch: {len(desired)} desired vs {len(measured)} "
+        desired = list(map(float, desired_n))
+        measured = list(map(float, measured_n))
+        n = len(desired)
+        if n != len(measured):
+            raise LogValueError(f"force feedback batch: {n} desired vs {len(measured)} "
                                 "measured samples; expected equal lengths")
         gait = None if gait_phase_pct is None else [-1.0 if g is None else float(g) for g in gait_phase_pct]
-        self.log(Topic.FORCE_FEEDBACK, {
-            "actuator": actuator, "n": len(desired), "desired_n": desired, "measured_n": measured,
-            "gait_phase_pct": gait, "profile_version": profile_version,
-            "desired_mean_n": float(np.mean(desired)) if desired else None,
-            "measured_mean_n": float(np.mean(measured)) if measured else None,
-        })
+        self.log_record(Topic.FORCE_FEEDBACK, ForceFeedback(
+            actuator=int(actuator), n=n, desired_n=desired, measured_n=measured, gait_phase_pct=gait,
+            profile_version=profile_version,
+            desired_mean_n=math.fsum(desired) / n if n else None,
+            measured_mean_n=math.fsum(measured) / n if n else None))
 
     def log_device_status(self, *, actuator: int, mode: str | enum.Enum, faults: int | enum.Flag,
                           gait_phase_pct: float | None = None, profile_version_active: int = 0,
                           profile_version_pending: int = 0) -> None:
-        """``/device_status``: one actuator's status (``faults`` as bits or an enum.Flag)."""
+        """``/device_status``: one actuator's status (``faults`` as bits or an enum.Flag).
+
+        A change of the fault bits is also an ``/events`` message: ``device_fault`` (level
+        ERROR, naming the faults) when a fault latches or changes, ``device_fault_cleared``
+        (INFO) when the bits return to 0, so Foxglove's Log panel and the review show it.
+        """
         names = ([m.name.lower() for m in type(faults) if m in faults and m.name]
                  if isinstance(faults, enum.Flag) else None)
-        self.log(Topic.DEVICE_STATUS, {
-            "actuator": actuator, "mode": _name(mode), "faults": int(faults), "fault_names": names,
-            "gait_phase_pct": gait_phase_pct, "profile_version_active": profile_version_active,
-            "profile_version_pending": profile_version_pending,
-        })
+        bits, act = int(faults), int(actuator)
+        self.log_record(Topic.DEVICE_STATUS, DeviceStatus(
+            actuator=act, mode=_name(mode), faults=bits, fault_names=names,
+            gait_phase_pct=gait_phase_pct, profile_version_active=int(profile_version_active),
+            profile_version_pending=int(profile_version_pending)))
+        before = self._faults.get(act, 0)
+        if bits == before:
+            return
+        self._faults[act] = bits
+        what = ", ".join(names) if names else f"0x{bits:x}"
+        if bits:
+            self.log_event("device_fault", f"actuator {act}: device fault {what} (mode {_name(mode)})",
+                           actuator=act, faults=bits, fault_names=names or [])
+        else:
+            self.log_event("device_fault_cleared", f"actuator {act}: device faults cleared",
+                           actuator=act, faults=0, previous_faults=before)
 
-    def log_event(self, kind: str, text: str, *, level: EventLevel = EventLevel.INFO,
+    def log_event(self, kind: str, text: str, *, level: EventLevel | int | None = None,
                   t_s: float | None = None, **details: Any) -> None:
-        """``/events``: a session event (Foxglove's Log panel shows ``text``)."""
-        self.log(Topic.EVENTS, {"kind": kind, "message": text, "level": int(level), "t_s": t_s,
-                                "details": details or None})
+        """``/events``: a session event (Foxglove's Log panel shows ``text``).
+
+        Args:
+            kind: Machine-readable kind (``pause``, ``bus_error``...).
+            text: Human-readable text.
+            level: The ``foxglove.Log`` level; None (the default) takes it from the kind
+                (:func:`bridge.log.records.event_level`: pauses and refusals WARNING, lost
+                heartbeat, bus errors and faults ERROR, the rest INFO).
+            t_s: Breath time of the event, if known.
+            **details: Event-specific JSON-able values.
+        """
+        try:
+            lv = event_level(str(kind)) if level is None else EventLevel(int(level))
+        except ValueError as err:
+            raise LogValueError(f"log_event({kind!r}): level={level!r}; expected a foxglove.LogLevel "
+                                f"0..5 ({', '.join(m.name for m in EventLevel)})") from err
+        with self._lock:
+            self._check_open()
+            log_ns = int(self._clock_ns())
+            try:
+                clean = _clean_details(details) or None
+            except TypeError as err:
+                raise LogValueError(f"log_event({kind!r}): details are not JSON-serialisable: {err}") from err
+            record = Log(timestamp=Timestamp(sec=log_ns // 1_000_000_000, nsec=log_ns % 1_000_000_000),
+                         level=lv, message=str(text), name="hilbo", file="", line=0, kind=str(kind),
+                         t_s=t_s, details=clean)
+            self._write_record(Topic.EVENTS, record, None, log_ns)
+            if self._flush_immediately:
+                self._flush_locked()
 
     def log_rejects(self, source: str, counts: Mapping[str, int], *, t_s: float | None = None) -> None:
         """``/rejects``: cumulative rejected records/frames of ``source`` by reason."""
         c = {str(k): int(v) for k, v in counts.items()}
-        self.log(Topic.REJECTS, {"source": source, "counts": c, "total": sum(c.values()), "t_s": t_s})
+        self.log_record(Topic.REJECTS, Rejects(source=str(source), counts=c, total=sum(c.values()), t_s=t_s))
 
     # ------------------------------------------------------------------ internals
     def _check_open(self) -> None:
@@ -939,22 +693,44 @@ class SessionLog:
         self._schemas[topic] = (schema_name, schema)
         return cid
 
-    def _write(self, topic: str, message: Mapping[str, Any], publish_time_ns: int | None) -> None:
-        log_ns = int(self._clock_ns())
-        if publish_time_ns is None:
-            publish_ns = log_ns
-        else:
-            if isinstance(publish_time_ns, bool) or not isinstance(publish_time_ns, int | np.integer) \
-                    or publish_time_ns < 0:
-                raise LogValueError(f"log({topic!r}): publish_time_ns={publish_time_ns!r}; expected an "
-                                    "integer >= 0 (breath time in ns)")
-            publish_ns = int(publish_time_ns)
+    def _times(self, topic: str, publish_time_ns: int | None, log_ns: int | None) -> tuple[int, int]:
+        log_ns = int(self._clock_ns()) if log_ns is None else log_ns
         if log_ns < 0:
             raise LogValueError(f"clock_ns() returned {log_ns}; expected ns >= 0")
+        if publish_time_ns is None:
+            return log_ns, log_ns
+        if isinstance(publish_time_ns, bool) or not isinstance(publish_time_ns, int | np.integer) \
+                or publish_time_ns < 0:
+            raise LogValueError(f"log({topic!r}): publish_time_ns={publish_time_ns!r}; expected an "
+                                "integer >= 0 (breath time in ns)")
+        return log_ns, int(publish_time_ns)
+
+    def _write(self, topic: str, message: Mapping[str, Any], publish_time_ns: int | None) -> None:
+        log_ns, publish_ns = self._times(topic, publish_time_ns, None)
         msg = _drop_none(message)
         if topic == Topic.EVENTS:
             msg = _complete_event(msg, log_ns)
-        data = _encode(topic, msg)
+        self._emit(topic, _encode(topic, msg), log_ns, publish_ns)
+
+    def _write_record(self, topic: str, record: Any, publish_time_ns: int | None,
+                      log_ns: int | None) -> None:
+        log_ns, publish_ns = self._times(topic, publish_time_ns, log_ns)
+        if topic == Topic.OPTIMIZER_STATE:
+            # msgspec writes NaN as null; the snapshot must round-trip exactly for resume.
+            data = _encode(topic, msgspec.to_builtins(record, enc_hook=_json_default))
+        else:
+            try:
+                data = _ENCODER.encode(record)
+                if b"null" in data:
+                    # msgspec writes NaN/inf as null; Foxglove's schemas have one type per field.
+                    # As before: a non-finite value is omitted (the reader names the missing field).
+                    data = _encode(topic, _drop_none(_finite_or_none(
+                        msgspec.to_builtins(record, enc_hook=_json_default))))
+            except (TypeError, ValueError, OverflowError) as err:
+                raise LogValueError(f"log({topic!r}): record is not JSON-serialisable: {err}") from err
+        self._emit(topic, data, log_ns, publish_ns)
+
+    def _emit(self, topic: str, data: bytes, log_ns: int, publish_ns: int) -> None:
         cid = self._channel_ids.get(topic)
         if cid is None:
             cid = self._register(topic, "hilbo.Generic" + topic.replace("/", "."),
@@ -1047,3 +823,43 @@ def _encode(topic: str, msg: Mapping[str, Any]) -> bytes:
         return json.dumps(msg, separators=(",", ":"), default=_json_default).encode()
     return json.dumps(_drop_none(_finite_or_none(msg)), separators=(",", ":"), allow_nan=False,
                       default=_json_default).encode()
+
+
+def _finite(value: float | None) -> float | None:
+    if value is None:
+        return None
+    v = float(value)
+    return v if math.isfinite(v) else None
+
+
+def _params(params: Mapping[str, float]) -> dict[str, float]:
+    return {str(k): float(v) for k, v in params.items()}
+
+
+def _clean_details(details: Mapping[str, Any]) -> dict[str, Any]:
+    return _drop_none(_finite_or_none(msgspec.to_builtins(dict(details), enc_hook=_json_default)))
+
+
+_ENCODER = msgspec.json.Encoder(enc_hook=_json_default)
+
+
+def _config_builtins(config: Mapping[str, Any]) -> dict[str, Any]:
+    try:
+        return json.loads(json.dumps(dict(config), allow_nan=False, default=_json_default))
+    except (TypeError, ValueError) as err:
+        raise LogValueError(f"config_json: the session config is not JSON-serialisable: {err}") from err
+
+
+def _create(path: Path, *, overwrite: bool, mode: int) -> Any:
+    """Open ``path`` for writing with exactly ``mode`` (never replacing a file unless ``overwrite``)."""
+    flags = os.O_WRONLY | os.O_CREAT | (os.O_TRUNC if overwrite else os.O_EXCL) | getattr(os, "O_CLOEXEC", 0)
+    try:
+        fd = os.open(path, flags, mode)
+    except OSError as err:
+        raise LogWriteError(f"cannot create the session log {str(path)!r}: {err}") from err
+    try:
+        os.fchmod(fd, mode)  # the umask may have removed bits; an overwritten file keeps its old mode
+        return os.fdopen(fd, "wb")
+    except OSError as err:
+        os.close(fd)
+        raise LogWriteError(f"cannot create the session log {str(path)!r}: {err}") from err

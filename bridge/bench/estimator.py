@@ -1,0 +1,465 @@
+"""``hilbo bench estimator``: accuracy and calibration of the breath-by-breath estimators (issue 16).
+
+For every transition (a setting change) and every horizon h (30/60/90/120/180 s after it) each
+estimator sees the breaths of the new setting up to h and reports (mean, sd) of the steady-state
+cost c. Against the truth c:
+
+* accuracy: MAPE = mean |ĉ − c|/c and bias = mean (ĉ − c)/c, in %;
+* calibration: z = (ĉ − c)/sd — its mean and SD (1 when sd describes the errors) and the share
+  of |z| ≤ 1.96 (95 % interval coverage);
+
+split by step size: *small* when the first breath of the setting is less than 50 % away from
+the new steady state, *large* otherwise (issue 16's split).
+
+Estimators:
+
+* ``transition`` — :class:`~hilbo_core.estimation.TransitionEstimator`, the optimizer's default;
+  like in the optimizer it starts each setting from the level it ended the previous one at;
+* ``seed_ukf`` — :class:`~hilbo_core.metabolic.MetabolicUKF` (seed 000 §II.C);
+* ``first_order_42`` — the lab's fit: least squares of y = c + (y0 − c)·e^{−t/42 s} in (c, y0),
+  sd from the residual variance;
+* ``full_ls`` — least squares of the full model y = c + (b0 − c)·e^{−t/τ} in (c, b0, τ)
+  (profiled over a τ grid of 5–300 s), sd from the Jacobian at the optimum.
+
+Data:
+
+* synthetic (default): :func:`synthetic_people` — a small pure generator of breath trajectories
+  (documented there). ``--wearer NAME`` picks a registered wearer (:data:`WEARERS`); the
+  realistic wearer of ``virtual_hw`` (issue 16 part 3) is meant to be registered there.
+* ``--replay FILE --transitions t1,t2,...``: a recorded breath file (hilbo-line, or a vendor CSV
+  with ``--csv-columns TIME,VO2,VCO2``) read with the cart driver's parsers and validator;
+  the bouts are [t_k, t_{k+1}) (the last to the end of the file), the truth of each is the mean
+  of its last 60 s of breaths, and the breaths before t1 only start the chained estimator.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import math
+import time
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bridge.bench.common import machine_info, markdown_table, round_sig, write_json
+from hilbo_core.errors import ConfigError, EstimatorError, MeasurementError
+from hilbo_core.estimation import StartState, TransitionEstimator
+from hilbo_core.metabolic import MetabolicUKF
+
+__all__ = [
+    "ESTIMATORS",
+    "HORIZONS_S",
+    "WEARERS",
+    "Bout",
+    "add_estimator_bench_parser",
+    "comparison_table",
+    "evaluate",
+    "replay_people",
+    "run_estimator_bench",
+    "summarize",
+    "synthetic_people",
+]
+
+HORIZONS_S: tuple[float, ...] = (30.0, 60.0, 90.0, 120.0, 180.0)
+ESTIMATORS: tuple[str, ...] = ("transition", "seed_ukf", "first_order_42", "full_ls")
+_LARGE_STEP = 0.5  # issue 16: "the first breath more than 50 % away from the new steady state"
+_Z95 = 1.959963984540054
+_LAB_TAU_S = 42.0  # Selinger & Donelan (2014), the first-order fit labs use
+_FULL_TAU_GRID_S = np.geomspace(5.0, 300.0, 80)
+_TRUTH_WINDOW_S = 60.0
+
+
+@dataclass(frozen=True)
+class Bout:
+    """The breaths of one setting.
+
+    Attributes:
+        t_s: Breath times since the setting began, shape (n,), strictly increasing.
+        watts: Breath powers in W, shape (n,).
+        truth_w: The setting's steady-state cost in W.
+        first_distance: |first-breath level − truth| / truth (noise-free level when known).
+        evaluate: Whether this bout is a transition to score (the first bout of a person only
+            starts the chained estimator).
+    """
+
+    t_s: np.ndarray
+    watts: np.ndarray
+    truth_w: float
+    first_distance: float
+    evaluate: bool = True
+
+
+# ------------------------------------------------------------------------------ synthetic data
+def synthetic_people(n: int, seed: int, *, bouts: int = 5) -> list[list[Bout]]:
+    """Synthetic breath trajectories: ``n`` people, each walking ``bouts`` settings in a row.
+
+    Per person: τ ~ U(30, 60) s and a steady-state breath CV ~ U(8, 12) % (issue 16's facts of
+    real data: τ 30–60 s between people, median CV ≈ 11 %), a starting level ~ U(250, 450) W.
+    Per setting: the steady state c is the body's level at the setting's start divided by
+    (1 + d), d ~ U(−0.7, 0.8) (steps up to ±80 % of the distance from the new steady state;
+    c clipped to 120–1200 W); the body follows m(t) = c + (b0 − c)·e^{−t/τ} from the level b0
+    the previous setting left it at. Durations are 45–120 s (half the settings: early stops) or
+    200–300 s. Breaths every U(2, 3.5) s; y = m·(1 + cv·ε) with ε an AR(1) of correlation
+    e^{−Δt/1.5 s} (≤ 0.14 beyond 3 s: issue 16's "below 0.15 beyond 3 s"), and 3 % outliers
+    (swallows, coughs, talking) with an extra Student-t(2) error of scale 3·cv.
+
+    Pure: the same (n, seed, bouts) give the same data.
+    """
+    rng = np.random.default_rng([int(seed), 0xE57])
+    people: list[list[Bout]] = []
+    for _ in range(n):
+        tau = rng.uniform(30.0, 60.0)
+        cv = rng.uniform(0.08, 0.12)
+        level = rng.uniform(250.0, 450.0)
+        person: list[Bout] = []
+        for k in range(bouts):
+            d = rng.uniform(-0.7, 0.8)
+            c = float(np.clip(level / (1.0 + d), 120.0, 1200.0))
+            dur = rng.uniform(45.0, 120.0) if rng.random() < 0.5 else rng.uniform(200.0, 300.0)
+            ts: list[float] = []
+            t = rng.uniform(0.5, 3.5)
+            while t <= dur:
+                ts.append(t)
+                t += rng.uniform(2.0, 3.5)
+            t_arr = np.array(ts)
+            m = c + (level - c) * np.exp(-t_arr / tau)
+            eps = np.empty(t_arr.size)
+            e = rng.normal()
+            for i in range(t_arr.size):
+                if i:
+                    rho = math.exp(-(t_arr[i] - t_arr[i - 1]) / 1.5)
+                    e = rho * e + math.sqrt(1.0 - rho**2) * rng.normal()
+                eps[i] = e
+            y = m * (1.0 + cv * eps)
+            out = rng.random(t_arr.size) < 0.03
+            y[out] += m[out] * 3.0 * cv * rng.standard_t(2.0, int(out.sum()))
+            y = np.maximum(y, 0.05 * m)
+            person.append(Bout(t_arr, y, c, abs(float(m[0]) - c) / c, evaluate=k > 0))
+            level = float(c + (level - c) * math.exp(-dur / tau))
+        people.append(person)
+    return people
+
+
+WEARERS: dict[str, Callable[[int, int], list[list[Bout]]]] = {"synthetic": synthetic_people}
+"""Wearers ``--wearer`` can name: ``name -> (n, seed) -> people``. The realistic wearer of
+``virtual_hw`` (issue 16 part 3) joins here once it exists, e.g. a function that walks its
+wearer through a sequence of settings and returns the :class:`Bout` lists."""
+
+
+# ------------------------------------------------------------------------------ replay
+def replay_people(path: str | Path, transitions_s: Sequence[float],
+                  csv_columns: Sequence[str] | None = None) -> list[list[Bout]]:
+    """The transitions of a recorded breath file, as one "person".
+
+    Args:
+        path: A hilbo-line recording, or a vendor CSV when ``csv_columns`` is given.
+        transitions_s: Setting-change times on the file's clock (s), increasing.
+        csv_columns: Header names of time (s), VO2 and VCO2 (ml/min) for a CSV.
+
+    Returns:
+        ``[[bout before t1 (not scored), bout t1..t2, ...]]``.
+
+    Raises:
+        ConfigError: Unreadable file, bad transition times, or a bout without breaths.
+    """
+    from drivers.cart.csvmap import CsvBreathParser, CsvMapping
+    from drivers.cart.line import HbrLineParser
+    from drivers.cart.pipeline import read_breath_file
+    from drivers.errors import DriverError
+
+    ts = [float(t) for t in transitions_s]
+    if not ts or any(not math.isfinite(t) for t in ts) or any(b <= a for a, b in itertools.pairwise(ts)):
+        raise ConfigError(f"--transitions {ts}: expected increasing finite times in s")
+    try:
+        if csv_columns is not None:
+            if len(csv_columns) != 3:
+                raise ConfigError(f"--csv-columns {list(csv_columns)}: expected TIME,VO2,VCO2")
+            parser: Any = CsvBreathParser(CsvMapping(*csv_columns))
+        else:
+            parser = HbrLineParser()
+        records = read_breath_file(path, parser)
+    except (OSError, DriverError) as err:
+        raise ConfigError(f"--replay {path}: cannot read breaths: {err}") from err
+    t_all = np.array([r.t_s for r in records], dtype=float)
+    w_all = np.array([r.watts for r in records], dtype=float)
+    edges = [-math.inf, *ts, math.inf]
+    person: list[Bout] = []
+    for k in range(len(edges) - 1):
+        sel = (t_all >= edges[k]) & (t_all < edges[k + 1])
+        if not sel.any():
+            if k == 0:
+                continue
+            raise ConfigError(f"--replay {path}: no breaths between {edges[k]:g} s and {edges[k + 1]:g} s")
+        # Time since the setting began; the warm-up bout before t1 starts at its first breath.
+        t0 = edges[k] if k else float(t_all[sel][0])
+        t, w = t_all[sel] - t0, w_all[sel]
+        tail = t >= t[-1] - _TRUTH_WINDOW_S
+        truth = float(np.mean(w[tail]))
+        person.append(Bout(t, w, truth, abs(float(w[0]) - truth) / truth, evaluate=k > 0))
+    return [person]
+
+
+# ------------------------------------------------------------------------------ estimators
+def _ls_first_order(t: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """Least squares of y = c + (y0 − c)·e^{−t/42} in (c, y0); (c, sd) (sd NaN with n < 3)."""
+    e = np.exp(-t / _LAB_TAU_S)
+    H = np.column_stack([1.0 - e, e])
+    theta, *_ = np.linalg.lstsq(H, y, rcond=None)
+    n = y.size
+    if n < 3:
+        return float(theta[0]), math.nan
+    rss = float(np.sum((y - H @ theta) ** 2))
+    try:
+        cov = rss / (n - 2) * np.linalg.inv(H.T @ H)
+    except np.linalg.LinAlgError:
+        return float(theta[0]), math.nan
+    return float(theta[0]), math.sqrt(max(float(cov[0, 0]), 0.0))
+
+
+def _ls_full(t: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """Least squares of the full model in (c, b0, τ), τ profiled on a grid; (c, sd)."""
+    E = np.exp(-t[None, :] / _FULL_TAU_GRID_S[:, None])  # (G, n)
+    best = (math.inf, 0, np.zeros(2))
+    for g in range(_FULL_TAU_GRID_S.size):
+        H = np.column_stack([1.0 - E[g], E[g]])
+        theta, *_ = np.linalg.lstsq(H, y, rcond=None)
+        rss = float(np.sum((y - H @ theta) ** 2))
+        if rss < best[0]:
+            best = (rss, g, theta)
+    rss, g, (c, b0) = best
+    n = y.size
+    if n < 4:
+        return float(c), math.nan
+    tau = _FULL_TAU_GRID_S[g]
+    e = E[g]
+    J = np.column_stack([1.0 - e, e, (b0 - c) * e * t / tau**2])
+    try:
+        cov = rss / (n - 3) * np.linalg.pinv(J.T @ J)
+    except np.linalg.LinAlgError:
+        return float(c), math.nan
+    return float(c), math.sqrt(max(float(cov[0, 0]), 0.0))
+
+
+def _at_horizons(est: Any, bout: Bout, horizons: Sequence[float]) -> list[tuple[float, float]]:
+    """Run a sequential estimator over the bout; (mean, sd) at the last breath <= each horizon."""
+    out = [(math.nan, math.nan)] * len(horizons)
+    mean = var = math.nan
+    hi = 0
+    for t, w in zip(bout.t_s, bout.watts, strict=True):
+        while hi < len(horizons) and t > horizons[hi]:
+            out[hi] = (mean, math.sqrt(var) if var > 0 else math.nan)
+            hi += 1
+        try:
+            mean, var = est.update(float(t), float(w))
+        except (MeasurementError, EstimatorError):
+            continue  # counted as in the optimizer: a rejected breath leaves the estimate
+    while hi < len(horizons):
+        if bout.t_s[-1] >= horizons[hi]:
+            out[hi] = (mean, math.sqrt(var) if var > 0 else math.nan)
+        hi += 1
+    return out
+
+
+def evaluate(people: Iterable[list[Bout]], estimators: Sequence[str] = ESTIMATORS,
+             horizons: Sequence[float] = HORIZONS_S,
+             progress: Callable[[int], None] | None = None) -> list[dict[str, Any]]:
+    """One row per scored transition, estimator and reached horizon.
+
+    Row: ``estimator``, ``horizon_s``, ``step`` ("small"/"large"), ``truth``, ``mean``, ``sd``.
+    A horizon counts only when the bout lasts at least that long.
+    """
+    rows: list[dict[str, Any]] = []
+    for i, person in enumerate(people):
+        handover: StartState | None = None
+        for bout in person:
+            if bout.t_s.size == 0:
+                continue
+            # The chained estimator runs over every bout (as in the optimizer), scored or not.
+            est = TransitionEstimator()
+            if handover is not None:
+                est.start_from_state(handover)
+            trans = _at_horizons(est, bout, horizons)
+            if est.n_updates:
+                handover = est.handover()
+            if not bout.evaluate:
+                continue
+            step = "large" if bout.first_distance >= _LARGE_STEP else "small"
+            for name in estimators:
+                if name == "transition":
+                    res = trans
+                elif name == "seed_ukf":
+                    res = _at_horizons(MetabolicUKF(), bout, horizons)
+                else:
+                    fit = _ls_first_order if name == "first_order_42" else _ls_full
+                    res = []
+                    for h in horizons:
+                        sel = bout.t_s <= h
+                        if bout.t_s[-1] < h or sel.sum() < 2:
+                            res.append((math.nan, math.nan))
+                        else:
+                            res.append(fit(bout.t_s[sel], bout.watts[sel]))
+                for h, (mean, sd) in zip(horizons, res, strict=True):
+                    if math.isfinite(mean):
+                        rows.append({"estimator": name, "horizon_s": h, "step": step,
+                                     "truth": bout.truth_w, "mean": mean, "sd": sd})
+        if progress is not None:
+            progress(i + 1)
+    return rows
+
+
+def summarize(rows: Sequence[dict[str, Any]], estimators: Sequence[str] = ESTIMATORS,
+              horizons: Sequence[float] = HORIZONS_S) -> list[dict[str, Any]]:
+    """Per estimator × horizon × step (all/small/large): n, MAPE %, bias %, z mean/SD, coverage %."""
+    out = []
+    for name in estimators:
+        for h in horizons:
+            for step in ("all", "small", "large"):
+                sel = [r for r in rows if r["estimator"] == name and r["horizon_s"] == h
+                       and (step == "all" or r["step"] == step)]
+                if not sel:
+                    continue
+                truth = np.array([r["truth"] for r in sel])
+                mean = np.array([r["mean"] for r in sel])
+                sd = np.array([r["sd"] for r in sel], dtype=float)
+                rel = (mean - truth) / truth
+                ok = np.isfinite(sd) & (sd > 0)
+                z = (mean[ok] - truth[ok]) / sd[ok]
+                out.append({
+                    "estimator": name, "horizon_s": h, "step": step, "n": len(sel),
+                    "mape_pct": 100.0 * float(np.mean(np.abs(rel))),
+                    "bias_pct": 100.0 * float(np.mean(rel)),
+                    "z_mean": float(np.mean(z)) if z.size else math.nan,
+                    "z_sd": float(np.std(z, ddof=1)) if z.size > 1 else math.nan,
+                    "coverage95_pct": 100.0 * float(np.mean(np.abs(z) <= _Z95)) if z.size else math.nan,
+                })
+    return out
+
+
+def estimator_table(summary: Sequence[dict[str, Any]],
+                    steps: Sequence[str] = ("all", "small", "large")) -> str:
+    """Markdown: one row per estimator × horizon × step."""
+    def f(v: float, fmt: str) -> str:
+        return "–" if not math.isfinite(v) else format(v, fmt)
+
+    rows = [[s["estimator"], f"{s['horizon_s']:g} s", s["step"], s["n"], f(s["mape_pct"], ".1f"),
+             f(s["bias_pct"], "+.1f"), f(s["z_mean"], "+.2f"), f(s["z_sd"], ".2f"),
+             f(s["coverage95_pct"], ".1f")]
+            for s in summary if s["step"] in steps]
+    return markdown_table(["estimator", "horizon", "step", "n", "MAPE %", "bias %", "z mean", "z SD",
+                           "95 % cov. %"], rows)
+
+
+def comparison_table(summary: Sequence[dict[str, Any]]) -> str:
+    """Markdown: the default estimator's accuracy and calibration, with every estimator's MAPE.
+
+    Needs ``transition`` in the summary; the other MAPE columns show "–" when not run.
+    """
+    by = {(s["estimator"], s["horizon_s"], s["step"]): s for s in summary}
+    others = [e for e in ESTIMATORS if e != "transition"]
+    rows = []
+    for h in HORIZONS_S:
+        for step in ("all", "small", "large"):
+            t = by.get(("transition", h, step))
+            if t is None:
+                continue
+            mape = [f"{by[(e, h, step)]['mape_pct']:.1f}" if (e, h, step) in by else "–" for e in others]
+            rows.append([f"{h:g} s", step, t["n"], f"{t['mape_pct']:.1f}", *mape, f"{t['bias_pct']:+.1f}",
+                         f"{t['z_mean']:+.2f}", f"{t['z_sd']:.2f}", f"{t['coverage95_pct']:.1f}"])
+    return markdown_table(["horizon", "step", "n", "MAPE % transition", *(f"MAPE % {e}" for e in others),
+                           "bias %", "z mean", "z SD", "95 % cov. %"], rows)
+
+
+# ------------------------------------------------------------------------------ command
+def run_estimator_bench(people: Sequence[list[Bout]], estimators: Sequence[str] = ESTIMATORS,
+                        progress: Callable[[int], None] | None = None) -> dict[str, Any]:
+    """Evaluate and summarise; the JSON document without command and machine."""
+    t0 = time.perf_counter()
+    rows = evaluate(people, estimators, HORIZONS_S, progress)
+    summary = summarize(rows, estimators, HORIZONS_S)
+    return {"benchmark": "estimator", "transitions": sum(b.evaluate for p in people for b in p),
+            "horizons_s": list(HORIZONS_S), "estimators": list(estimators), "summary": summary,
+            "wall_s": time.perf_counter() - t0}
+
+
+def _cmd_estimator(args: argparse.Namespace) -> int:
+    from rich.console import Console
+
+    from bridge.bench.common import choices
+
+    console = Console(highlight=False, soft_wrap=True)
+    estimators = choices(args.estimators, ESTIMATORS, "estimator", list(ESTIMATORS))
+    if args.replay is not None:
+        if args.transitions is None:
+            raise ConfigError("--replay needs --transitions t1,t2,... (s on the file's clock)")
+        try:
+            trans = [float(x) for x in args.transitions.split(",") if x.strip()]
+        except ValueError as err:
+            raise ConfigError(
+                f"--transitions {args.transitions!r}: expected comma-separated seconds") from err
+        cols = args.csv_columns.split(",") if args.csv_columns else None
+        people = replay_people(args.replay, trans, cols)
+        source = f"--replay {args.replay} --transitions {args.transitions}" + (
+            f" --csv-columns {args.csv_columns}" if args.csv_columns else "")
+    else:
+        if args.transitions is not None or args.csv_columns is not None:
+            raise ConfigError("--transitions and --csv-columns go with --replay")
+        if args.wearer not in WEARERS:
+            raise ConfigError(f"--wearer {args.wearer!r}; expected one of {sorted(WEARERS)}")
+        if args.n < 1:
+            raise ConfigError(f"--n {args.n}; expected an integer >= 1")
+        if args.seed < 0:
+            raise ConfigError(f"--seed {args.seed}; expected an integer >= 0")
+        people = WEARERS[args.wearer](args.n, args.seed)
+        source = f"--wearer {args.wearer} --n {args.n} --seed {args.seed}"
+    n_people = len(people)
+    step = max(1, n_people // 10)
+
+    def progress(i: int) -> None:
+        if not args.no_progress and (i % step == 0 or i == n_people) and n_people > 1:
+            console.print(f"  {i}/{n_people} people", style="dim")
+
+    console.print(f"hilbo bench estimator: {sum(b.evaluate for p in people for b in p)} transitions, "
+                  f"estimators {','.join(estimators)}")
+    doc = run_estimator_bench(people, estimators, progress)
+    doc["command"] = f"hilbo bench estimator {source} --estimators {','.join(estimators)} --out {args.out}"
+    doc["machine"] = machine_info()
+    out = Path(args.out)
+    write_json(out / "estimator.json", round_sig(doc))
+    table = estimator_table(doc["summary"])
+    (out / "estimator_table.md").write_text(table)
+    console.print(table)
+    if "transition" in estimators:
+        compare = comparison_table(doc["summary"])
+        (out / "estimator_compare.md").write_text(compare)
+        console.print(compare)
+    console.print(str(out / "estimator.json"))
+    return 0
+
+
+def add_estimator_bench_parser(bench_subparsers: Any) -> argparse.ArgumentParser:
+    """Add ``estimator`` to the ``hilbo bench`` subcommands; returns its parser."""
+    p = bench_subparsers.add_parser(
+        "estimator", help="accuracy and calibration of the breath-by-breath estimators (issue 16)",
+        description="MAPE, bias, z-score mean/SD and 95 %% coverage of the steady-state estimate at "
+                    "30/60/90/120/180 s after a setting change, split by step size, for the default "
+                    "estimator, the seed UKF, the first-order tau = 42 s fit and a full-model least-"
+                    "squares fit; on synthetic transitions or a recorded breath file (--replay).")
+    p.add_argument("--n", type=int, default=100, help="synthetic people, 4 scored transitions each (100)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the synthetic data (0)")
+    p.add_argument("--wearer", default="synthetic",
+                   help=f"synthetic data source, from {','.join(sorted(WEARERS))} (synthetic)")
+    p.add_argument("--replay", default=None, metavar="FILE", help="a recorded breath file instead")
+    p.add_argument("--transitions", default=None, metavar="T1,T2,...",
+                   help="with --replay: setting-change times in s on the file's clock")
+    p.add_argument("--csv-columns", default=None, metavar="TIME,VO2,VCO2",
+                   help="with --replay: the file is a CSV with these header names (s, ml/min)")
+    p.add_argument("--estimators", default=None,
+                   help=f"comma-separated, from {','.join(ESTIMATORS)} (default all)")
+    p.add_argument("--out", default="runs/bench/estimator", help="output directory")
+    p.add_argument("--no-progress", action="store_true", help="no progress lines")
+    p.set_defaults(func=_cmd_estimator)
+    return p

@@ -1,0 +1,126 @@
+"""The exosuit's fault bits: names, meaning, and what clears each (PROTOCOL.md, "Faults").
+
+DeviceStatus carries eight fault bits (:class:`~drivers.exosuit.codec.DeviceFault`). Every fault
+is *latched*: it stays set after its cause is gone, so a transient fault is never missed, until
+the bridge clears it with a ClearFaults request — which the device honours only once the cause is
+gone — except FaultBusError, which the node clears itself once it is error-active again. This
+module turns a bitmask into the words an operator needs: ``describe_faults(0x10)`` is
+``("heartbeat_lost (cleared by the bridge once the bridge heartbeat is back for 100 ms)",)``
+rather than ``faults [16, 16]``.
+"""
+
+from __future__ import annotations
+
+import types
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+from drivers.exosuit.codec import DeviceFault
+
+__all__ = [
+    "CLEARABLE_FAULTS",
+    "FAULT_INFO",
+    "HEARTBEAT_CLEAR_S",
+    "FaultInfo",
+    "describe_faults",
+    "fault_names",
+    "faults_text",
+]
+
+#: How long the bridge heartbeat must have been back (advancing, no watchdog expiry) before a
+#: device clears FaultHeartbeatLost on request: one watchdog period (5 heartbeats of 20 ms), so
+#: a bridge that is still stalling every few hundred ms cannot clear it between two stalls.
+HEARTBEAT_CLEAR_S = 0.100
+
+
+@dataclass(frozen=True)
+class FaultInfo:
+    """One fault bit.
+
+    Attributes:
+        fault: the bit.
+        name: its name in logs and on screen (the DBC signal without ``Fault``, snake case).
+        meaning: what the device detected.
+        clears: what clears it, in words for the operator.
+        by_request: whether a ClearFaults request clears it (once the cause is gone).
+    """
+
+    fault: DeviceFault
+    name: str
+    meaning: str
+    clears: str
+    by_request: bool = True
+
+
+FAULT_INFO: Mapping[DeviceFault, FaultInfo] = types.MappingProxyType({
+    info.fault: info for info in (
+        FaultInfo(DeviceFault.OVERCURRENT, "overcurrent", "motor current limit tripped",
+                  "cleared by the bridge once the motor current is back under its limit"),
+        FaultInfo(DeviceFault.OVERTEMPERATURE, "overtemperature", "motor or driver too hot",
+                  "cleared by the bridge once motor and driver have cooled below their limit"),
+        FaultInfo(DeviceFault.FORCE_SENSOR, "force_sensor", "load cell implausible or missing",
+                  "cleared by the bridge once the load cell reads plausibly again"),
+        FaultInfo(DeviceFault.ENCODER, "encoder", "motor encoder or gait sensor (IMU) error",
+                  "cleared by the bridge once the encoder and the gait sensor work again"),
+        FaultInfo(DeviceFault.HEARTBEAT_LOST, "heartbeat_lost",
+                  "the bridge heartbeat was lost for 100 ms",
+                  "cleared by the bridge once the bridge heartbeat is back for "
+                  f"{HEARTBEAT_CLEAR_S * 1e3:.0f} ms"),
+        FaultInfo(DeviceFault.FORCE_LIMIT, "force_limit",
+                  "measured force above the hardware force limit",
+                  "cleared by the bridge once the measured force is back under the limit"),
+        FaultInfo(DeviceFault.BUS_ERROR, "bus_error", "the node was error passive or bus-off",
+                  "clears itself once the node is error-active again (not by the bridge)",
+                  by_request=False),
+        FaultInfo(DeviceFault.EMERGENCY_STOP, "emergency_stop",
+                  "the hardware emergency stop is pressed",
+                  "cleared by the bridge once the emergency stop is released"),
+    )
+})
+
+#: The faults a ClearFaults request can clear (once their cause is gone): all but FaultBusError.
+CLEARABLE_FAULTS = DeviceFault(sum(int(f) for f, i in FAULT_INFO.items() if i.by_request))
+
+
+def _bits(faults: DeviceFault | int) -> int:
+    if isinstance(faults, bool) or not isinstance(faults, int) or faults < 0:
+        raise ValueError(f"faults = {faults!r}; expected a DeviceFault or a non-negative int")
+    return int(faults)
+
+
+def fault_names(faults: DeviceFault | int) -> tuple[str, ...]:
+    """The names of the set bits, lowest bit first (``0x30`` → ``("heartbeat_lost",
+    "force_limit")``); a bit the protocol does not define is named ``bit<k>``.
+
+    Raises:
+        ValueError: ``faults`` is negative or not an integer.
+    """
+    bits = _bits(faults)
+    out = []
+    for k in range(bits.bit_length()):
+        if bits >> k & 1:
+            info = FAULT_INFO.get(DeviceFault(1 << k)) if k < 8 else None
+            out.append(info.name if info is not None else f"bit{k}")
+    return tuple(out)
+
+
+def describe_faults(faults: DeviceFault | int) -> tuple[str, ...]:
+    """Each set bit as ``"name (what clears it)"``, lowest bit first.
+
+    Raises:
+        ValueError: ``faults`` is negative or not an integer.
+    """
+    bits = _bits(faults)
+    out = []
+    for k in range(bits.bit_length()):
+        if bits >> k & 1:
+            info = FAULT_INFO.get(DeviceFault(1 << k)) if k < 8 else None
+            out.append(f"{info.name} ({info.clears})" if info is not None
+                       else f"bit{k} (not defined by the protocol)")
+    return tuple(out)
+
+
+def faults_text(faults: DeviceFault | int) -> str:
+    """One line for the operator: ``"none"`` or the :func:`describe_faults` items joined."""
+    described = describe_faults(faults)
+    return "; ".join(described) if described else "none"

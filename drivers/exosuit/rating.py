@@ -1,0 +1,18 @@
+"""The exosuit's rated force: what its actuators are built to deliver.
+
+A ``[limits] max_force_n`` above it is not refused by the bridge (the limits are the lab's to
+set), but ``hilbo config check`` and ``hilbo run`` warn: the device refuses such tables
+(nack ``out_of_limits``) or, worse, is driven beyond its rating.
+"""
+
+from __future__ import annotations
+
+__all__ = ["RATED_FORCE_N"]
+
+RATED_FORCE_N = 600.0
+"""Rated (largest continuous) cable force of one actuator, N.
+
+Source: the device this protocol was written for has no published rating in this repository;
+600 N is the hardware limit the virtual exosuit enforces (``virtual_hw.exosuit.DeviceLimits``:
+≈ 60 % of the body weight of a 100 kg wearer, the seed's largest ankle assistance). Change it
+here for another device: the warnings follow."""

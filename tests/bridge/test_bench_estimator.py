@@ -1,0 +1,129 @@
+"""bridge.bench.estimator (``hilbo bench estimator``) at toy size."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bridge.bench.cli import bench_main
+from bridge.bench.estimator import (
+    ESTIMATORS,
+    HORIZONS_S,
+    evaluate,
+    replay_people,
+    summarize,
+    synthetic_people,
+)
+from drivers.cart.line import encode_line
+from hilbo_core.errors import ConfigError
+from hilbo_core.types import BreathRecord
+
+# Brockway at RER 0.9: W = VO2·(16.58 + 0.9·4.51)/60 with VO2 in ml/min.
+_W_PER_ML_MIN = (16.58 + 0.9 * 4.51) / 60.0
+
+
+def test_synthetic_people_are_pure_and_follow_the_stated_model() -> None:
+    a, b = synthetic_people(4, 7), synthetic_people(4, 7)
+    assert all(np.array_equal(x.watts, y.watts) for p, q in zip(a, b, strict=True)
+               for x, y in zip(p, q, strict=True))
+    assert not np.array_equal(a[0][0].watts, synthetic_people(4, 8)[0][0].watts)
+    for person in a:
+        assert [bout.evaluate for bout in person] == [False, True, True, True, True]
+        for bout in person:
+            dt = np.diff(bout.t_s)
+            assert np.all(dt >= 2.0) and np.all(dt <= 3.5)
+            assert np.all(bout.watts > 0) and 120.0 <= bout.truth_w <= 1200.0
+
+
+def test_evaluate_and_summarize_toy() -> None:
+    people = synthetic_people(3, 1)
+    rows = evaluate(people)
+    assert {r["estimator"] for r in rows} == set(ESTIMATORS)
+    assert {r["horizon_s"] for r in rows} <= set(HORIZONS_S)
+    summary = summarize(rows)
+    keys = {"estimator", "horizon_s", "step", "n", "mape_pct", "bias_pct", "z_mean", "z_sd", "coverage95_pct"}
+    assert all(set(s) == keys for s in summary)
+    every = [s for s in summary if s["step"] == "all" and s["horizon_s"] == 30.0]
+    assert {s["n"] for s in every} == {12}  # 3 people × 4 scored transitions, all ≥ 45 s long
+    assert all(s["mape_pct"] >= 0 for s in summary)
+
+
+def test_summary_hand_computed() -> None:
+    rows = [{"estimator": "transition", "horizon_s": 60.0, "step": "small", "truth": 100.0, "mean": 110.0,
+             "sd": 10.0},
+            {"estimator": "transition", "horizon_s": 60.0, "step": "large", "truth": 200.0, "mean": 150.0,
+             "sd": 10.0}]
+    s = {x["step"]: x for x in summarize(rows, ["transition"], [60.0])}
+    assert s["all"]["mape_pct"] == pytest.approx(17.5)  # (10 % + 25 %) / 2
+    assert s["all"]["bias_pct"] == pytest.approx(-7.5)
+    assert s["all"]["z_mean"] == pytest.approx(-2.0)  # z = +1 and −5
+    assert s["all"]["z_sd"] == pytest.approx(math.sqrt(18.0))
+    assert s["all"]["coverage95_pct"] == pytest.approx(50.0)
+    assert s["small"]["n"] == s["large"]["n"] == 1
+
+
+def _write_recording(path: Path) -> list[float]:
+    """Three bouts: 300 W, then 500 W and 350 W steady states, τ = 40 s, every 2.5 s."""
+    rng = np.random.default_rng(0)
+    levels, starts = [300.0, 500.0, 350.0], [0.0, 200.0, 400.0]
+    lines, seq, body = [b"# hilbo-line recording\n"], 0, 300.0
+    for c, t0 in zip(levels, starts, strict=True):
+        b0 = body
+        for t in np.arange(1.0, 200.0, 2.5):
+            body = c + (b0 - c) * math.exp(-t / 40.0)
+            w = body * (1.0 + 0.05 * rng.normal())
+            vo2 = w / _W_PER_ML_MIN
+            rec = BreathRecord(t_s=t0 + float(t), vo2_ml_min=vo2, vco2_ml_min=0.9 * vo2)
+            lines.append(encode_line(rec, seq))
+            seq += 1
+    path.write_bytes(b"".join(lines))
+    return starts[1:]
+
+
+def test_replay_reads_a_recording_and_takes_the_truth_from_the_last_minute(tmp_path: Path) -> None:
+    f = tmp_path / "rec.hbr"
+    transitions = _write_recording(f)
+    (person,) = replay_people(f, transitions)
+    assert [b.evaluate for b in person] == [False, True, True]
+    assert person[1].truth_w == pytest.approx(500.0, rel=0.03)
+    assert person[2].truth_w == pytest.approx(350.0, rel=0.03)
+    assert person[1].t_s[0] == pytest.approx(1.0)
+    with pytest.raises(ConfigError, match="increasing"):
+        replay_people(f, [300.0, 200.0])
+    with pytest.raises(ConfigError, match="cannot read"):
+        replay_people(tmp_path / "missing.hbr", [10.0])
+
+
+def test_cli_synthetic_and_replay(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "syn"
+    assert bench_main(["estimator", "--n", "2", "--seed", "3", "--out", str(out)]) == 0
+    doc = json.loads((out / "estimator.json").read_text())
+    assert doc["benchmark"] == "estimator" and doc["transitions"] == 8
+    assert doc["command"].startswith("hilbo bench estimator --wearer synthetic --n 2 --seed 3")
+    assert (out / "estimator_table.md").read_text().startswith("| estimator |")
+    f = tmp_path / "rec.hbr"
+    transitions = _write_recording(f)
+    out2 = tmp_path / "rep"
+    assert bench_main(["estimator", "--replay", str(f), "--transitions", ",".join(map(str, transitions)),
+                       "--estimators", "transition,first_order_42", "--out", str(out2)]) == 0
+    doc = json.loads((out2 / "estimator.json").read_text())
+    assert doc["transitions"] == 2
+    assert {s["estimator"] for s in doc["summary"]} == {"transition", "first_order_42"}
+    assert "MAPE" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--replay", "x.hbr"], "needs --transitions"),
+    (["--transitions", "10"], "go with --replay"),
+    (["--n", "0"], "--n 0"),
+    (["--wearer", "realistic"], "--wearer 'realistic'"),
+    (["--estimators", "kalman"], "kalman"),
+])
+def test_cli_bad_input_exits_2(argv: list[str], message: str, tmp_path: Path,
+                               capsys: pytest.CaptureFixture[str]) -> None:
+    assert bench_main(["estimator", *argv, "--out", str(tmp_path)]) == 2
+    assert message in capsys.readouterr().err
