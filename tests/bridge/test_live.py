@@ -63,8 +63,9 @@ class FoxgloveClient:
         """Close politely (a close frame first): the SDK logs a reset connection as an error."""
         with contextlib.suppress(OSError, EOFError):
             self._send(8, struct.pack(">H", 1000))
-            self.sock.settimeout(1.0)
-            while True:  # until the server's close frame (EOFError) or the socket ends
+            self.sock.settimeout(0.5)
+            end = time.monotonic() + 2.0
+            while time.monotonic() < end:  # until the server's close frame (EOFError)
                 self.frame()
         self.sock.close()
 
