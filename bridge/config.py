@@ -75,6 +75,7 @@ from hilbo_core.priors import (
     priors_from_rows,
 )
 from hilbo_core.profiles import PROFILE_BUILDERS, build_profile
+from hilbo_core.protocol import DEFAULT_BREATH_INTERVAL_S, SessionProtocolConfig, expected_end_s
 from hilbo_core.space import DerivedParameter, LinearConstraint, Parameter, ParameterSpace
 
 __all__ = [
@@ -401,6 +402,11 @@ class RefitMode(enum.Enum):
     AT_PROPOSAL = "at_proposal"
 
 
+# seed 000 §IV.A.3: a 40-minute optimisation bout (SessionProtocolConfig.budget_s)
+_DEFAULT_BUDGET_S = SessionProtocolConfig.budget_s
+_DEFAULT_BUDGET_MIN = None if _DEFAULT_BUDGET_S is None else _DEFAULT_BUDGET_S / 60.0
+
+
 @dataclass(frozen=True)
 class ProtocolConfig:
     """``[protocol]``: the walking protocol and the optimizer (seed 000 §IV.A.3, Algorithm 1).
@@ -415,7 +421,9 @@ class ProtocolConfig:
         n_explore: Exploration settings E, 1–200.
         max_breaths: Breaths per evaluation at most (N), 2–1000.
         window: Algorithm 2's window W in breaths, 0..N−1.
-        budget_min: Optimisation-bout budget in minutes of breath time, or None.
+        budget_min: Optimisation-bout budget in minutes of walking from the end of the bout's
+            warm-up (setting changes, pauses and the warm-ups after a pause count: issue 17), or
+            None (:class:`hilbo_core.protocol.SessionProtocolConfig`'s ``budget_s``).
         budget_breaths: Optimisation-bout budget in breaths, or None (at least one budget is set;
             with both, the first spent ends the bout).
         stopping: ``adaptive`` (Algorithm 2 + the σ-scaled rule) or ``fixed`` (always N breaths).
@@ -437,19 +445,21 @@ class ProtocolConfig:
             schedule: a 40–60 ms pause at a moment nothing chooses, every few minutes).
     """
 
-    warmup_s: float = 180.0
-    n_explore: int = 6
-    max_breaths: int = 45
-    window: int = 2
-    budget_min: float | None = 40.0
-    budget_breaths: int | None = None
-    stopping: StoppingKind = StoppingKind.ADAPTIVE
-    seed: int = 0
-    xi: float = 0.0
-    kernel: KernelKind = KernelKind.MATERN52
-    n_candidates: int = 1024
-    n_local: int = 3
-    pause_between_bouts: bool = True
+    # The defaults are declared once: the protocol's in hilbo_core.protocol, the optimizer's in
+    # hilbo_core.optimizer (a dataclass field's default is its class attribute).
+    warmup_s: float = SessionProtocolConfig.warmup_s
+    n_explore: int = OptimizerConfig.n_explore
+    max_breaths: int = OptimizerConfig.max_breaths
+    window: int = OptimizerConfig.window
+    budget_min: float | None = _DEFAULT_BUDGET_MIN
+    budget_breaths: int | None = SessionProtocolConfig.budget_breaths
+    stopping: StoppingKind = OptimizerConfig.stopping
+    seed: int = OptimizerConfig.seed
+    xi: float = OptimizerConfig.xi
+    kernel: KernelKind = OptimizerConfig.kernel
+    n_candidates: int = OptimizerConfig.n_candidates
+    n_local: int = OptimizerConfig.n_local
+    pause_between_bouts: bool = SessionProtocolConfig.pause_between_bouts
     refit: RefitMode = RefitMode.AHEAD
     proposal_worker: WorkerKind = WorkerKind.PROCESS
     gc: GcMode = GcMode.FREEZE
@@ -459,11 +469,32 @@ class ProtocolConfig:
         """The time budget in seconds, or None."""
         return None if self.budget_min is None else 60.0 * self.budget_min
 
-    def optimizer_config(self) -> OptimizerConfig:
-        """The :class:`hilbo_core.optimizer.OptimizerConfig` of this protocol."""
+    def session_protocol_config(self, *, session_s: float | None = None) -> SessionProtocolConfig:
+        """The :class:`hilbo_core.protocol.SessionProtocolConfig` of this protocol.
+
+        Args:
+            session_s: A whole-session limit in seconds of walking as well (``hilbo sim``'s
+                minutes), or None.
+        """
+        return SessionProtocolConfig(
+            warmup_s=self.warmup_s, n_explore=self.n_explore, max_breaths=self.max_breaths,
+            session_s=session_s, budget_s=self.budget_s, budget_breaths=self.budget_breaths,
+            pause_between_bouts=self.pause_between_bouts,
+        )
+
+    def optimizer_config(self, *, with_budget: bool = True) -> OptimizerConfig:
+        """The :class:`hilbo_core.optimizer.OptimizerConfig` of this protocol.
+
+        Args:
+            with_budget: Give the optimizer the budgets (its own counter: breath time inside
+                evaluations). False for an optimizer driven by a
+                :class:`hilbo_core.protocol.SessionProtocol`, which ends the session on walking
+                time (:meth:`session_protocol_config`).
+        """
         return OptimizerConfig(
             n_explore=self.n_explore, max_breaths=self.max_breaths, window=self.window,
-            budget_s=self.budget_s, budget_breaths=self.budget_breaths, stopping=self.stopping,
+            budget_s=self.budget_s if with_budget else None,
+            budget_breaths=self.budget_breaths if with_budget else None, stopping=self.stopping,
             seed=self.seed, xi=self.xi, kernel=self.kernel, n_candidates=self.n_candidates,
             n_local=self.n_local, refit_lag=1 if self.refit is RefitMode.AHEAD else 0,
         )
@@ -475,30 +506,31 @@ class ProtocolConfig:
 
 def _parse_protocol(data: object) -> ProtocolConfig:
     t = _Table(data, "protocol", ALLOWED_KEYS["protocol"])
-    max_breaths = t.integer("max_breaths", 45, lo=2, hi=1000)
+    d = ProtocolConfig  # the defaults
+    max_breaths = t.integer("max_breaths", d.max_breaths, lo=2, hi=1000)
     if not (t.has("budget_min") or t.has("budget_breaths")):
-        budget_min: float | None = 40.0  # seed 000 §IV.A.3: a 40-minute optimisation bout
-        budget_breaths: int | None = None
+        budget_min: float | None = d.budget_min  # seed 000 §IV.A.3: a 40-minute optimisation bout
+        budget_breaths: int | None = d.budget_breaths
     else:
         budget_min = t.number("budget_min", lo=0.0, hi=1440.0, lo_open=True) if t.has("budget_min") else None
         budget_breaths = t.integer("budget_breaths", lo=1, hi=100_000) if t.has("budget_breaths") else None
     cfg = ProtocolConfig(
-        warmup_s=t.number("warmup_s", 180.0, lo=0.0, hi=1800.0),
-        n_explore=t.integer("n_explore", 6, lo=1, hi=200),
+        warmup_s=t.number("warmup_s", d.warmup_s, lo=0.0, hi=1800.0),
+        n_explore=t.integer("n_explore", d.n_explore, lo=1, hi=200),
         max_breaths=max_breaths,
-        window=t.integer("window", 2, lo=0, hi=max_breaths - 1),
+        window=t.integer("window", d.window, lo=0, hi=max_breaths - 1),
         budget_min=budget_min,
         budget_breaths=budget_breaths,
-        stopping=t.choice("stopping", StoppingKind, StoppingKind.ADAPTIVE),
-        seed=t.integer("seed", 0, lo=0, hi=2**63 - 1),
-        xi=t.number("xi", 0.0, lo=-1e6, hi=1e6),
-        kernel=t.choice("kernel", KernelKind, KernelKind.MATERN52),
-        n_candidates=t.integer("n_candidates", 1024, lo=16, hi=1_000_000),
-        n_local=t.integer("n_local", 3, lo=0, hi=100),
-        pause_between_bouts=t.boolean("pause_between_bouts", True),
-        refit=t.choice("refit", RefitMode, RefitMode.AHEAD),
-        proposal_worker=t.choice("proposal_worker", WorkerKind, WorkerKind.PROCESS),
-        gc=t.choice("gc", GcMode, GcMode.FREEZE),
+        stopping=t.choice("stopping", StoppingKind, d.stopping),
+        seed=t.integer("seed", d.seed, lo=0, hi=2**63 - 1),
+        xi=t.number("xi", d.xi, lo=-1e6, hi=1e6),
+        kernel=t.choice("kernel", KernelKind, d.kernel),
+        n_candidates=t.integer("n_candidates", d.n_candidates, lo=16, hi=1_000_000),
+        n_local=t.integer("n_local", d.n_local, lo=0, hi=100),
+        pause_between_bouts=t.boolean("pause_between_bouts", d.pause_between_bouts),
+        refit=t.choice("refit", RefitMode, d.refit),
+        proposal_worker=t.choice("proposal_worker", WorkerKind, d.proposal_worker),
+        gc=t.choice("gc", GcMode, d.gc),
     )
     try:
         cfg.optimizer_config()  # the optimizer's own validation is the final word
@@ -1176,6 +1208,16 @@ def example_config_text() -> str:
 # --------------------------------------------------------------------------------------------
 
 
+def _expected_end_text(pr: ProtocolConfig) -> str:
+    """When the session should end, in minutes of walking after its first breath."""
+    end_s = expected_end_s(pr.session_protocol_config(), breath_interval_s=DEFAULT_BREATH_INTERVAL_S)
+    explore_min = pr.n_explore * pr.max_breaths * DEFAULT_BREATH_INTERVAL_S / 60.0
+    return (f"about {end_s / 60:.0f} min of walking after the first breath (2 warm-ups of "
+            f"{pr.warmup_s / 60:g} min, exploration ~{explore_min:.0f} min at "
+            f"{DEFAULT_BREATH_INTERVAL_S:g} s per breath, then the optimisation budget"
+            f"{', plus the pause between the bouts' if pr.pause_between_bouts else ''})")
+
+
 def summarize(cfg: HilboConfig) -> str:
     """A few lines saying what the config will do."""
     s, sp, pr, c, lim, wd = cfg.session, cfg.space.space, cfg.protocol, cfg.can, cfg.limits, cfg.watchdog
@@ -1195,6 +1237,7 @@ def summarize(cfg: HilboConfig) -> str:
         f"{pr.max_breaths} breaths; optimisation budget {budget}; {pr.stopping.value} stopping "
         f"(W = {pr.window}); {pr.kernel.value} kernel, xi = {pr.xi:g}, seed {pr.seed}; "
         f"{'pause' if pr.pause_between_bouts else 'no pause'} between bouts",
+        f"          expected end {_expected_end_text(pr)}",
         f"cart      {cfg.cart.transport}, {cfg.cart.format.value}",
         f"can       {c.bus.interface}:{c.bus.channel}, bitrate {c.bus.bitrate}, heartbeat "
         f"{c.heartbeat_period_ms:g} ms, push timeout {c.push_timeout_ms:g} ms x "

@@ -5,6 +5,11 @@ transports. The protocol follows seed 000 §IV.A.3: a first bout with a warm-up 
 exploration points, then a second bout with a warm-up and Bayesian optimisation until the
 session's minutes are used up. Time is the wearer's breath clock, so a 60-minute session runs
 as fast as the computer allows (``speed="max"``) or paced at a multiple of real time.
+
+The loop is :func:`hilbo_core.protocol.drive` (the one :class:`~hilbo_core.protocol.SessionProtocol`
+loop of the simulations): ``minutes`` is the whole session, both bouts and both warm-ups, in
+walking time; the session ends at the first breath at or past it (it overruns by less than one
+breath), and the evaluation running then is closed with its breaths (reason ``"budget"``).
 """
 
 from __future__ import annotations
@@ -12,16 +17,17 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
 from hilbo_core import HILOptimizer, brockway_watts, fit_hyperparameters, presets
 from hilbo_core.errors import ConfigError
-from hilbo_core.optimizer import Evaluation
+from hilbo_core.optimizer import BreathStep, Evaluation, OptimizerConfig
+from hilbo_core.protocol import SessionProtocol, SessionProtocolConfig, drive
 from virtual_hw.wearer import WearerKind, make_wearer, wearer_kind
 
-__all__ = ["SimConfig", "SimEvaluation", "run_insim"]
+__all__ = ["SimConfig", "SimEvaluation", "check_optimisation_ran", "run_insim"]
 
 logger = logging.getLogger(__name__)
 
@@ -51,10 +57,10 @@ class SimConfig:
     seed: int = 1
     speed: float | None = None
     preset: str = "hip_6d"
-    n_explore: int = 6
-    max_breaths: int = 45
-    window: int = 2
-    warmup_s: float = 180.0
+    n_explore: int = OptimizerConfig.n_explore
+    max_breaths: int = OptimizerConfig.max_breaths
+    window: int = OptimizerConfig.window
+    warmup_s: float = SessionProtocolConfig.warmup_s
     stopping: str = "adaptive"
     refit: str = "at_proposal"
     wearer: str = WearerKind.REALISTIC.value
@@ -69,6 +75,12 @@ class SimConfig:
             raise ConfigError(f"warmup_s={self.warmup_s!r}; expected >= 0 s")
         if self.refit not in ("at_proposal", "ahead"):
             raise ConfigError(f"refit={self.refit!r}; expected 'at_proposal' or 'ahead'")
+
+    def protocol_config(self) -> SessionProtocolConfig:
+        """The session's protocol: ``minutes`` of walking in all, no pause between the bouts."""
+        return SessionProtocolConfig(warmup_s=self.warmup_s, n_explore=self.n_explore,
+                                     max_breaths=self.max_breaths, session_s=self.minutes * 60.0,
+                                     budget_s=None, pause_between_bouts=False)
 
 
 @dataclass(frozen=True)
@@ -106,6 +118,20 @@ class _Clock:
             time.sleep(delay)
 
 
+def check_optimisation_ran(protocol: SessionProtocol, minutes: float) -> None:
+    """Raise when the session's minutes ended before the optimisation bout could begin.
+
+    Raises:
+        ConfigError: The session is too short for the warm-ups and the exploration bout.
+    """
+    if not protocol.optimization_started:
+        raise ConfigError(
+            f"minutes={minutes:g} leaves no time for optimisation: the warm-ups and the exploration "
+            f"bout ({protocol.n_explored} of {protocol.config.n_explore} settings measured) used "
+            f"all {protocol.walking.session_s / 60:.1f} min; give more minutes"
+        )
+
+
 def run_insim(
     cfg: SimConfig, on_evaluation: Callable[[SimEvaluation, HILOptimizer], None] | None = None,
 ) -> dict[str, Any]:
@@ -121,52 +147,45 @@ def run_insim(
     wall0 = time.perf_counter()
     space = presets.preset(cfg.preset)
     wearer = make_wearer(cfg.wearer, space, seed=cfg.seed)
+    # No budget of the optimizer's own: the protocol ends the session on walking time.
     opt = HILOptimizer(space, n_explore=cfg.n_explore, max_breaths=cfg.max_breaths,
                        window=cfg.window, stopping=cfg.stopping, seed=cfg.seed,
                        refit_lag=1 if cfg.refit == "ahead" else 0)
+    protocol = SessionProtocol(cfg.protocol_config(), t_start_s=wearer.t_s)
     clock = _Clock(cfg.speed)
-    session_s = cfg.minutes * 60.0
     records: list[SimEvaluation] = []
     n_breaths = 0
 
-    def warm_up(until_s: float) -> None:
-        wearer.apply_profiles((), wearer.t_s)
-        while wearer.t_s < until_s:
-            clock.wait_until(wearer.next_breath().t_s)
+    def next_breath() -> tuple[float, float]:
+        breath = wearer.next_breath()
+        clock.wait_until(breath.t_s)
+        return breath.t_s, brockway_watts(breath.vo2_ml_min, breath.vco2_ml_min)
 
-    warm_up(cfg.warmup_s)
-    optimisation_started = False
-    while not opt.done:
-        if not optimisation_started and len(opt.evaluations) == cfg.n_explore:
-            # Second bout: warm-up, then the rest of the session is the optimisation budget.
-            warm_up(wearer.t_s + cfg.warmup_s)
-            remaining = session_s - wearer.t_s
-            if remaining <= 0:
-                raise ConfigError(
-                    f"minutes={cfg.minutes:g} leaves no time for optimisation after the warm-ups "
-                    f"and exploration ({wearer.t_s / 60:.1f} min); give more minutes"
-                )
-            opt.set_budget(budget_s=remaining, budget_breaths=None)
-            optimisation_started = True
-        params = opt.ask()
+    def apply_setting(params: Mapping[str, float] | None, t_s: float) -> None:
+        if params is None:
+            wearer.apply_profiles((), t_s)
+        else:
+            wearer.apply_params(params, t_s)
+
+    def on_propose(params: dict[str, float]) -> None:
         if cfg.refit == "ahead":  # what the bridge's worker does while this setting is measured
             fit = opt.hyperparameter_fit()
             if fit is not None:
                 opt.apply_hyperparameters(fit, fit_hyperparameters(fit))
-        t0 = wearer.t_s
-        wearer.apply_params(params, t0)
-        while True:
-            breath = wearer.next_breath()
-            clock.wait_until(breath.t_s)
-            n_breaths += 1
-            step = opt.observe_breath(breath.t_s - t0, brockway_watts(breath.vo2_ml_min, breath.vco2_ml_min))
-            if step.stop:
-                break
-        assert step.evaluation is not None
-        rec = SimEvaluation(step.evaluation, t0, breath.t_s)
+
+    def on_measure(step: BreathStep, t_setting_s: float, watts: float) -> None:
+        nonlocal n_breaths
+        n_breaths += 1
+
+    def record(ev: Evaluation, t_start: float, t_end: float) -> None:
+        rec = SimEvaluation(ev, t_start, t_end)
         records.append(rec)
         if on_evaluation is not None:
             on_evaluation(rec, opt)
+
+    drive(protocol, opt, next_breath, apply_setting, on_propose=on_propose, on_measure=on_measure,
+          on_evaluation=record)
+    check_optimisation_ran(protocol, cfg.minutes)
 
     best_params, best_mean, best_var = opt.best()
     opt_params, opt_cost = wearer.true_optimum
@@ -187,6 +206,8 @@ def run_insim(
         "baseline_cost_w": baseline,
         "subject": wearer.subject,
         "session_minutes": wearer.t_s / 60.0,
+        "walking": protocol.walking.to_json(),
+        "end_reason": None if protocol.end_reason is None else protocol.end_reason.value,
         "thresholds": None if opt.thresholds is None else opt.thresholds.tolist(),
         "config": {"minutes": cfg.minutes, "seed": cfg.seed, "preset": cfg.preset,
                    "n_explore": cfg.n_explore, "max_breaths": cfg.max_breaths,

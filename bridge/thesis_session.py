@@ -17,18 +17,20 @@ between days, so a prior from day 1 is a best case (a real wearer adapts and dri
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
 
+from bridge.insim import SimConfig, check_optimisation_ran
 from hilbo_core import HILOptimizer, brockway_watts, presets
 from hilbo_core.acquisition import maximize_ei
 from hilbo_core.errors import ConfigError
 from hilbo_core.features import ProfileFeatureMap, with_raw
 from hilbo_core.gp import GaussianProcess
-from hilbo_core.optimizer import PriorObservation
+from hilbo_core.optimizer import BreathStep, Evaluation, OptimizerConfig, Phase, PriorObservation
+from hilbo_core.protocol import SessionProtocol, SessionProtocolConfig, drive
 from hilbo_core.stopping import FixedIntervalRule, SigmaScaledRule, StoppingRule
 from virtual_hw.wearer import SimulatedWearer
 
@@ -105,10 +107,10 @@ class Arm:
     """
 
     name: str
-    n_explore: int = 6
+    n_explore: int = OptimizerConfig.n_explore
     feature: str | None = None
     stopping_k: float | None = None
-    window: int = 2
+    window: int = OptimizerConfig.window
     prior: bool = False
     day: int = 1
 
@@ -122,8 +124,9 @@ class Arm:
 
 
 def run_session(seed: int, arm: Arm, *, minutes: float = 60.0, preset: str = "hip_6d",
-                priors: Sequence[PriorObservation] = (), max_breaths: int = 45,
-                warmup_s: float = 180.0) -> dict[str, Any]:
+                priors: Sequence[PriorObservation] = (),
+                max_breaths: int = OptimizerConfig.max_breaths,
+                warmup_s: float = SessionProtocolConfig.warmup_s) -> dict[str, Any]:
     """One simulated session (the protocol of :func:`bridge.insim.run_insim`).
 
     Args:
@@ -141,7 +144,11 @@ def run_session(seed: int, arm: Arm, *, minutes: float = 60.0, preset: str = "hi
         ``trajectories`` (breaths [t_s, W] of every evaluation that ran N breaths), the wearer's
         ``optimum_w`` and ``baseline_w``, ``n_early_stops``, ``n_evaluations_bout2``,
         ``assisted_s`` (time on settings), ``bout2_s`` (first to last optimisation breath),
-        ``session_s`` (the session clock at the end), ``n_priors`` and ``wall_s``.
+        ``session_s`` (the session clock at the end), ``walking``
+        (:class:`~hilbo_core.protocol.WalkingTime`), ``n_priors`` and ``wall_s``.
+
+    Raises:
+        ConfigError: The minutes end before the optimisation bout begins.
     """
     wall0 = time.perf_counter()
     space = presets.preset(preset)
@@ -159,51 +166,44 @@ def run_session(seed: int, arm: Arm, *, minutes: float = 60.0, preset: str = "hi
                          seed=opt_seed, prior_observations=list(priors), feature_map=fm,
                          stopping_k=arm.stopping_k)
     _, opt_cost = wearer.true_optimum
-    session_s = minutes * 60.0
+    # The protocol of run_insim: the minutes are the whole session, no pause between the bouts.
+    plan = SimConfig(minutes=minutes, n_explore=arm.n_explore, max_breaths=max_breaths, warmup_s=warmup_s)
+    protocol = SessionProtocol(plan.protocol_config(), t_start_s=wearer.t_s)
     trace: list[list[float]] = []
     recommendations: list[list[Any]] = []
     trajectories: list[list[list[float]]] = []
+    breaths: list[list[float]] = []
     assisted_s = 0.0
     bout2_start = bout2_end = None
 
-    def warm_up(until_s: float) -> None:
-        wearer.apply_profiles((), wearer.t_s)
-        while wearer.t_s < until_s:
-            wearer.next_breath()
+    def next_breath() -> tuple[float, float]:
+        b = wearer.next_breath()
+        return b.t_s, float(brockway_watts(b.vo2_ml_min, b.vco2_ml_min))
 
-    warm_up(warmup_s)
-    started = False
-    while not opt.done:
-        if not started and len(opt.evaluations) == arm.n_explore:
-            warm_up(wearer.t_s + warmup_s)
-            remaining = session_s - wearer.t_s
-            if remaining <= 0:
-                raise ConfigError(
-                    f"minutes={minutes:g} leaves no time for optimisation after the warm-ups and "
-                    f"exploration ({wearer.t_s / 60:.1f} min); give more minutes"
-                )
-            opt.set_budget(budget_s=remaining, budget_breaths=None)
-            started = True
-        params = opt.ask()
-        t0 = wearer.t_s
-        wearer.apply_params(params, t0)
-        breaths: list[list[float]] = []
-        while True:
-            b = wearer.next_breath()
-            w = float(brockway_watts(b.vo2_ml_min, b.vco2_ml_min))
-            breaths.append([b.t_s - t0, w])
-            step = opt.observe_breath(b.t_s - t0, w)
-            if step.stop:
-                break
-        assisted_s += b.t_s - t0
-        if started:
+    def apply_setting(params: Mapping[str, float] | None, t_s: float) -> None:
+        if params is None:
+            wearer.apply_profiles((), t_s)
+        else:
+            wearer.apply_params(params, t_s)
+        breaths.clear()
+
+    def on_measure(step: BreathStep, t_setting_s: float, watts: float) -> None:
+        breaths.append([t_setting_s, watts])
+
+    def on_evaluation(ev: Evaluation, t0: float, t_end: float) -> None:
+        nonlocal assisted_s, bout2_start, bout2_end
+        assisted_s += t_end - t0
+        if ev.phase == Phase.OPTIMIZATION.value:
             bout2_start = t0 if bout2_start is None else bout2_start
-            bout2_end = b.t_s
+            bout2_end = t_end
         if len(breaths) == max_breaths:
-            trajectories.append(breaths)
+            trajectories.append(list(breaths))
         best_params, _, _ = opt.best()
-        trace.append([b.t_s, wearer.true_cost_w(best_params) - opt_cost])
-        recommendations.append([b.t_s, best_params])
+        trace.append([t_end, wearer.true_cost_w(best_params) - opt_cost])
+        recommendations.append([t_end, best_params])
+
+    drive(protocol, opt, next_breath, apply_setting, on_measure=on_measure, on_evaluation=on_evaluation)
+    check_optimisation_ran(protocol, minutes)
     evaluations = [e.to_json() for e in opt.evaluations]
     return {
         "seed": seed, "arm": asdict(arm), "regret_trace": trace, "recommendations": recommendations,
@@ -213,6 +213,6 @@ def run_session(seed: int, arm: Arm, *, minutes: float = 60.0, preset: str = "hi
         "n_evaluations_bout2": sum(e["phase"] == "optimization" for e in evaluations),
         "assisted_s": assisted_s,
         "bout2_s": 0.0 if bout2_start is None or bout2_end is None else bout2_end - bout2_start,
-        "session_s": wearer.t_s, "n_priors": len(priors),
+        "session_s": wearer.t_s, "walking": protocol.walking.to_json(), "n_priors": len(priors),
         "wall_s": time.perf_counter() - wall0,
     }

@@ -26,8 +26,10 @@ person's τ), since the body does not reset between settings.
 Budget: like Algorithm 1's counter t, the budget counts only the optimisation phase (the
 exploration bout is a separate walking bout). It may be given in breaths, in seconds of breath
 time, or both; it is checked after every breath, and an evaluation still running when the budget
-runs out is closed with the estimate it has (reason ``"budget"``), so a session never overruns
-the time a participant has.
+runs out is closed with the estimate it has (reason ``"budget"``). This budget counts breath
+time *inside* evaluations only; a session's walking time (setting changes, pauses and warm-ups
+included, issue 17) is :class:`hilbo_core.protocol.SessionProtocol`'s, which ends a session with
+:meth:`HILOptimizer.close_current` on an optimizer without a budget of its own.
 
 Hyperparameter refits: by default the GP's hyperparameters are refitted (multi-start L-BFGS-B
 on the marginal likelihood) at every proposal. With ``refit_growth`` G > 1 they are refitted only
@@ -604,6 +606,26 @@ class HILOptimizer:
         """Change the optimisation budget (e.g. once the exploration bout's length is known, or
         when the participant needs to stop sooner). Validated like the constructor's."""
         self.config = replace(self.config, budget_s=budget_s, budget_breaths=budget_breaths)
+
+    def close_current(self) -> Evaluation | None:
+        """Close the setting being measured now, with its breaths so far: the session's time is up
+        (:class:`hilbo_core.protocol.SessionProtocol`, a MEASURE action with ``final``).
+
+        An optimisation evaluation with at least one breath is completed with its current
+        estimate, reason ``"budget"`` (not an early stop of the rule; the GP weighs it by its
+        variance), as the optimizer's own budget does. An exploration evaluation, or one without
+        breaths, is dropped instead (:meth:`cancel_current`): Algorithm 2 needs full-length traces.
+
+        Returns:
+            The completed evaluation, or None when there was nothing to close or it was dropped.
+        """
+        cur = self._current
+        if cur is None:
+            return None
+        if cur.phase is not Phase.OPTIMIZATION or not cur.breaths:
+            self.cancel_current()
+            return None
+        return self._step(True, "budget", None).evaluation
 
     def cancel_current(self) -> dict[str, float] | None:
         """Abandon the setting being measured (e.g. the device refused it); returns it.

@@ -77,9 +77,10 @@ from bridge.insim import SimConfig, SimEvaluation, run_insim
 from bridge.thesis_session import Arm, run_session
 from hilbo_core.errors import ConfigError, InfeasibleError
 from hilbo_core.metabolic import MetabolicUKF
-from hilbo_core.optimizer import HILOptimizer
+from hilbo_core.optimizer import HILOptimizer, OptimizerConfig
 from hilbo_core.presets import PRESETS, preset
 from hilbo_core.priors import priors_from_evaluations
+from hilbo_core.protocol import ActionKind, SessionPhase, SessionProtocol, SessionProtocolConfig
 from hilbo_core.space import ParameterSpace
 from virtual_hw.wearer import WearerConfig, WearerKind, make_wearer, wearer_kind
 from virtual_hw.wearer_realistic import RealisticWearerConfig
@@ -137,10 +138,10 @@ class HilProtocol:
     """
 
     minutes: float = 60.0
-    warmup_s: float = 180.0
-    n_explore: int = 6
-    max_breaths: int = 45
-    window: int = 2
+    warmup_s: float = SessionProtocolConfig.warmup_s
+    n_explore: int = OptimizerConfig.n_explore
+    max_breaths: int = OptimizerConfig.max_breaths
+    window: int = OptimizerConfig.window
     condition_s: float = 120.0
     popsize: int = 8
     sigma0: float = 0.25
@@ -310,49 +311,68 @@ def _pull_inside(w: np.ndarray, A: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 class _Session:
-    """Warm-ups and fixed-length conditions on a simulated wearer (CMA-ES, random search)."""
+    """Fixed-length conditions on a simulated wearer (CMA-ES, random search).
+
+    The walking protocol is every method's (:class:`~hilbo_core.protocol.SessionProtocol`): a
+    warm-up, bout 1 of ``bout1_conditions`` conditions, a second warm-up, bout 2 until the
+    minutes are walked (within one breath). A condition that cannot end by then is walked but not
+    counted (:meth:`condition` returns None): a generation cut short does not update CMA-ES, and
+    random search recommends from complete conditions only.
+    """
 
     def __init__(self, space: ParameterSpace, seed: int, proto: HilProtocol) -> None:
         self.space = space
         self.wearer = make_wearer(proto.wearer, space, seed=seed)
         self.proto = proto
-        self.end_s = proto.minutes * 60.0
+        self.protocol = SessionProtocol(SessionProtocolConfig(
+            warmup_s=proto.warmup_s, n_explore=proto.bout1_conditions, session_s=proto.minutes * 60.0,
+            budget_s=None, pause_between_bouts=False), t_start_s=self.wearer.t_s)
+        self._act = self.protocol.start()
         self.n_conditions = 0
         self.assisted_s = 0.0
         self.bout2_conditions = 0
         self.bout2_start_s = math.nan
-        self._warm_up(proto.warmup_s)
-
-    def _warm_up(self, duration_s: float) -> None:
-        w = self.wearer
-        w.apply_profiles((), w.t_s)
-        until = w.t_s + duration_s
-        while w.t_s < until:
-            w.next_breath()
+        self.last_end_s = math.nan
 
     def has_time(self) -> bool:
-        """A whole condition (and the second warm-up, if due) still fits in the session."""
-        extra = self.proto.warmup_s if self.n_conditions == self.proto.bout1_conditions else 0.0
-        return self.wearer.t_s + extra + self.proto.condition_s <= self.end_s
+        """The session has not ended: another condition starts."""
+        return not self.protocol.ended
 
-    def condition(self, params: Mapping[str, float]) -> tuple[float, float]:
-        """Walk one condition; returns (UKF mean of the steady-state cost in W, end time in s)."""
-        if self.n_conditions == self.proto.bout1_conditions:
-            self._warm_up(self.proto.warmup_s)
-            self.bout2_start_s = self.wearer.t_s
-        w = self.wearer
+    def condition(self, params: Mapping[str, float]) -> tuple[float, float] | None:
+        """Walk one condition; returns (UKF mean of the steady-state cost in W, end time in s), or
+        None when the session ends first (it has then walked to its end)."""
+        w, p, cond_s = self.wearer, self.protocol, self.proto.condition_s
+        act = self._act
+        while act.kind is not ActionKind.PROPOSE:  # the warm-ups (drive() without an optimizer)
+            if act.kind is ActionKind.END:
+                return None
+            if act.kind is ActionKind.WARM_UP and act.starts:
+                w.apply_profiles((), w.t_s)
+            act = p.on_breath(w.next_breath().t_s)
         t0 = w.t_s
         w.apply_params(params, t0)
+        p.on_setting_applied(t0)
+        t_end = p.t_end_s
+        fits = t_end is None or t0 + cond_s <= t_end
         ukf = MetabolicUKF()
         while True:
             breath = w.next_breath()
-            ukf.update(breath.t_s - t0, breath.watts)
-            if breath.t_s - t0 >= self.proto.condition_s:
+            act = p.on_breath(breath.t_s)
+            t = act.t_setting_s if act.t_setting_s is not None else breath.t_s - t0
+            ukf.update(t, breath.watts)
+            if act.final or (fits and t >= cond_s):
                 break
+        if not (fits and t >= cond_s):
+            self._act = p.on_setting_dropped()
+            return None
+        if p.phase is SessionPhase.OPTIMIZATION:
+            self.bout2_conditions += 1
+            if self.bout2_conditions == 1:
+                self.bout2_start_s = t0
+        self._act = p.on_evaluation_done()
         self.n_conditions += 1
         self.assisted_s += breath.t_s - t0
-        if self.n_conditions > self.proto.bout1_conditions:
-            self.bout2_conditions += 1
+        self.last_end_s = breath.t_s
         return ukf.mean, breath.t_s
 
 
@@ -405,10 +425,11 @@ def _run_cmaes(task: HilTask) -> dict[str, Any]:
         X = es.ask()
         fitness = []
         for x in X:
-            if not session.has_time():
-                break
             xf = project_feasible(np.asarray(x), A, b)
-            cost, t_end = session.condition(space.to_dict(space.from_unit(xf)))
+            done = session.condition(space.to_dict(space.from_unit(xf)))
+            if done is None:
+                break
+            cost, t_end = done
             fitness.append(cost + proto.penalty_w * float(np.sum((np.asarray(x) - xf) ** 2)))
         if len(fitness) < len(X):
             break  # the session ended mid-generation: CMA-ES cannot update on a part
@@ -432,7 +453,10 @@ def _run_random(task: HilTask) -> dict[str, Any]:
             if len(b) == 0 or np.all(A @ u <= b):
                 break
         params = space.to_dict(space.from_unit(u))
-        cost, t_end = session.condition(params)
+        done = session.condition(params)
+        if done is None:
+            break
+        cost, t_end = done
         if cost < best:
             best = cost
             trace.append((t_end, params))
@@ -557,8 +581,9 @@ def _fixed_condition_result(session: _Session, trace: list[tuple[float, dict[str
         "n_evaluations_bout2": session.bout2_conditions,
         "early_stops": 0,
         "assisted_s": session.assisted_s,
-        "bout2_s": session.wearer.t_s - session.bout2_start_s if session.bout2_conditions else 0.0,
+        "bout2_s": session.last_end_s - session.bout2_start_s if session.bout2_conditions else 0.0,
         "session_s": session.wearer.t_s,
+        "walking": session.protocol.walking.to_json(),
     }
 
 

@@ -155,6 +155,16 @@ def test_defaults_of_the_optional_tables():
     assert cfg.limits == ProfileLimits() and cfg.watchdog == WatchdogConfig() and cfg.prior == PriorConfig()
 
 
+def test_the_session_protocol_and_its_expected_end_in_the_summary():
+    cfg = parse_config(GOLDEN)
+    sp = cfg.protocol.session_protocol_config()
+    assert (sp.warmup_s, sp.n_explore, sp.max_breaths, sp.budget_s, sp.budget_breaths) == (
+        120.0, 8, 40, None, 500)
+    assert cfg.protocol.optimizer_config(with_budget=False).budget_breaths is None
+    # 2 x 2-min warm-ups + 8 x 40 breaths x 3 s + 500 breaths x 3 s = 45 min of walking
+    assert "expected end about 45 min of walking after the first breath" in summarize(cfg)
+
+
 def test_both_budgets_can_be_given():
     cfg = parse_config(GOLDEN.replace("budget_breaths = 500", "budget_breaths = 500\nbudget_min = 30"))
     assert (cfg.protocol.budget_min, cfg.protocol.budget_breaths) == (30.0, 500)
