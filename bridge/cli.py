@@ -59,13 +59,16 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     if args.bus is not None and not args.processes:
         raise UsageError("--bus goes with --processes (in one process the devices share "
                                 "python-can's virtual bus)")
+    if args.live and (args.engine == "core" or args.processes):
+        raise UsageError("--live streams the in-process bridge session (without --processes "
+                         "and --engine core)")
     if args.engine == "core":
         return _cmd_sim_core(args)
     import asyncio
 
     from rich.console import Console
 
-    from bridge.config import check_out_dir
+    from bridge.config import LiveConfig, check_out_dir
     from bridge.sim import MAX_SPEED, VirtualSimConfig, run_virtual_sim
 
     console = Console(stderr=True)
@@ -85,7 +88,10 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     if args.processes:
         summary = asyncio.run(run_process_sim(cfg, out, bus=bus, operator_view=console.is_terminal))
     else:
-        summary = asyncio.run(run_virtual_sim(cfg, out, operator_view=console.is_terminal))
+        live = LiveConfig(enabled=True) if args.live else None
+        if live is not None:
+            console.print(f"hilbo sim: live view on ws://{live.host}:{live.port} (Foxglove: Open connection)")
+        summary = asyncio.run(run_virtual_sim(cfg, out, operator_view=console.is_terminal, live=live))
     _print_done(console, summary)
     print(out / "summary.json")
     print(out / "session.mcap")
@@ -104,6 +110,7 @@ def _print_done(console: Any, summary: dict[str, Any]) -> None:
 
 def _cmd_run(args: argparse.Namespace) -> int:
     import asyncio
+    import dataclasses
 
     from rich.console import Console
 
@@ -118,6 +125,11 @@ def _cmd_run(args: argparse.Namespace) -> int:
         check_out_dir(args.out, "--out")
     else:
         check_out_dir(cfg.session.out_dir)
+    if args.live:
+        cfg = dataclasses.replace(cfg, live=dataclasses.replace(cfg.live, enabled=True))
+    if cfg.live.enabled:
+        console.print(f"hilbo run: live view on ws://{cfg.live.host}:{cfg.live.port} "
+                      "(Foxglove: Open connection)")
     resume = Path(args.resume) if args.resume else None
     console.print(f"hilbo run: {cfg.source} (subject {cfg.session.subject})"
                   + (f", resuming {resume}" if resume else ""))
@@ -224,6 +236,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="with --processes: vcan = SocketCAN vcan0; remote = a python-can-remote "
                           "server started on 127.0.0.1; auto (default) = vcan0 where it exists, "
                           "else remote")
+    sim.add_argument("--live", action="store_true",
+                     help="stream the session to Foxglove on ws://127.0.0.1:8765 (README: Live view)")
     sim.set_defaults(func=_cmd_sim)
 
     run = sub.add_parser("run", help="run a lab session from a config file",
@@ -243,6 +257,8 @@ def build_parser() -> argparse.ArgumentParser:
                           "the bouts, lost heartbeat, silent cart) once the device and the cart "
                           "have been healthy for S seconds, at most [watchdog] max_auto_resumes "
                           "times, then stop (default: [watchdog] auto_resume_s, else wait for r)")
+    run.add_argument("--live", action="store_true",
+                     help="stream the session to Foxglove (as [live] enabled = true; README: Live view)")
     run.set_defaults(func=_cmd_run)
 
     from bridge.config import add_config_parser

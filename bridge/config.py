@@ -18,6 +18,7 @@ checks every type and range, and names the key, the value and what is allowed in
 column. Paths (``session.out_dir``, ``cart.options.path``, ``prior.logs``, ``prior.table``) are
 relative to the working directory. ``[prior]`` (:class:`PriorConfig`) reads its logs and table
 on load, so a bad prior is refused before the session starts.
+``[live]`` (:class:`LiveConfig`) turns the Foxglove live view on (bridge/live.py).
 
 Cross-checks after the tables: the space's force-profile builder must build the centre of the
 space, per-actuator limits must name actuators the builder produces, and the limits must admit
@@ -83,6 +84,7 @@ __all__ = [
     "BusErrorPolicy",
     "CanConfig",
     "HilboConfig",
+    "LiveConfig",
     "PriorConfig",
     "ProtocolConfig",
     "RefitMode",
@@ -99,7 +101,7 @@ __all__ = [
 ]
 
 #: The tables a config may have, in the order the example shows them.
-TABLES = ("session", "space", "protocol", "cart", "can", "limits", "watchdog", "prior")
+TABLES = ("session", "space", "protocol", "cart", "can", "limits", "watchdog", "prior", "live")
 _REQUIRED_TABLES = ("session", "space", "cart", "can")
 
 _MISSING: Any = object()
@@ -944,6 +946,33 @@ def _parse_prior(data: object, space: ParameterSpace) -> PriorConfig:
 
 
 # --------------------------------------------------------------------------------------------
+# [live]
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class LiveConfig:
+    """``[live]``: stream the session's log channels to Foxglove while it runs (bridge/live.py).
+
+    Attributes:
+        enabled: Start the WebSocket server (``hilbo run --live`` / ``hilbo sim --live`` also do).
+        host: Address to bind; ``127.0.0.1`` (this machine only) unless the lab needs another
+            machine to watch: the stream is not authenticated.
+        port: TCP port, 0-65535 (8765 is Foxglove's default; 0 picks a free port).
+    """
+
+    enabled: bool = False
+    host: str = "127.0.0.1"
+    port: int = 8765
+
+
+def _parse_live(data: object) -> LiveConfig:
+    t = _Table(data, "live", ALLOWED_KEYS["live"])
+    return LiveConfig(enabled=t.boolean("enabled", False), host=t.string("host", "127.0.0.1"),
+                      port=t.integer("port", 8765, lo=0, hi=65535))
+
+
+# --------------------------------------------------------------------------------------------
 # The whole config
 # --------------------------------------------------------------------------------------------
 
@@ -953,7 +982,7 @@ class HilboConfig:
     """A validated session config (see the module docstring for the tables).
 
     Attributes:
-        session, space, protocol, cart, can, limits, watchdog, prior: The tables.
+        session, space, protocol, cart, can, limits, watchdog, prior, live: The tables.
         source: Where it was read from (a path, ``<stdin>``, ``<string>``).
         text: The TOML text it was parsed from (logged, so a session can be resumed with it).
     """
@@ -966,6 +995,7 @@ class HilboConfig:
     limits: ProfileLimits
     watchdog: WatchdogConfig
     prior: PriorConfig = field(default_factory=PriorConfig)
+    live: LiveConfig = field(default_factory=LiveConfig)
     source: str = field(default="<string>", compare=False)
     text: str = field(default="", compare=False, repr=False)
 
@@ -985,6 +1015,7 @@ class HilboConfig:
             "limits": self.limits.to_json(),
             "watchdog": self.watchdog.to_json(),
             "prior": _jsonable(self.prior),
+            "live": _jsonable(self.live),
             "toml": self.text,
         }
 
@@ -1100,6 +1131,7 @@ def parse_config(text: str, source: str = "<string>") -> HilboConfig:
         limits=_parse_limits(data.get("limits", {})),
         watchdog=_parse_watchdog(data.get("watchdog", {})),
         prior=_parse_prior(data.get("prior", {}), space.space),
+        live=_parse_live(data.get("live", {})),
         source=source,
         text=text,
     )
@@ -1222,6 +1254,8 @@ def summarize(cfg: HilboConfig) -> str:
     lines.append(f"watchdog  device heartbeat {wd.device_heartbeat_timeout_ms:g} ms, cart data "
                  f"{wd.cart_data_timeout_s:g} s, bus error -> assistance-off and {wd.bus_error.value}")
     lines.append(f"prior     {cfg.prior.describe()}")
+    if cfg.live.enabled:
+        lines.append(f"live      Foxglove WebSocket on ws://{cfg.live.host}:{cfg.live.port}")
     if cfg.prior.priors:
         lines.append("          inflation (var x factor + extra): " + "; ".join(
             f"{k} x {cfg.prior.inflation[k].factor:g} + {cfg.prior.inflation[k].extra_var_w2:g} W²"
@@ -1338,4 +1372,5 @@ ALLOWED_KEYS: Mapping[str, tuple[str, ...]] = MappingProxyType({
     "limits": (*ACTUATOR_LIMIT_RANGES, "n_points", "max_consecutive_rejections", "actuators"),
     "watchdog": tuple(f.name for f in dataclasses.fields(WatchdogConfig)),
     "prior": ("observations", "logs", "table", "table_baseline_w", "inflation"),
+    "live": tuple(f.name for f in dataclasses.fields(LiveConfig)),
 })

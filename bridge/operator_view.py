@@ -2,6 +2,11 @@
 
 Keys (when stdin is a terminal): ``p`` pause (assistance off), ``r`` resume, ``q`` stop.
 Without a terminal (CI, a pipe) the view prints nothing live; signals still stop the session.
+
+Issue 19.2: device faults are shown by name with what clears them (:func:`describe_faults`, from
+drivers/exosuit/faults.py),
+the session's expected end (``SessionStatus.t_end_unix_s``, else the optimisation budget), and
+"best so far" is what ``HILOptimizer.best()`` returns, the same quantity as the summary's best.
 """
 
 from __future__ import annotations
@@ -10,7 +15,8 @@ import asyncio
 import contextlib
 import os
 import sys
-from collections.abc import Callable
+import time
+from collections.abc import Callable, Mapping
 
 from rich.console import Console, Group
 from rich.live import Live
@@ -19,14 +25,65 @@ from rich.table import Table
 from rich.text import Text
 
 from bridge.runtime import BridgeSession, Command, SessionStatus
+from drivers.exosuit import DeviceFault
+from drivers.exosuit.faults import FAULT_INFO
 
-__all__ = ["KEYS", "render_status", "run_operator_view"]
+__all__ = ["KEYS", "describe_faults", "render_status", "run_operator_view"]
 
 KEYS = {"p": Command.PAUSE, "r": Command.RESUME, "q": Command.STOP}
 
+def _fault_clears(bits: int) -> list[tuple[str, str]]:
+    """(name, what clears it) of each fault bit set in ``bits`` (drivers/exosuit/faults.py)."""
+    out = []
+    for k in range(bits.bit_length()):
+        if bits >> k & 1:
+            info = FAULT_INFO.get(DeviceFault(1 << k)) if k < 8 else None
+            out.append((info.name, info.clears) if info is not None
+                       else (f"bit{k}", "not defined by the protocol"))
+    return out
 
-def render_status(st: SessionStatus) -> Panel:
-    """One frame of the operator view."""
+
+def describe_faults(faults: Mapping[int, int]) -> list[str]:
+    """One line per fault: its name, the actuators reporting it and what clears it.
+
+    Args:
+        faults: Actuator index -> DeviceFault bits (``SessionStatus.device_faults``).
+
+    Returns:
+        E.g. ``["heartbeat_lost on actuators 0, 1: latched: clears on resume [r] ..."]``.
+    """
+    by_name: dict[str, tuple[list[int], str]] = {}
+    for actuator, bits in sorted(faults.items()):
+        for name, clears in _fault_clears(int(bits)):
+            by_name.setdefault(name, ([], clears))[0].append(actuator)
+    return [f"{name} on actuator{'s' if len(acts) > 1 else ''} {', '.join(map(str, acts))}: {clears}"
+            for name, (acts, clears) in by_name.items()]
+
+
+def _expected_end(st: SessionStatus, now_unix_s: float) -> str:
+    if st.t_end_unix_s is not None:
+        left_min = max(st.t_end_unix_s - now_unix_s, 0.0) / 60
+        clock = time.strftime("%H:%M", time.localtime(st.t_end_unix_s))
+        return f"about {clock} (in {left_min:.0f} min)"
+    if st.budget_s is not None:
+        left_min = max(st.budget_s - st.budget_used_s, 0.0) / 60
+        return f"budget {st.budget_s / 60:.1f} min ({left_min:.1f} min left)"
+    return "—"
+
+
+def _best(st: SessionStatus) -> str:
+    if st.best_mean_w is None:
+        return "—"
+    text = f"{st.best_mean_w:.0f} W"
+    if st.best_sd_w is not None:
+        text = f"{st.best_mean_w:.0f} ± {1.96 * st.best_sd_w:.0f} W (95 %)"
+    if st.best_params:
+        text += " at " + ", ".join(f"{k}={v:.3g}" for k, v in st.best_params.items())
+    return text
+
+
+def render_status(st: SessionStatus, now_unix_s: float | None = None) -> Panel:
+    """One frame of the operator view (``now_unix_s``: the wall clock, for the expected end)."""
     t = Table.grid(padding=(0, 2))
     t.add_column(style="bold")
     t.add_column()
@@ -35,16 +92,19 @@ def render_status(st: SessionStatus) -> Panel:
     t.add_row("bout", st.bout)
     t.add_row("elapsed", f"{st.breath_time_s / 60:.1f} min walked; optimisation "
                          f"{st.budget_used_s / 60:.1f} min{budget}")
+    t.add_row("expected end", _expected_end(st, time.time() if now_unix_s is None else now_unix_s))
     t.add_row("evaluation", str(st.evaluation))
     if st.params:
         t.add_row("setting", ", ".join(f"{k}={v:.3g}" for k, v in st.params.items()))
     estimate = "—" if st.mean_w is None else f"{st.mean_w:.0f} ± {1.96 * (st.sd_w or 0):.0f} W (95 %)"
     t.add_row("estimate", f"{estimate}  after {st.breaths_in_setting} breaths")
     t.add_row("decision", st.last_decision or "—")
-    t.add_row("best so far", "—" if st.best_mean_w is None else f"{st.best_mean_w:.0f} W")
+    t.add_row("best so far", _best(st))
     dev_style = "green" if st.device == "ok" else "bold red"
     cart_style = "green" if st.cart == "ok" else "bold red"
-    t.add_row("device", Text(st.device, style=dev_style))
+    faults = describe_faults(st.device_faults)
+    device = "faults:\n" + "\n".join(faults) if faults and st.device != "LOST" else st.device
+    t.add_row("device", Text(device, style=dev_style))
     t.add_row("cart", Text(st.cart, style=cart_style))
     events = Text("\n".join(st.events[-5:]) or "—", style="dim")
     keys = Text("keys: [p] pause (assistance off)  [r] resume  [q] stop", style="cyan")

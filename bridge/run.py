@@ -23,6 +23,7 @@ from typing import Any
 from rich.console import Console
 
 from bridge.config import HilboConfig
+from bridge.live import LiveServer
 from bridge.log import DEFAULT_FILE_MODE, SessionLog, new_session_id
 from bridge.operator_view import run_operator_view
 from bridge.resume import rebuild_optimizer
@@ -158,10 +159,12 @@ async def run_session(
     settings = runtime_settings(cfg, auto_resume_s=auto_resume_s, n_actuators=n_actuators)
     loop = asyncio.get_running_loop()
     stream = BreathStream.from_config(cfg.cart)
+    live = LiveServer(host=cfg.live.host, port=cfg.live.port) if cfg.live.enabled else None
     async with CanEndpoint(cfg.can.bus) as endpoint, stream:
-        with SessionLog(path, session_id=session_id, config_json=cfg.to_json(),
-                        previous_log=previous, param_names=space.names,
-                        file_mode=cfg.session.file_mode_bits) as log:
+        with live or contextlib.nullcontext(), \
+                SessionLog(path, session_id=session_id, config_json=cfg.to_json(),
+                           previous_log=previous, param_names=space.names,
+                           file_mode=cfg.session.file_mode_bits, live=live) as log:
             if resume is not None:
                 log.log_optimizer_state(opt, reason="resume")
             elif cfg.prior.priors:
@@ -169,6 +172,8 @@ async def run_session(
             session = BridgeSession(opt, cfg.make_gate(), endpoint, stream, log, settings,
                                     protocol=protocol)
             session.status.budget_s = protocol.config.budget_s
+            if live is not None:
+                session.status.event(f"live view: {live.url or 'off, ' + str(live.start_error)}")
             if on_session is not None:
                 on_session(session)
             installed = []

@@ -195,6 +195,11 @@ class SessionStatus:
     device: str = "unknown"
     cart: str = "waiting"
     events: list[str] = field(default_factory=list)
+    # Issue 19.2 (operator view): best_mean_w is opt.best()'s mean, as in the summary.
+    best_params: dict[str, float] | None = None  # opt.best()'s setting
+    best_sd_w: float | None = None  # sqrt of opt.best()'s variance, W
+    device_faults: dict[int, int] = field(default_factory=dict)  # actuator -> DeviceFault bits
+    t_end_unix_s: float | None = None  # expected end of the session, wall clock (Unix s)
 
     @property
     def state(self) -> str:

@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from bridge.collector import GcMode
-from bridge.config import HilboConfig, parse_config
+from bridge.config import HilboConfig, LiveConfig, parse_config
 from bridge.run import RunResult, run_session, write_json_atomic
 from bridge.runtime import BridgeSession
 from drivers.exosuit import CanBusConfig
@@ -161,7 +161,8 @@ max_auto_resumes = 1000
 
 async def run_virtual_sim(cfg: VirtualSimConfig, out: Path, *, operator_view: bool = False,
                           on_session: Callable[[BridgeSession], None] | None = None,
-                          on_exosuit: Callable[[VirtualExosuit], None] | None = None) -> dict[str, Any]:
+                          on_exosuit: Callable[[VirtualExosuit], None] | None = None,
+                          live: LiveConfig | None = None) -> dict[str, Any]:
     """Run a whole session over the virtual devices; writes OUT/session.mcap and OUT/summary.json.
 
     Args:
@@ -171,6 +172,8 @@ async def run_virtual_sim(cfg: VirtualSimConfig, out: Path, *, operator_view: bo
         on_session: Called with the bridge session before it runs (tests drive the operator).
         on_exosuit: Called with the open virtual exosuit before the bridge starts (its ``stats``
             count what it sent, for ``hilbo bench perf --bridge-minutes``).
+        live: The live view (``hilbo sim --live``: :class:`~bridge.config.LiveConfig` enabled);
+            None: off.
 
     Returns:
         The summary, with the simulation's truth (true optimum, true cost of the recommendation).
@@ -193,6 +196,7 @@ async def run_virtual_sim(cfg: VirtualSimConfig, out: Path, *, operator_view: bo
             hcfg,
             cart=cart.client_config(),
             can=dataclasses.replace(hcfg.can, bus=CanBusConfig("virtual", channel)),
+            live=live or hcfg.live,
         )
         async with VirtualExosuit(CanBusConfig("virtual", channel), clock,
                                   joints=SUIT_JOINTS[cfg.preset], seed=cfg.seed,

@@ -72,7 +72,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import msgspec
 import numpy as np
@@ -108,6 +108,9 @@ from hilbo_core.optimizer import BreathStep, Evaluation, HILOptimizer
 from hilbo_core.profiles import ForceProfile
 from hilbo_core.stopping import StopDecision
 from hilbo_core.types import BreathRecord
+
+if TYPE_CHECKING:
+    from bridge.live import LiveSink
 
 __all__ = [
     "DEFAULT_FILE_MODE",
@@ -274,6 +277,8 @@ class SessionLog:
             the umask (``[session] file_mode`` in the config).
         started_unix_ns: The ``started_unix_ns`` stored in ``/config`` and the metadata (default
             the wall clock now; a fixed value makes the file reproducible, e.g. for tests).
+        live: A live view (:class:`bridge.live.LiveServer`) that gets every record written, on
+            the same topic with the same schema (issue 19 item 2); None: no live view.
 
     Raises:
         LogValueError: A bad option.
@@ -303,6 +308,7 @@ class SessionLog:
         overwrite: bool = False,
         file_mode: int = DEFAULT_FILE_MODE,
         started_unix_ns: int | None = None,
+        live: LiveSink | None = None,
     ) -> None:
         if not isinstance(session_id, str) or not session_id.strip():
             raise LogValueError(f"session_id={session_id!r}; expected a non-empty string")
@@ -336,6 +342,8 @@ class SessionLog:
         self._closed = False
         self._sequence = 0
         self._thread_error: BaseException | None = None
+        self._live = live  # live view (bridge/live.py): mirrors every record in _write
+        self._schemas: dict[str, tuple[str, Mapping[str, Any]]] = {}
         self._faults: dict[int, int] = {}
         self._file = _create(self.path, overwrite=overwrite, mode=file_mode)  # closed in close()
         # mcap < 1.6 has no Writer.flush() (no public way to close a chunk early): fall back to
@@ -682,6 +690,7 @@ class SessionLog:
                                            json.dumps(schema).encode())
         cid = self._writer.register_channel(topic, MessageEncoding.JSON, sid)
         self._channel_ids[topic] = cid
+        self._schemas[topic] = (schema_name, schema)
         return cid
 
     def _times(self, topic: str, publish_time_ns: int | None, log_ns: int | None) -> tuple[int, int]:
@@ -736,6 +745,9 @@ class SessionLog:
         self._pending = True
         self.stats.messages += 1
         self.stats.per_topic[topic] += 1
+        if self._live is not None:  # live view: the same record, topic and schema (never raises)
+            schema_name, schema = self._schemas[topic]
+            self._live.publish(topic, schema_name, schema, data, log_ns)
 
     def _flush_locked(self) -> None:
         if not self._pending:

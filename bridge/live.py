@@ -1,0 +1,230 @@
+"""Live view: the session's log channels streamed to Foxglove over a WebSocket (issue 19 item 2).
+
+A :class:`LiveServer` wraps the Foxglove SDK's WebSocket server (``foxglove-sdk``, subprotocol
+``foxglove.sdk.v1``). The session log mirrors every record it writes with :meth:`LiveServer.publish`:
+the same topic, schema name, JSON schema and JSON bytes as the MCAP file, so Foxglove shows the
+same panels live as it does on the file afterwards. One channel per topic, created on first use.
+
+Safety of the session comes first: the live view is a convenience and must never block or end a
+session. :meth:`LiveServer.publish` does not raise; a failure is logged once per kind and counted
+in :attr:`LiveServer.stats`. A server that cannot start (port taken) logs why and publishes
+nothing. Each server has its own ``foxglove.Context``, so two servers (tests) never share channels.
+
+Slow clients: ``Channel.log`` only hands the bytes to the SDK, which queues them per client
+(``message_backlog_size`` messages; when full the *oldest* data message is dropped, and a client
+whose control queue fills is disconnected). tests/bridge/test_live.py measures publishing to a
+client that never reads.
+
+Binds 127.0.0.1 by default: the stream carries the session's data, and nothing here
+authenticates a client. Open it in Foxglove with "Open connection" → "Foxglove WebSocket" →
+``ws://127.0.0.1:8765``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections import Counter
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+from bridge.errors import BridgeError
+
+__all__ = [
+    "DEFAULT_HOST",
+    "DEFAULT_PORT",
+    "LiveError",
+    "LiveServer",
+    "LiveSink",
+    "LiveStats",
+]
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_HOST = "127.0.0.1"
+"""Loopback only unless configured otherwise (the stream is not authenticated)."""
+DEFAULT_PORT = 8765
+"""Foxglove's default WebSocket port (what its "Open connection" dialog proposes)."""
+_DEFAULT_BACKLOG = 1024  # messages queued per client before the oldest is dropped (SDK default)
+
+
+class LiveError(BridgeError, ValueError):
+    """A bad live-view option (raised by the constructor only; publishing never raises)."""
+
+
+class LiveSink(Protocol):
+    """What the session log needs of a live view (:class:`LiveServer` is one)."""
+
+    def publish(self, topic: str, schema_name: str, json_schema: Mapping[str, Any],
+                message_json: bytes | str, log_time_ns: int) -> None:
+        """Mirror one record already written to the log; never raises."""
+        ...
+
+
+@dataclass
+class LiveStats:
+    """What a :class:`LiveServer` did.
+
+    Attributes:
+        published: Messages handed to the SDK.
+        channels: Channels created (one per topic).
+        errors: Failed publishes (or channel creations), by kind.
+    """
+
+    published: int = 0
+    channels: int = 0
+    errors: Counter[str] = field(default_factory=Counter)
+
+
+class LiveServer:
+    """The Foxglove WebSocket server of one session; a context manager.
+
+    Args:
+        host: Address to bind (``127.0.0.1`` by default: this machine only).
+        port: TCP port, 0-65535 (0: any free port; :attr:`port` tells which).
+        name: Server name Foxglove shows.
+        message_backlog_size: Messages queued per client before the oldest is dropped.
+
+    Raises:
+        LiveError: A bad option.
+
+    Example:
+        >>> with LiveServer(port=8765) as live, SessionLog(path, ..., live=live) as log:
+        ...     ...  # every record the log writes is also streamed
+    """
+
+    def __init__(self, *, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, name: str = "hilbo",
+                 message_backlog_size: int = _DEFAULT_BACKLOG) -> None:
+        if not isinstance(host, str) or not host:
+            raise LiveError(f"live host={host!r}; expected an address such as '127.0.0.1'")
+        if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
+            raise LiveError(f"live port={port!r}; expected an integer in [0, 65535] (0: any free port)")
+        if isinstance(message_backlog_size, bool) or not isinstance(message_backlog_size, int) \
+                or message_backlog_size < 1:
+            raise LiveError(f"message_backlog_size={message_backlog_size!r}; expected an integer >= 1")
+        self.host = host
+        self.name = name
+        self.stats = LiveStats()
+        self.start_error: str | None = None
+        self._requested_port = port
+        self._backlog = message_backlog_size
+        self._server: Any = None
+        self._context: Any = None
+        self._channels: dict[str, Any] = {}
+        self._schemas: dict[str, str] = {}
+
+    # ------------------------------------------------------------------ lifecycle
+    def __enter__(self) -> LiveServer:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def start(self) -> bool:
+        """Start the server; on failure log why and stay off (the session goes on without it).
+
+        Returns:
+            True when the server listens.
+        """
+        if self._server is not None:
+            return True
+        try:
+            import foxglove  # deferred: a session without the live view never loads the SDK
+
+            self._context = foxglove.Context()
+            self._server = foxglove.start_server(
+                name=self.name, host=self.host, port=self._requested_port, context=self._context,
+                message_backlog_size=self._backlog)
+        except (ImportError, OSError, RuntimeError, ValueError, TypeError) as err:
+            self.start_error = f"{type(err).__name__}: {err}"
+            logger.error("live view: cannot listen on %s:%s (%s); the session goes on without it",
+                         self.host, self._requested_port, self.start_error)
+            self._context = None
+            return False
+        logger.info("live view: %s", self.url)
+        return True
+
+    def stop(self) -> None:
+        """Close the channels and stop the server. Idempotent."""
+        server, self._server = self._server, None
+        channels, self._channels = self._channels, {}
+        for topic, channel in channels.items():
+            try:
+                channel.close()
+            except (RuntimeError, ValueError) as err:
+                self._error("close", f"closing channel {topic}: {err}")
+        if server is not None:
+            server.stop()
+        self._context = None
+
+    @property
+    def running(self) -> bool:
+        """True while the server listens."""
+        return self._server is not None
+
+    @property
+    def port(self) -> int | None:
+        """The port it listens on (the free port chosen for ``port=0``), or None when off."""
+        return None if self._server is None else int(self._server.port)
+
+    @property
+    def url(self) -> str | None:
+        """``ws://host:port`` to open in Foxglove, or None when off."""
+        if self._server is None:
+            return None
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"ws://{host}:{self.port}"
+
+    # ------------------------------------------------------------------ publishing
+    def publish(self, topic: str, schema_name: str, json_schema: Mapping[str, Any],
+                message_json: bytes | str, log_time_ns: int) -> None:
+        """Stream one record on ``topic`` (its channel is created on first use). Never raises.
+
+        Args:
+            topic: The log's topic (``/breaths``...).
+            schema_name: The log's schema name for the topic (``hilbo.Breath``...).
+            json_schema: The topic's JSON schema (draft-07 object), as in the log.
+            message_json: The record as written to the log (UTF-8 JSON).
+            log_time_ns: Its log time, ns.
+        """
+        if self._server is None:
+            return
+        # Anything the SDK raises is caught: the live view must never end a session (logged
+        # once per kind and counted, so a broken view is visible without flooding the log).
+        try:
+            channel = self._channels.get(topic)
+            if channel is None:
+                channel = self._open_channel(topic, schema_name, json_schema)
+            elif self._schemas[topic] != schema_name:
+                self._error("schema_changed", f"{topic}: schema {schema_name!r} after "
+                                              f"{self._schemas[topic]!r}; streamed on the first")
+            data = message_json.encode() if isinstance(message_json, str) else bytes(message_json)
+            channel.log(data, log_time=_log_time(log_time_ns))
+            self.stats.published += 1
+        except Exception as err:  # see the comment above: counted and logged, never raised
+            self._error(type(err).__name__, f"{topic}: {err}")
+
+    def _open_channel(self, topic: str, schema_name: str, json_schema: Mapping[str, Any]) -> Any:
+        import foxglove
+
+        schema = foxglove.Schema(name=schema_name, encoding="jsonschema",
+                                 data=json.dumps(dict(json_schema)).encode())
+        channel = foxglove.Channel(topic, schema=schema, message_encoding="json",
+                                   context=self._context)
+        self._channels[topic] = channel
+        self._schemas[topic] = schema_name
+        self.stats.channels += 1
+        return channel
+
+    def _error(self, kind: str, text: str) -> None:
+        self.stats.errors[kind] += 1
+        if self.stats.errors[kind] == 1:
+            logger.error("live view: %s (further %s errors are only counted)", text, kind)
+
+
+def _log_time(log_time_ns: int) -> int | None:
+    # The protocol's timestamp is a uint64; out of range lets the SDK stamp it with its own clock.
+    t = int(log_time_ns)
+    return t if 0 <= t < 2**64 else None

@@ -1,0 +1,72 @@
+"""The terminal operator view (issue 19.2): faults by name, the expected end, best = opt.best()."""
+
+from __future__ import annotations
+
+import io
+import time
+
+import pytest
+from rich.console import Console
+
+from bridge.operator_view import describe_faults, render_status
+from bridge.runtime import SessionStatus
+from drivers.exosuit import DeviceFault
+
+
+def text_of(st: SessionStatus, now_unix_s: float = 1_800_000_000.0) -> str:
+    console = Console(record=True, width=160, color_system=None, file=io.StringIO())
+    console.print(render_status(st, now_unix_s=now_unix_s))
+    return console.export_text()
+
+
+def row(text: str, label: str) -> str:
+    line = next(ln for ln in text.splitlines() if f" {label} " in ln)
+    return " ".join(line.strip("│ ").split()[len(label.split()):])
+
+
+def test_faults_are_named_with_what_clears_them_not_bits() -> None:
+    lost = int(DeviceFault.HEARTBEAT_LOST)
+    st = SessionStatus(device=f"faults [{lost}, {lost}]", device_faults={0: lost, 1: lost})
+    text = text_of(st)
+    assert "[16, 16]" not in text
+    assert "heartbeat_lost on actuators 0, 1: cleared by the bridge once the bridge heartbeat" in text
+
+
+def test_describe_faults_groups_by_fault_and_names_unknown_bits() -> None:
+    bits = DeviceFault.OVERTEMPERATURE | DeviceFault.EMERGENCY_STOP
+    lines = describe_faults({1: int(bits), 0: int(DeviceFault.OVERTEMPERATURE)})
+    assert lines == [
+        "overtemperature on actuators 0, 1: cleared by the bridge once motor and driver have cooled "
+        "below their limit",
+        "emergency_stop on actuator 1: cleared by the bridge once the emergency stop is released",
+    ]
+    assert describe_faults({0: 0}) == []
+    assert describe_faults({0: 1 << 9}) == ["bit9 on actuator 0: not defined by the protocol"]
+
+
+def test_a_lost_device_still_reads_lost() -> None:
+    st = SessionStatus(device="LOST", device_faults={0: int(DeviceFault.HEARTBEAT_LOST)})
+    assert row(text_of(st), "device") == "LOST"
+
+
+def test_the_expected_end_is_shown_from_t_end_else_from_the_budget() -> None:
+    now = 1_800_000_000.0
+    st = SessionStatus(t_end_unix_s=now + 12 * 60, budget_s=1800.0, budget_used_s=600.0)
+    clock = time.strftime("%H:%M", time.localtime(now + 12 * 60))
+    assert row(text_of(st, now), "expected end") == f"about {clock} (in 12 min)"
+    st = SessionStatus(budget_s=1800.0, budget_used_s=600.0)
+    assert row(text_of(st, now), "expected end") == "budget 30.0 min (20.0 min left)"
+    assert row(text_of(SessionStatus(), now), "expected end") == "—"
+
+
+def test_best_so_far_is_what_opt_best_returns() -> None:
+    # opt.best() is the GP's choice, not the lowest raw mean; the view shows what it is given.
+    st = SessionStatus(best_mean_w=312.4, best_sd_w=5.0, best_params={"t_p": 30.0, "F_p": 150.0})
+    assert row(text_of(st), "best so far") == "312 ± 10 W (95 %) at t_p=30, F_p=150"
+    assert row(text_of(SessionStatus(best_mean_w=300.0)), "best so far") == "300 W"
+    assert row(text_of(SessionStatus()), "best so far") == "—"
+
+
+@pytest.mark.parametrize("device", ["ok", "unknown"])
+def test_a_healthy_device_shows_its_state(device: str) -> None:
+    assert row(text_of(SessionStatus(device=device)), "device") == device
