@@ -5,7 +5,7 @@ Without a terminal (CI, a pipe) the view prints nothing live; signals still stop
 
 Issue 19.2: device faults are shown by name with what clears them (:func:`describe_faults`, from
 drivers/exosuit/faults.py),
-the session's expected end (``SessionStatus.t_end_unix_s``, else the optimisation budget), and
+the session's expected end (``SessionStatus.expected_end_s``, walking time, else the optimisation budget), and
 "best so far" is what ``HILOptimizer.best()`` returns, the same quantity as the summary's best.
 """
 
@@ -61,10 +61,9 @@ def describe_faults(faults: Mapping[int, int]) -> list[str]:
 
 
 def _expected_end(st: SessionStatus, now_unix_s: float) -> str:
-    if st.t_end_unix_s is not None:
-        left_min = max(st.t_end_unix_s - now_unix_s, 0.0) / 60
-        clock = time.strftime("%H:%M", time.localtime(st.t_end_unix_s))
-        return f"about {clock} (in {left_min:.0f} min)"
+    if st.expected_end_s is not None:  # the protocol's estimate, in walking time
+        left_min = max(st.expected_end_s - st.breath_time_s, 0.0) / 60
+        return f"after {st.expected_end_s / 60:.1f} min of walking ({left_min:.1f} min left)"
     if st.budget_s is not None:
         left_min = max(st.budget_s - st.budget_used_s, 0.0) / 60
         return f"budget {st.budget_s / 60:.1f} min ({left_min:.1f} min left)"

@@ -190,7 +190,7 @@ class SessionStatus:
     breath_time_s: float = 0.0
     budget_used_s: float = 0.0
     budget_s: float | None = None
-    #: When the session is expected to end (session time, s; the protocol's estimate).
+    #: When the session is expected to end (session time: walking s since the first breath).
     expected_end_s: float | None = None
     device: str = "unknown"
     cart: str = "waiting"
@@ -199,7 +199,6 @@ class SessionStatus:
     best_params: dict[str, float] | None = None  # opt.best()'s setting
     best_sd_w: float | None = None  # sqrt of opt.best()'s variance, W
     device_faults: dict[int, int] = field(default_factory=dict)  # actuator -> DeviceFault bits
-    t_end_unix_s: float | None = None  # expected end of the session, wall clock (Unix s)
 
     @property
     def state(self) -> str:
@@ -573,7 +572,8 @@ class BridgeSession:
         self.records.append({**ev.to_json(), "t_start": setting.t_start, "t_end": t_end})
         self.log.log_observation(ev, t_start=setting.t_start, t_end=t_end, t_s=rec.t_s)
         self.log.log_optimizer_state(self.opt, reason="evaluation", t_s=rec.t_s)
-        self.status.best_mean_w = self.opt.best()[1]
+        self.status.best_params, self.status.best_mean_w, best_var = self.opt.best()
+        self.status.best_sd_w = math.sqrt(best_var)
         self.status.expected_end_s = self._expected_end_s()
         self.status.event(f"eval {ev.index + 1}: {ev.mean:.0f} W, {ev.breaths} breaths, {ev.reason}")
         return nxt

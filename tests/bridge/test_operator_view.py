@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import io
-import time
 
 import pytest
 from rich.console import Console
@@ -49,14 +48,13 @@ def test_a_lost_device_still_reads_lost() -> None:
     assert row(text_of(st), "device") == "LOST"
 
 
-def test_the_expected_end_is_shown_from_t_end_else_from_the_budget() -> None:
+def test_the_expected_end_is_shown_in_walking_time_else_from_the_budget() -> None:
     now = 1_800_000_000.0
-    st = SessionStatus(t_end_unix_s=now + 12 * 60, budget_s=1800.0, budget_used_s=600.0)
-    clock = time.strftime("%H:%M", time.localtime(now + 12 * 60))
-    assert row(text_of(st, now), "expected end") == f"about {clock} (in 12 min)"
     st = SessionStatus(budget_s=1800.0, budget_used_s=600.0)
     assert row(text_of(st, now), "expected end") == "budget 30.0 min (20.0 min left)"
     assert row(text_of(SessionStatus(), now), "expected end") == "—"
+    st = SessionStatus(expected_end_s=3600.0, breath_time_s=2700.0, budget_s=1800.0)
+    assert row(text_of(st, now), "expected end") == "after 60.0 min of walking (15.0 min left)"
 
 
 def test_best_so_far_is_what_opt_best_returns() -> None:
