@@ -70,7 +70,7 @@ def _cmd_sim(args: argparse.Namespace) -> int:
 
     console = Console(stderr=True)
     cfg = VirtualSimConfig(minutes=args.minutes, seed=args.seed, speed=args.speed,
-                           preset=args.preset, stopping=args.stopping)
+                           preset=args.preset, stopping=args.stopping, wearer=args.wearer)
     out = check_out_dir(args.out, "--out")
     speed = cfg.speed or MAX_SPEED
     where = "the virtual exosuit and cart"
@@ -79,7 +79,8 @@ def _cmd_sim(args: argparse.Namespace) -> int:
 
         bus = resolve_bus(args.bus or "auto")
         where += f" as processes ({'SocketCAN vcan0' if bus == 'vcan' else 'python-can-remote'})"
-    console.print(f"hilbo sim: {cfg.minutes:g}-minute {cfg.preset} session on {where}, seed {cfg.seed}, "
+    console.print(f"hilbo sim: {cfg.minutes:g}-minute {cfg.preset} session on {where}, {cfg.wearer} "
+                  f"wearer seed {cfg.seed}, "
                   f"{speed:g}x real time (about {cfg.minutes * 60 / speed:.0f} s)")
     if args.processes:
         summary = asyncio.run(run_process_sim(cfg, out, bus=bus, operator_view=console.is_terminal))
@@ -145,7 +146,7 @@ def _cmd_sim_core(args: argparse.Namespace) -> int:
 
     console = Console(stderr=True)
     cfg = SimConfig(minutes=args.minutes, seed=args.seed, speed=args.speed, preset=args.preset,
-                    stopping=args.stopping)
+                    stopping=args.stopping, wearer=args.wearer)
     from bridge.config import check_out_dir
 
     out = check_out_dir(args.out, "--out")
@@ -207,6 +208,10 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--out", default="runs/sim", help="output directory (default runs/sim)")
     sim.add_argument("--preset", default="hip_6d", choices=["hip_6d", "hip_ankle_4d"],
                      help="parameter space (default hip_6d)")
+    sim.add_argument("--wearer", default="realistic", choices=["realistic", "legacy"],
+                     help="simulated wearer: realistic (default; breath noise and outliers as in "
+                          "real data, tau 30-60 s, slow adaptation, two landscape families) or "
+                          "legacy (the earlier one)")
     sim.add_argument("--stopping", default="adaptive", choices=["adaptive", "fixed"],
                      help="stopping rule in the optimisation phase (default adaptive)")
     sim.add_argument("--engine", default="bridge", choices=["bridge", "core"],

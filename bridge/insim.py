@@ -19,7 +19,7 @@ from typing import Any
 from hilbo_core import HILOptimizer, brockway_watts, fit_hyperparameters, presets
 from hilbo_core.errors import ConfigError
 from hilbo_core.optimizer import Evaluation
-from virtual_hw.wearer import SimulatedWearer
+from virtual_hw.wearer import WearerKind, make_wearer, wearer_kind
 
 __all__ = ["SimConfig", "SimEvaluation", "run_insim"]
 
@@ -43,6 +43,8 @@ class SimConfig:
         refit: ``"at_proposal"`` (GP hyperparameters refitted in every proposal) or ``"ahead"``
             (as the bridge does by default: fitted on the completed evaluations while the next
             setting is measured, ``refit_lag`` 1).
+        wearer: The simulated wearer (:class:`virtual_hw.wearer.WearerKind` value): ``realistic``
+            (default) or ``legacy``.
     """
 
     minutes: float = 60.0
@@ -55,8 +57,10 @@ class SimConfig:
     warmup_s: float = 180.0
     stopping: str = "adaptive"
     refit: str = "at_proposal"
+    wearer: str = WearerKind.REALISTIC.value
 
     def __post_init__(self) -> None:
+        wearer_kind(self.wearer)  # raises ConfigError naming the value and the choices
         if not (math.isfinite(self.minutes) and 0 < self.minutes <= 600):
             raise ConfigError(f"minutes={self.minutes!r}; expected a number in (0, 600]")
         if self.speed is not None and not (math.isfinite(self.speed) and self.speed > 0):
@@ -116,7 +120,7 @@ def run_insim(
     """
     wall0 = time.perf_counter()
     space = presets.preset(cfg.preset)
-    wearer = SimulatedWearer(space, seed=cfg.seed)
+    wearer = make_wearer(cfg.wearer, space, seed=cfg.seed)
     opt = HILOptimizer(space, n_explore=cfg.n_explore, max_breaths=cfg.max_breaths,
                        window=cfg.window, stopping=cfg.stopping, seed=cfg.seed,
                        refit_lag=1 if cfg.refit == "ahead" else 0)
@@ -187,6 +191,7 @@ def run_insim(
         "config": {"minutes": cfg.minutes, "seed": cfg.seed, "preset": cfg.preset,
                    "n_explore": cfg.n_explore, "max_breaths": cfg.max_breaths,
                    "window": cfg.window, "warmup_s": cfg.warmup_s, "stopping": cfg.stopping,
+                   "wearer": cfg.wearer,
                    "speed": "max" if cfg.speed is None else cfg.speed},
         "wall_time_s": time.perf_counter() - wall0,
     }

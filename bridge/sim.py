@@ -35,7 +35,7 @@ from hilbo_core.presets import preset
 from virtual_hw.cart import CartLink, LinkKind, VirtualCart
 from virtual_hw.clock import ScaledClock
 from virtual_hw.exosuit import SUIT_JOINTS, VirtualExosuit
-from virtual_hw.wearer import SimulatedWearer
+from virtual_hw.wearer import Wearer, WearerKind, make_wearer, wearer_kind
 
 __all__ = ["MAX_SPEED", "VirtualSimConfig", "add_simulation_truth", "run_virtual_sim", "sim_config_text"]
 
@@ -63,6 +63,8 @@ class VirtualSimConfig:
         exosuit_faults: Fault specs of the virtual exosuit (``virtual_hw.exosuit.EXOSUIT_FAULTS``).
         cart_faults: Fault specs of the virtual cart (``virtual_hw.cart.CART_FAULTS``).
         gc: The bridge's ``[protocol] gc`` (``freeze`` or ``automatic``, bridge/collector.py).
+        wearer: The simulated wearer (:class:`virtual_hw.wearer.WearerKind` value): ``realistic``
+            (default) or ``legacy``.
     """
 
     minutes: float = 60.0
@@ -79,8 +81,10 @@ class VirtualSimConfig:
     exosuit_faults: tuple[str, ...] = ()
     cart_faults: tuple[str, ...] = ()
     gc: str = "freeze"
+    wearer: str = WearerKind.REALISTIC.value
 
     def __post_init__(self) -> None:
+        wearer_kind(self.wearer)  # raises ConfigError naming the value and the choices
         if not (math.isfinite(self.minutes) and 0 < self.minutes <= 600):
             raise ConfigError(f"minutes={self.minutes!r}; expected a number in (0, 600]")
         if self.speed is not None and not (math.isfinite(self.speed) and self.speed > 0):
@@ -178,7 +182,7 @@ async def run_virtual_sim(cfg: VirtualSimConfig, out: Path, *, operator_view: bo
     space = preset(cfg.preset)
     speed = cfg.speed or MAX_SPEED
     clock = ScaledClock(speed)
-    wearer = SimulatedWearer(space, seed=cfg.seed, body_mass_kg=cfg.body_mass_kg)
+    wearer = make_wearer(cfg.wearer, space, seed=cfg.seed, body_mass_kg=cfg.body_mass_kg)
     channel = f"hilbo-sim-{uuid.uuid4().hex[:8]}"
     hcfg: HilboConfig = parse_config(sim_config_text(cfg, out), source="<hilbo sim>")
     async with VirtualCart(wearer, clock, link=CartLink(kind=LinkKind.TCP),
@@ -205,15 +209,25 @@ async def run_virtual_sim(cfg: VirtualSimConfig, out: Path, *, operator_view: bo
     return summary
 
 
-def add_simulation_truth(summary: dict[str, Any], wearer: SimulatedWearer) -> dict[str, Any]:
+def add_simulation_truth(summary: dict[str, Any], wearer: Wearer,
+                         end_s: float | None = None) -> dict[str, Any]:
     """A copy of a session summary with what only a simulation knows: the true optimum, the
     unassisted cost, the true cost of the recommended setting and its regret, the subject.
+
+    Costs and regret are the wearer's unadapted landscape (time 0). The realistic wearer's
+    adaptation scales every setting's cost by the same factor, so the regret as % of the
+    reduction is the same at any time; ``adaptation_factor_at_end`` and ``regret_w_at_end``
+    (the regret in W at the session's end) say what it is at the end.
 
     Args:
         summary: The bridge's summary (``BridgeSession.summary``).
         wearer: The simulated subject (the cart's wearer, or one built with the same seed).
+        end_s: The session's end on the wearer's breath clock; None: the wearer's last breath.
     """
     summary = dict(summary)
+    end = wearer.t_s if end_s is None else end_s
+    factor = wearer.adaptation_factor(end)
+    summary["adaptation_factor_at_end"] = factor
     opt_params, opt_cost = wearer.true_optimum
     summary["true_optimum"] = {"params": opt_params, "cost_w": opt_cost}
     summary["baseline_cost_w"] = wearer.baseline_cost_w
@@ -221,6 +235,7 @@ def add_simulation_truth(summary: dict[str, Any], wearer: SimulatedWearer) -> di
         true_best = wearer.true_cost_w(summary["best_params"])
         summary["true_cost_of_best"] = true_best
         summary["regret_w"] = true_best - opt_cost
+        summary["regret_w_at_end"] = (true_best - opt_cost) * factor
         summary["regret_pct_of_reduction"] = 100.0 * (true_best - opt_cost) / max(
             wearer.baseline_cost_w - opt_cost, 1e-9)
     summary["subject"] = wearer.subject

@@ -27,8 +27,9 @@ resumes a session paused by one (or by a silent cart) once the device and the ca
 again (:data:`RESUME_AFTER_S`), as the pause between the bouts is resumed at once; the log has
 the pause and the resume like any other.
 
-Truth: the cart's wearer is ``SimulatedWearer(preset, seed, body_mass_kg)``, a deterministic
-function of those three; this process builds the same subject to add the true optimum, the true
+Truth: the cart's wearer is ``make_wearer(wearer, preset, seed, body_mass_kg)``
+(:func:`virtual_hw.wearer.make_wearer`; the cart process gets ``--wearer``), a deterministic
+function of those four; this process builds the same subject to add the true optimum, the true
 cost of the recommendation and the regret to the summary.
 
 Lifecycle: :func:`device_processes` starts the children and always stops them (SIGTERM, then
@@ -66,7 +67,7 @@ from drivers.exosuit import CanBusConfig
 from drivers.exosuit.vcan_setup import vcan_problem
 from hilbo_core.presets import preset
 from virtual_hw.exosuit import SUIT_JOINTS
-from virtual_hw.wearer import SimulatedWearer
+from virtual_hw.wearer import make_wearer
 
 __all__ = [
     "BRIDGE_DEVICE_TIMEOUT_MS",
@@ -449,6 +450,7 @@ async def device_processes(
             "virtual-cart",
             [py, "-m", "virtual_hw.cli_cart", "--transport", "tcp", "--host", _LOOPBACK,
              "--port", "0", "--preset", cfg.preset, "--body-mass-kg", repr(cfg.body_mass_kg),
+             "--wearer", cfg.wearer,
              *clock, "--can-interface", can.interface, "--can-channel", str(can.channel),
              *(a for spec in cfg.cart_faults for a in ("--fault", str(spec)))],
             log_dir / "virtual-cart.log")
@@ -570,8 +572,8 @@ async def run_process_sim(cfg: VirtualSimConfig, out: Path, *, bus: str = "auto"
     if log_path.exists():
         log_path.unlink()  # the simulation's log is regenerated; a lab log never is
     speed = cfg.speed or MAX_SPEED
-    # The cart process's subject, rebuilt here (it is a function of these three) for the truth.
-    wearer = SimulatedWearer(preset(cfg.preset), seed=cfg.seed, body_mass_kg=cfg.body_mass_kg)
+    # The cart process's subject, rebuilt here (it is a function of these four) for the truth.
+    wearer = make_wearer(cfg.wearer, preset(cfg.preset), seed=cfg.seed, body_mass_kg=cfg.body_mass_kg)
     hcfg = parse_config(sim_config_text(cfg, out, device_timeout_ms=BRIDGE_DEVICE_TIMEOUT_MS),
                         source="<hilbo sim --processes>")
     async with device_processes(cfg, bus=kind, log_dir=out / "processes", speed=speed) as devices:
@@ -579,7 +581,10 @@ async def run_process_sim(cfg: VirtualSimConfig, out: Path, *, bus: str = "auto"
                                    can=dataclasses.replace(hcfg.can, bus=devices.can))
         result = await _run_supervised(hcfg, devices, log_path=log_path, operator_view=operator_view,
                                        n_actuators=len(SUIT_JOINTS[cfg.preset]), on_session=on_session)
-    summary = add_simulation_truth(result.summary, wearer)
+    # The rebuilt wearer has not walked: the session's end is the last evaluation's end (session
+    # time, within a breath of the cart's breath clock), for the adaptation at the end.
+    end_s = max((float(e["t_end"]) for e in result.summary.get("evaluations") or ()), default=0.0)
+    summary = add_simulation_truth(result.summary, wearer, end_s=end_s)
     summary["sim"] = {**dataclasses.asdict(cfg), "speed": speed, "processes": devices.report()}
     summary["wall_time_s"] = time.perf_counter() - wall0
     write_json_atomic(out / "summary.json", summary)

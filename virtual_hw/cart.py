@@ -1,7 +1,8 @@
 """The virtual metabolic cart: the simulated wearer's breaths over serial, TCP or UDP.
 
-A :class:`VirtualCart` stands in for a breath-by-breath gas analyser. It asks the
-:class:`~virtual_hw.wearer.SimulatedWearer` for every breath at that breath's simulated time and
+A :class:`VirtualCart` stands in for a breath-by-breath gas analyser. It asks the simulated
+wearer (a :class:`~virtual_hw.wearer.Wearer`, realistic or legacy:
+:func:`~virtual_hw.wearer.make_wearer`) for every breath at that breath's simulated time and
 writes it in one of the wire formats of ``drivers/cart/FORMAT.md`` — our hilbo-line (with a
 sequence number and CRC-16) or a vendor-like CSV (:data:`VIRTUAL_CSV_MAPPING`) — over
 
@@ -108,7 +109,7 @@ from hilbo_core.types import BreathRecord
 from virtual_hw.clock import Participant, SimClock
 from virtual_hw.errors import ClockError, VirtualConfigError
 from virtual_hw.faults import FaultCatalog, FaultKind, FaultSchedule, FaultShape, FaultSpec
-from virtual_hw.wearer import SimulatedWearer
+from virtual_hw.wearer import Wearer
 
 __all__ = [
     "CART_FAULTS",
@@ -721,7 +722,7 @@ class VirtualCart:
 
     def __init__(
         self,
-        wearer: SimulatedWearer,
+        wearer: Wearer,
         clock: SimClock,
         *,
         link: CartLink | None = None,

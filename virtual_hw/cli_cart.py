@@ -46,7 +46,7 @@ from virtual_hw.cart import CART_FAULTS, CartLink, LinkKind, VirtualCart
 from virtual_hw.clock import make_clock, parse_speed
 from virtual_hw.errors import VirtualConfigError, VirtualHwError
 from virtual_hw.faults import FaultSpec
-from virtual_hw.wearer import SimulatedWearer
+from virtual_hw.wearer import WEARER_CHOICES, WearerKind, make_wearer
 
 __all__ = [
     "ProfileFeed",
@@ -110,6 +110,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> argparse.ArgumentParser
     parser.add_argument("--preset", choices=sorted(PRESETS), default="hip_6d",
                         help="parameter space of the wearer's assistance (default hip_6d)")
     parser.add_argument("--seed", type=int, default=1, help="wearer (subject) seed (default 1)")
+    parser.add_argument("--wearer", choices=WEARER_CHOICES, default=WearerKind.REALISTIC.value,
+                        help="realistic (default: breath noise and outliers as in real data, "
+                             "tau 30-60 s, slow adaptation, two landscape families) or legacy "
+                             "(the earlier simulated wearer)")
     parser.add_argument("--body-mass-kg", type=float, default=75.0,
                         help="the wearer's body mass, 20-250 kg (default 75; match [session] "
                              "body_mass_kg)")
@@ -209,7 +213,8 @@ async def serve(
 
 async def _run(args: argparse.Namespace, out: TextIO) -> None:
     feed = profile_feed_from_args(args)
-    wearer = SimulatedWearer(preset(args.preset), seed=args.seed, body_mass_kg=args.body_mass_kg)
+    wearer = make_wearer(args.wearer, preset(args.preset), seed=args.seed,
+                         body_mass_kg=args.body_mass_kg)
     clock = make_clock(args.speed, args.epoch)
     link = CartLink(kind=LinkKind(args.transport), host=args.host, port=args.port)
     cart = VirtualCart(

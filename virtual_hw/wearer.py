@@ -85,11 +85,12 @@ Constants (:class:`WearerConfig`; a range means "drawn uniformly per subject")
 
 from __future__ import annotations
 
+import enum
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from functools import cached_property
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 from scipy.optimize import minimize
@@ -102,14 +103,23 @@ from hilbo_core.types import BreathRecord
 __all__ = [
     "ANKLE_PRIOR",
     "HIP_PRIOR",
+    "WEARER_CHOICES",
     "ActuatorPrior",
     "AssistWindow",
     "SimulatedWearer",
+    "Wearer",
     "WearerConfig",
+    "WearerKind",
     "assistance_score",
+    "check_profiles",
+    "check_subject_args",
+    "check_time",
+    "find_optimum",
+    "make_wearer",
     "relaxed_rate_w",
     "saturate_penalty",
     "timing_window",
+    "wearer_kind",
 ]
 
 # Brockway (1987): P[W] = 16.58·VO2[ml/s] + 4.51·VCO2[ml/s].
@@ -197,6 +207,111 @@ def relaxed_rate_w(t_s: float, t_change_s: float, rate_at_change_w: float, targe
     ``m(t) = c + (m(t_c) - c)·exp(-(t - t_c)/τ)`` for ``t >= t_c``.
     """
     return target_w + (rate_at_change_w - target_w) * math.exp(-(t_s - t_change_s) / tau_s)
+
+
+def check_time(name: str, t_s: float) -> float:
+    """``t_s`` as a float, refusing anything but a finite time >= 0 s.
+
+    Raises:
+        MeasurementError: Not a number, not finite, or negative (names ``name``).
+    """
+    try:
+        t = float(t_s)
+    except (TypeError, ValueError) as err:
+        raise MeasurementError(f"{name}={t_s!r} is not a time in seconds") from err
+    if not math.isfinite(t) or t < 0.0:
+        raise MeasurementError(f"{name}={t_s!r} must be a finite time >= 0 s")
+    return t
+
+
+def check_profiles(profiles: Sequence[ForceProfile] | ForceProfile,
+                   known: Mapping[str, Any]) -> tuple[ForceProfile, ...]:
+    """The applied tables as a tuple, at most one per actuator, each an actuator in ``known``.
+
+    Raises:
+        ConfigError: Not ForceProfiles, an actuator twice, or an unknown actuator.
+    """
+    if isinstance(profiles, ForceProfile):
+        profiles = (profiles,)
+    try:
+        profs = tuple(profiles)
+    except TypeError as err:
+        raise ConfigError(f"profiles must be a sequence of ForceProfile, got {profiles!r}") from err
+    seen: set[str] = set()
+    for p in profs:
+        if not isinstance(p, ForceProfile):
+            raise ConfigError(f"expected ForceProfile values, got {type(p).__name__}")
+        if p.actuator not in known:
+            raise ConfigError(
+                f"no model for actuator {p.actuator!r}; this wearer knows {sorted(known)}"
+            )
+        if p.actuator in seen:
+            raise ConfigError(f"actuator {p.actuator!r} appears twice in the applied profiles")
+        seen.add(p.actuator)
+    return profs
+
+
+def check_subject_args(space: ParameterSpace, seed: int, body_mass_kg: float) -> None:
+    """Validate a wearer's space, seed and body mass.
+
+    Raises:
+        ConfigError: Not a ParameterSpace or one without a force-profile builder, a seed that is
+            not a non-negative integer, or a body mass outside [20, 250] kg.
+    """
+    if not isinstance(space, ParameterSpace):
+        raise ConfigError(f"space must be a ParameterSpace, got {type(space).__name__}")
+    if space.name not in PROFILE_BUILDERS:
+        raise ConfigError(
+            f"space {space.name!r} has no force-profile builder; known: "
+            f"{sorted(PROFILE_BUILDERS)}"
+        )
+    if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
+        raise ConfigError(f"seed={seed!r} must be a non-negative integer")
+    if isinstance(body_mass_kg, bool) or not isinstance(body_mass_kg, int | float) or not (
+        20.0 <= body_mass_kg <= 250.0
+    ):
+        raise ConfigError(f"body_mass_kg={body_mass_kg!r} must be a number in [20, 250] kg")
+
+
+def find_optimum(space: ParameterSpace, cost_unit: Callable[[np.ndarray], float],
+                 search_ss: np.random.SeedSequence, n_candidates: int,
+                 n_starts: int) -> tuple[dict[str, float], float]:
+    """``(params, cost)`` of the best feasible point of ``cost_unit`` over the unit cube.
+
+    Scrambled-Sobol feasible candidates (``n_candidates``), then SLSQP in the unit cube under the
+    space's linear constraints from the ``n_starts`` best of them; the best feasible result wins
+    (a candidate itself if refinement never improves on it).
+
+    Args:
+        space: The parameter space (its constraints and unit-cube map).
+        cost_unit: Cost of a unit-cube point, shape (d,) -> float.
+        search_ss: Seeds the candidates (deterministic for a subject).
+        n_candidates: Candidate points.
+        n_starts: SLSQP starts from the best candidates.
+    """
+    rng = np.random.default_rng(search_ss)
+    cand = space.sample_unit(n_candidates, rng)
+    costs = np.array([cost_unit(u) for u in cand])
+    order = np.argsort(costs)
+    best_u, best_c = cand[order[0]], float(costs[order[0]])
+    A_u, b_u = space.unit_constraints()
+    constraints = (
+        [{"type": "ineq", "fun": lambda u: b_u - A_u @ u, "jac": lambda u: -A_u}]
+        if len(b_u) else []
+    )
+    for i in order[:n_starts]:
+        # eps: the tables are sampled at 1 %GC, so the cost is only piecewise smooth at the
+        # 1e-8 scale of the default finite-difference step; 1e-6 sees the smooth trend.
+        res = minimize(cost_unit, cand[i], method="SLSQP",
+                       bounds=[(0.0, 1.0)] * space.dim, constraints=constraints,
+                       options={"ftol": 1e-10, "maxiter": 100, "eps": 1e-6})
+        u = np.clip(res.x, 0.0, 1.0)
+        if not space.feasible_mask(space.from_unit(u)[None, :])[0]:
+            continue
+        c = cost_unit(u)
+        if c < best_c:
+            best_u, best_c = u, c
+    return space.to_dict(space.from_unit(best_u)), best_c
 
 
 # ---------------------------------------------------------------------------- configuration
@@ -367,19 +482,7 @@ class SimulatedWearer:
 
     def __init__(self, space: ParameterSpace, seed: int, config: WearerConfig | None = None,
                  body_mass_kg: float = 75.0) -> None:
-        if not isinstance(space, ParameterSpace):
-            raise ConfigError(f"space must be a ParameterSpace, got {type(space).__name__}")
-        if space.name not in PROFILE_BUILDERS:
-            raise ConfigError(
-                f"space {space.name!r} has no force-profile builder; known: "
-                f"{sorted(PROFILE_BUILDERS)}"
-            )
-        if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
-            raise ConfigError(f"seed={seed!r} must be a non-negative integer")
-        if isinstance(body_mass_kg, bool) or not isinstance(body_mass_kg, int | float) or not (
-            20.0 <= body_mass_kg <= 250.0
-        ):
-            raise ConfigError(f"body_mass_kg={body_mass_kg!r} must be a number in [20, 250] kg")
+        check_subject_args(space, seed, body_mass_kg)
         cfg = WearerConfig() if config is None else config
         if not isinstance(cfg, WearerConfig):
             raise ConfigError(f"config must be a WearerConfig, got {type(cfg).__name__}")
@@ -448,6 +551,7 @@ class SimulatedWearer:
     def subject(self) -> dict[str, Any]:
         """JSON-able summary of the subject for logs and summary.json."""
         return {
+            "wearer": "legacy",
             "seed": self.seed,
             "space": self.space.name,
             "body_mass_kg": self.body_mass_kg,
@@ -473,7 +577,7 @@ class SimulatedWearer:
             ConfigError: Not ForceProfiles, an actuator twice, or an actuator this subject has
                 no window for.
         """
-        profs = self._check_profiles(profiles)
+        profs = check_profiles(profiles, self._windows)
         saving = 0.0
         for p in profs:
             w = self._windows[p.actuator]
@@ -493,9 +597,20 @@ class SimulatedWearer:
         return build_profile(self.space.name, self.space.to_dict(vec),
                              body_mass_kg=self.body_mass_kg)
 
-    def true_cost_w(self, params: Mapping[str, float]) -> float:
-        """Noiseless steady-state cost in W of a feasible setting (for regret and summaries)."""
+    def true_cost_w(self, params: Mapping[str, float], t_s: float | None = None) -> float:
+        """Noiseless steady-state cost in W of a feasible setting (for regret and summaries).
+
+        ``t_s`` is accepted for the interface shared with the realistic wearer; this wearer does
+        not adapt, so the cost is the same at every time.
+        """
+        if t_s is not None:
+            check_time("t_s", t_s)
         return self.cost_of_profiles(self.profiles_for(params))
+
+    def adaptation_factor(self, t_s: float) -> float:
+        """Every setting's cost at ``t_s`` over its cost at 0 s: always 1 (no adaptation)."""
+        check_time("t_s", t_s)
+        return 1.0
 
     def _cost_unit(self, u: np.ndarray) -> float:
         x = self.space.from_unit(np.clip(u, 0.0, 1.0))
@@ -511,30 +626,8 @@ class SimulatedWearer:
         cube under the space's linear constraints from the ``n_optimum_starts`` best of them;
         the best feasible result wins (a candidate itself if refinement never improves on it).
         """
-        space = self.space
-        rng = np.random.default_rng(self._search_ss)
-        cand = space.sample_unit(self.config.n_optimum_candidates, rng)
-        costs = np.array([self._cost_unit(u) for u in cand])
-        order = np.argsort(costs)
-        best_u, best_c = cand[order[0]], float(costs[order[0]])
-        A_u, b_u = space.unit_constraints()
-        constraints = (
-            [{"type": "ineq", "fun": lambda u: b_u - A_u @ u, "jac": lambda u: -A_u}]
-            if len(b_u) else []
-        )
-        for i in order[: self.config.n_optimum_starts]:
-            # eps: the tables are sampled at 1 %GC, so the cost is only piecewise smooth at the
-            # 1e-8 scale of the default finite-difference step; 1e-6 sees the smooth trend.
-            res = minimize(self._cost_unit, cand[i], method="SLSQP",
-                           bounds=[(0.0, 1.0)] * space.dim, constraints=constraints,
-                           options={"ftol": 1e-10, "maxiter": 100, "eps": 1e-6})
-            u = np.clip(res.x, 0.0, 1.0)
-            if not space.feasible_mask(space.from_unit(u)[None, :])[0]:
-                continue
-            c = self._cost_unit(u)
-            if c < best_c:
-                best_u, best_c = u, c
-        return space.to_dict(space.from_unit(best_u)), best_c
+        return find_optimum(self.space, self._cost_unit, self._search_ss,
+                            self.config.n_optimum_candidates, self.config.n_optimum_starts)
 
     # ------------------------------------------------------------------ dynamics
     @property
@@ -562,7 +655,7 @@ class SimulatedWearer:
 
         Times before the last change use the history, so any ``t_s >= 0`` is answered.
         """
-        t = self._check_time("t_s", t_s)
+        t = check_time("t_s", t_s)
         seg = self._segments[0]
         for s in reversed(self._segments):
             if s[0] <= t:
@@ -585,14 +678,14 @@ class SimulatedWearer:
             MeasurementError: ``t_s`` is not finite or goes backwards.
             ConfigError: Bad profiles (see :meth:`cost_of_profiles`).
         """
-        t = self._check_time("t_s", t_s)
+        t = check_time("t_s", t_s)
         latest = max(self._t_last_s, self._segments[-1][0])
         if t < latest:
             raise MeasurementError(
                 f"apply time t_s={t!r} goes backwards; expected >= {latest!r} (the last breath "
                 "or change)"
             )
-        profs = self._check_profiles(profiles)
+        profs = check_profiles(profiles, self._windows)
         target = self.cost_of_profiles(profs)
         self._applied = profs
         t_c, m_c, old_target = self._segments[-1]
@@ -657,7 +750,7 @@ class SimulatedWearer:
         Raises:
             MeasurementError: ``t_s`` not finite, before the last breath, or absurdly far ahead.
         """
-        t = self._check_time("t_s", t_s)
+        t = check_time("t_s", t_s)
         if t < self._t_last_s:
             raise MeasurementError(
                 f"t_s={t!r} goes backwards; expected >= {self._t_last_s!r} (the last breath)"
@@ -673,34 +766,90 @@ class SimulatedWearer:
             out.append(self.next_breath())
         return out
 
-    # ------------------------------------------------------------------ validation
-    @staticmethod
-    def _check_time(name: str, t_s: float) -> float:
-        try:
-            t = float(t_s)
-        except (TypeError, ValueError) as err:
-            raise MeasurementError(f"{name}={t_s!r} is not a time in seconds") from err
-        if not math.isfinite(t) or t < 0.0:
-            raise MeasurementError(f"{name}={t_s!r} must be a finite time >= 0 s")
-        return t
 
-    def _check_profiles(self, profiles: Sequence[ForceProfile]) -> tuple[ForceProfile, ...]:
-        if isinstance(profiles, ForceProfile):
-            profiles = (profiles,)
-        try:
-            profs = tuple(profiles)
-        except TypeError as err:
-            raise ConfigError(f"profiles must be a sequence of ForceProfile, got {profiles!r}") from err
-        seen: set[str] = set()
-        for p in profs:
-            if not isinstance(p, ForceProfile):
-                raise ConfigError(f"expected ForceProfile values, got {type(p).__name__}")
-            if p.actuator not in self._windows:
-                raise ConfigError(
-                    f"no model for actuator {p.actuator!r}; this wearer knows "
-                    f"{sorted(self._windows)}"
-                )
-            if p.actuator in seen:
-                raise ConfigError(f"actuator {p.actuator!r} appears twice in the applied profiles")
-            seen.add(p.actuator)
-        return profs
+# ---------------------------------------------------------------------------- choosing a wearer
+class WearerKind(enum.Enum):
+    """Which simulated wearer a simulation uses (``--wearer``).
+
+    * ``REALISTIC`` (the default of ``hilbo sim`` and ``hilbo bench hil``):
+      :class:`virtual_hw.wearer_realistic.RealisticWearer` — breath noise and outliers as in real
+      data, per-person τ 30-60 s, slow adaptation, two landscape families (issue 16).
+    * ``LEGACY``: :class:`SimulatedWearer` — one landscape family, AR(1) Gaussian noise, no
+      adaptation; kept for the results and tests that were measured on it.
+    """
+
+    REALISTIC = "realistic"
+    LEGACY = "legacy"
+
+
+#: What ``--wearer`` accepts.
+WEARER_CHOICES: tuple[str, ...] = tuple(k.value for k in WearerKind)
+
+
+@runtime_checkable
+class Wearer(Protocol):
+    """What a simulation (the virtual cart, the in-process loops, the summaries) uses of a wearer."""
+
+    space: ParameterSpace
+    seed: int
+    body_mass_kg: float
+
+    @property
+    def t_s(self) -> float: ...
+
+    @property
+    def baseline_cost_w(self) -> float: ...
+
+    @property
+    def true_optimum(self) -> tuple[dict[str, float], float]: ...
+
+    @property
+    def subject(self) -> dict[str, Any]: ...
+
+    def true_cost_w(self, params: Mapping[str, float], t_s: float | None = None) -> float: ...
+
+    def adaptation_factor(self, t_s: float) -> float: ...
+
+    def apply_profiles(self, profiles: Sequence[ForceProfile], t_s: float) -> float: ...
+
+    def apply_params(self, params: Mapping[str, float], t_s: float) -> float: ...
+
+    def next_breath(self) -> BreathRecord: ...
+
+    def breaths_until(self, t_s: float) -> list[BreathRecord]: ...
+
+
+def wearer_kind(kind: WearerKind | str) -> WearerKind:
+    """``kind`` as a :class:`WearerKind`.
+
+    Raises:
+        ConfigError: Not a wearer kind (names the value and the choices).
+    """
+    if isinstance(kind, WearerKind):
+        return kind
+    try:
+        return WearerKind(kind)
+    except ValueError as err:
+        raise ConfigError(f"wearer={kind!r}; expected one of {', '.join(WEARER_CHOICES)}") from err
+
+
+def make_wearer(kind: WearerKind | str, space: ParameterSpace, seed: int,
+                body_mass_kg: float = 75.0) -> Wearer:
+    """A simulated wearer of ``kind`` with its default population constants.
+
+    Args:
+        kind: :class:`WearerKind` or its value (``"realistic"``, ``"legacy"``).
+        space: The parameter space.
+        seed: The subject seed.
+        body_mass_kg: The subject's mass in kg.
+
+    Raises:
+        ConfigError: Unknown kind, or bad space, seed or mass.
+    """
+    k = wearer_kind(kind)
+    if k is WearerKind.LEGACY:
+        return SimulatedWearer(space, seed=seed, body_mass_kg=body_mass_kg)
+    # Imported here: the realistic wearer builds on this module's functions.
+    from virtual_hw.wearer_realistic import RealisticWearer
+
+    return RealisticWearer(space, seed=seed, body_mass_kg=body_mass_kg)

@@ -23,6 +23,7 @@ from bridge.bench.common import choices, machine_info, numbers, round_sig, write
 from bridge.collector import GcMode
 from hilbo_core.benchmarks import FUNCTIONS, METHODS, NOISE_LEVELS, StoppingProtocol
 from hilbo_core.errors import ConfigError, HilboError
+from virtual_hw.wearer import WEARER_CHOICES, WearerKind
 
 __all__ = ["add_bench_parser", "bench_main"]
 
@@ -153,6 +154,7 @@ def _cmd_hil(args: argparse.Namespace) -> int:
         HIL_METHODS,
         HilProtocol,
         HilTask,
+        check_methods_for_wearer,
         hil_comparisons,
         hil_table,
         load_sessions,
@@ -171,7 +173,8 @@ def _cmd_hil(args: argparse.Namespace) -> int:
     protocol = HilProtocol(minutes=args.minutes, warmup_s=args.warmup_s, condition_s=args.condition_s,
                            popsize=args.popsize, sigma0=args.sigma0, penalty_w=args.penalty_w,
                            n_explore=args.n_explore, max_breaths=args.max_breaths, window=args.window,
-                           grid_min=args.grid_min)
+                           grid_min=args.grid_min, wearer=args.wearer)
+    check_methods_for_wearer(methods, protocol.wearer)  # before any tuning runs
     seeds = list(range(args.seed, args.seed + args.subjects))
     out = Path(args.out)
     console = _console()
@@ -215,6 +218,7 @@ def _cmd_hil(args: argparse.Namespace) -> int:
                f"--condition-s {args.condition_s:g} --popsize {args.popsize} --sigma0 {args.sigma0:g} "
                f"--penalty-w {args.penalty_w:g} --n-explore {args.n_explore} "
                f"--max-breaths {args.max_breaths} --window {args.window} --grid-min {args.grid_min:g} "
+               f"--wearer {args.wearer} "
                + (f"--tuned-k {args.tuned_k} --tune-subjects {args.tune_subjects} --tune-seed "
                   f"{args.tune_seed} --error-weight {args.error_weight:g} "
                   if "adaptive-tuned-k" in methods else "")
@@ -416,6 +420,9 @@ def add_bench_parser(subparsers: Any) -> Any:
     hil.add_argument("--max-breaths", type=_int, default=45, help="BO's N (45)")
     hil.add_argument("--window", type=_int, default=2, help="BO's window W (2)")
     hil.add_argument("--grid-min", type=float, default=1.0, help="minutes grid of the summary (1)")
+    hil.add_argument("--wearer", choices=WEARER_CHOICES, default=WearerKind.REALISTIC.value,
+                     help="simulated wearer: realistic (default; issue 16) or legacy (the earlier "
+                          "one; the seed-003 methods need it)")
     hil.add_argument("--tuned-k", default="bo", metavar="bo|grid|K",
                      help="K of adaptive-tuned-k: bo = BO-RESAMPLE's recommendation, grid = the best "
                           "of an exhaustive grid, both tuned offline on the full-length trajectories "

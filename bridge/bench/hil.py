@@ -1,6 +1,8 @@
 """``hilbo bench hil``: whole simulated HIL sessions on simulated wearers, four methods.
 
-Every session is one subject (a :class:`~virtual_hw.wearer.SimulatedWearer` seed) walking a
+Every session is one subject (a simulated wearer's seed: the realistic wearer of
+:mod:`virtual_hw.wearer_realistic` by default, the legacy :class:`~virtual_hw.wearer.SimulatedWearer`
+with ``wearer="legacy"``, :attr:`HilProtocol.wearer`) walking a
 session of ``minutes`` on the wearer's breath clock (default 60, like the seed's protocol,
 §IV.A.3): a 3-minute unassisted warm-up, a first bout, a second 3-minute warm-up and a second
 bout until the session ends. The methods:
@@ -79,7 +81,8 @@ from hilbo_core.optimizer import HILOptimizer
 from hilbo_core.presets import PRESETS, preset
 from hilbo_core.priors import priors_from_evaluations
 from hilbo_core.space import ParameterSpace
-from virtual_hw.wearer import SimulatedWearer, WearerConfig
+from virtual_hw.wearer import WearerConfig, WearerKind, make_wearer, wearer_kind
+from virtual_hw.wearer_realistic import RealisticWearerConfig
 
 __all__ = [
     "DEFAULT_HIL_METHODS",
@@ -88,6 +91,7 @@ __all__ = [
     "THESIS_METHODS",
     "HilProtocol",
     "HilTask",
+    "check_methods_for_wearer",
     "hil_comparisons",
     "hil_table",
     "load_sessions",
@@ -127,6 +131,9 @@ class HilProtocol:
         penalty_w: CMA-ES constraint penalty in W per squared unit-cube distance.
         bout1_conditions: CMA-ES / random-search conditions before the second warm-up.
         grid_min: Spacing of the minutes grid of the summary.
+        wearer: The simulated wearer (:class:`virtual_hw.wearer.WearerKind` value): ``realistic``
+            (default) or ``legacy``. Regret is scored on the same kind's unadapted landscape
+            (:mod:`virtual_hw.wearer_realistic`, "Truth and regret").
     """
 
     minutes: float = 60.0
@@ -140,8 +147,10 @@ class HilProtocol:
     penalty_w: float = 500.0
     bout1_conditions: int = 8
     grid_min: float = 1.0
+    wearer: str = WearerKind.REALISTIC.value
 
     def __post_init__(self) -> None:
+        wearer_kind(self.wearer)  # raises ConfigError naming the value and the choices
         for name, low in (("n_explore", 1), ("max_breaths", 2), ("window", 0), ("popsize", 2),
                           ("bout1_conditions", 0)):
             v = getattr(self, name)
@@ -159,7 +168,9 @@ class HilProtocol:
             raise ConfigError(f"minutes={self.minutes!r}; expected at most 600")
         session_s = self.minutes * 60.0
         # The exploration bout at the slowest mean breathing of the wearer population.
-        explore_s = self.n_explore * self.max_breaths * WearerConfig().breath_interval_s[1]
+        slowest_s = (WearerConfig().breath_interval_s[1] if self.wearer == WearerKind.LEGACY.value
+                     else RealisticWearerConfig().breath_interval_s[1])
+        explore_s = self.n_explore * self.max_breaths * slowest_s
         if 2 * self.warmup_s + explore_s >= session_s:
             raise ConfigError(
                 f"minutes={self.minutes:g} is too short: the warm-ups ({2 * self.warmup_s / 60:g} min) "
@@ -214,6 +225,22 @@ class HilTask:
         elif self.stopping_k is not None:
             raise ConfigError(f"stopping_k={self.stopping_k!r} is only for adaptive-tuned-k, "
                               f"not {self.method!r}")
+        check_methods_for_wearer([self.method], self.protocol.wearer)
+
+
+def check_methods_for_wearer(methods: Iterable[str], wearer: str) -> None:
+    """Refuse the seed-003 methods on any wearer but the legacy one.
+
+    :func:`bridge.thesis_session.run_session` builds the legacy wearer itself; scoring its sessions
+    on another wearer's landscape would be meaningless.
+
+    Raises:
+        ConfigError: A method of :data:`THESIS_METHODS` with ``wearer`` other than ``legacy``.
+    """
+    bad = [m for m in methods if m in THESIS_METHODS]
+    if bad and wearer != WearerKind.LEGACY.value:
+        raise ConfigError(f"method(s) {', '.join(bad)} run on the legacy wearer only "
+                          f"(bridge/thesis_session.py), not wearer={wearer!r}; use --wearer legacy")
 
 
 # --------------------------------------------------------------------------------------------
@@ -287,7 +314,7 @@ class _Session:
 
     def __init__(self, space: ParameterSpace, seed: int, proto: HilProtocol) -> None:
         self.space = space
-        self.wearer = SimulatedWearer(space, seed=seed)
+        self.wearer = make_wearer(proto.wearer, space, seed=seed)
         self.proto = proto
         self.end_s = proto.minutes * 60.0
         self.n_conditions = 0
@@ -340,7 +367,8 @@ def _run_bo(task: HilTask) -> dict[str, Any]:
         SimConfig(minutes=proto.minutes, seed=task.seed, preset=task.space, n_explore=proto.n_explore,
                   max_breaths=proto.max_breaths, window=proto.window, warmup_s=proto.warmup_s,
                   stopping="adaptive" if task.method == "adaptive-ahead" else task.method,
-                  refit="ahead" if task.method == "adaptive-ahead" else "at_proposal"),
+                  refit="ahead" if task.method == "adaptive-ahead" else "at_proposal",
+                  wearer=proto.wearer),
         on_evaluation=on_eval,
     )
     evals = summary["evaluations"]
@@ -554,7 +582,7 @@ def run_hil_task(task: HilTask) -> dict[str, Any]:
               **dict.fromkeys(THESIS_METHODS, _run_thesis)}[task.method]
     out = runner(task)
     # The true landscape of the same subject (same seed); the optimum is found numerically.
-    judge = SimulatedWearer(preset(task.space), seed=task.seed)
+    judge = make_wearer(task.protocol.wearer, preset(task.space), seed=task.seed)
     _, opt_cost = judge.true_optimum
     baseline = judge.baseline_cost_w
     reduction = max(baseline - opt_cost, 1e-9)

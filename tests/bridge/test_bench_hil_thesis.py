@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -25,11 +26,12 @@ from bridge.bench.hil import _thesis_arm as _thesis_arm  # the method → sessio
 from bridge.thesis_session import Arm, run_session
 from hilbo_core.errors import ConfigError
 
+# The seed-003 methods run on the legacy wearer (bridge/thesis_session.py builds it).
 TOY = HilProtocol(minutes=5.5, warmup_s=30.0, n_explore=2, max_breaths=5, condition_s=30.0, popsize=4,
-                  bout1_conditions=4, grid_min=0.5)
+                  bout1_conditions=4, grid_min=0.5, wearer="legacy")
 # The feature kernel costs ~1 s per proposal (profiles of every EI candidate): a shorter session.
 TINY = HilProtocol(minutes=1.5, warmup_s=10.0, n_explore=2, max_breaths=3, condition_s=20.0, popsize=2,
-                   bout1_conditions=2, grid_min=0.5)
+                   bout1_conditions=2, grid_min=0.5, wearer="legacy")
 RESULT_KEYS = {"method", "space", "seed", "trace", "baseline_cost_w", "optimum_cost_w", "final_regret_w",
                "final_regret_pct", "evaluations_per_hour", "n_evaluations", "n_evaluations_bout2",
                "early_stops", "assisted_s", "bout2_s", "session_s", "n_explore", "n_priors", "stopping_k",
@@ -106,6 +108,18 @@ def test_task_validation() -> None:
         HilTask("adaptive", "hip_6d", 1, TOY, stopping_k=1.0)
     with pytest.raises(ConfigError, match="feature='dog'"):
         Arm("x", feature="dog")
+    # bridge/thesis_session.py builds the legacy wearer: the realistic one is refused by name.
+    with pytest.raises(ConfigError, match=r"adaptive-day2 run on the legacy wearer only .*'realistic'"):
+        HilTask("adaptive-day2", "hip_6d", 1, dataclasses.replace(TOY, wearer="realistic"))
+
+
+def test_thesis_methods_on_the_realistic_wearer_exit_2_before_any_work(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "out"
+    assert bench_main(["hil", "--methods", "adaptive,adaptive-tuned-k", "--subjects", "2",
+                       "--out", str(out)]) == 2
+    assert "adaptive-tuned-k run on the legacy wearer only" in capsys.readouterr().err
+    assert not out.exists()
 
 
 def test_tune_constant_k_on_training_trajectories() -> None:
@@ -154,7 +168,8 @@ def test_comparisons_include_method_minus_adaptive_and_prior_minus_day2() -> Non
 def test_cli_runs_the_thesis_methods_tunes_k_and_resumes(tmp_path: Path) -> None:
     toy = ["--subjects", "1", "--seed", "3", "--spaces", "hip_6d", "--minutes", "5.5", "--warmup-s", "30",
            "--n-explore", "2", "--max-breaths", "5", "--condition-s", "30", "--popsize", "4",
-           "--grid-min", "0.5", "--workers", "1", "--no-progress", "--out", str(tmp_path)]
+           "--grid-min", "0.5", "--workers", "1", "--no-progress", "--wearer", "legacy",
+           "--out", str(tmp_path)]
     methods = "adaptive,adaptive-day2,adaptive-prior,adaptive-prior-e3,adaptive-tuned-k"
     assert bench_main(["hil", "--methods", methods, "--tuned-k", "grid", "--tune-subjects", "2",
                        "--tune-seed", "101", *toy]) == 0
@@ -190,7 +205,7 @@ def test_bad_tuned_k_options_exit_2_before_any_work(extra: list[str], message: s
                                                     capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "out"
     argv = ["hil", "--methods", "adaptive,adaptive-tuned-k", "--subjects", "2", "--seed", "1",
-            "--tune-subjects", "2", *extra, "--out", str(out)]
+            "--tune-subjects", "2", "--wearer", "legacy", *extra, "--out", str(out)]
     assert bench_main(argv) == 2
     assert message in capsys.readouterr().err
     assert not out.exists()

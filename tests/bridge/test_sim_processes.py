@@ -37,7 +37,7 @@ from bridge.logread import LogContents, read_log
 from bridge.sim import VirtualSimConfig
 from bridge.sim_processes import ChildProcess, device_processes, run_process_sim, vcan_problem
 from hilbo_core.presets import hip_6d
-from virtual_hw.wearer import SimulatedWearer
+from virtual_hw.wearer_realistic import RealisticWearer
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -81,7 +81,7 @@ def assert_the_wearer_felt_the_applied_profiles(log: LogContents, seed: int) -> 
     """Unassisted until the first push; then, within every evaluation, the metabolic rate relaxes
     towards the cost of that setting (first order, seed 000 §II.C) and away from unassisted."""
     breaths = log.data("/breaths")
-    reference = SimulatedWearer(hip_6d(), seed)
+    reference = RealisticWearer(hip_6d(), seed)  # the default wearer of the cart process
     unassisted = {b.t_s: b.watts for b in reference.breaths_until(breaths[-1]["t_s"])}
     # Same subject, breath for breath (the cart skipped those before it started).
     assert all(b["t_s"] in unassisted for b in breaths)

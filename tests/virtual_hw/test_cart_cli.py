@@ -24,6 +24,7 @@ from hilbo_core.presets import hip_6d
 from virtual_hw.cli_cart import add_virtual_cart_parser, main, run_from_args
 from virtual_hw.faults import FaultSpec
 from virtual_hw.wearer import SimulatedWearer
+from virtual_hw.wearer_realistic import RealisticWearer
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -79,8 +80,8 @@ async def test_tcp_cart_process_serves_the_wearers_breaths_and_stops_on_sigterm(
         code, err = await stop(proc)
     assert code == 0, err
     # The same subject as in-process: the breaths are a run of the seeded wearer's breaths
-    # (those before the client connected went to nobody).
-    reference = SimulatedWearer(hip_6d(), 3).breaths_until(got[-1].t_s)
+    # (those before the client connected went to nobody); the default wearer is the realistic one.
+    reference = RealisticWearer(hip_6d(), 3).breaths_until(got[-1].t_s)
     first = reference.index(got[0])
     assert reference[first:first + len(got)] == got
 
@@ -88,7 +89,7 @@ async def test_tcp_cart_process_serves_the_wearers_breaths_and_stops_on_sigterm(
 @pytest.mark.slow
 async def test_serial_cart_process_at_max_speed_waits_for_its_reader_and_ends_after_minutes() -> None:
     proc, address = await start_cart("--transport", "serial", "--speed", "max", "--minutes", "2",
-                                     "--seed", "4", "--fault", "duplicate@30x2")
+                                     "--seed", "4", "--wearer", "legacy", "--fault", "duplicate@30x2")
     try:
         assert address[0] == "serial" and Path(address[1]).is_symlink()
         config = CartConfig(transport="serial", options=SerialOptions(port=address[1],
