@@ -399,7 +399,11 @@ class ProtocolConfig:
         budget_min: Optimisation-bout budget in minutes of breath time, or None.
         budget_breaths: Optimisation-bout budget in breaths, or None (at least one budget is set;
             with both, the first spent ends the bout).
-        stopping: ``adaptive`` (Algorithm 2 + the σ-scaled rule) or ``fixed`` (always N breaths).
+        stopping: ``sound`` (default: the σ-scaled rule with a time and a threshold floor and
+            the GP-posterior incumbent, issue 17), ``adaptive`` (Algorithm 2 + the seed's
+            σ-scaled rule) or ``fixed`` (always N breaths).
+        min_decision_s: The sound rule's seconds in a setting before any stop decision, 0–600.
+        a_floor: The sound rule's threshold floor in σ, 0–10.
         seed: The optimizer's random seed (>= 0).
         xi: Expected Improvement's ξ (seed 000 §II.B sign convention).
         kernel: ``matern52`` or ``se``.
@@ -424,7 +428,9 @@ class ProtocolConfig:
     window: int = 2
     budget_min: float | None = 40.0
     budget_breaths: int | None = None
-    stopping: StoppingKind = StoppingKind.ADAPTIVE
+    stopping: StoppingKind = StoppingKind.SOUND
+    min_decision_s: float = 60.0
+    a_floor: float = 1.0
     seed: int = 0
     xi: float = 0.0
     kernel: KernelKind = KernelKind.MATERN52
@@ -445,6 +451,7 @@ class ProtocolConfig:
         return OptimizerConfig(
             n_explore=self.n_explore, max_breaths=self.max_breaths, window=self.window,
             budget_s=self.budget_s, budget_breaths=self.budget_breaths, stopping=self.stopping,
+            min_decision_s=self.min_decision_s, a_floor=self.a_floor,
             seed=self.seed, xi=self.xi, kernel=self.kernel, n_candidates=self.n_candidates,
             n_local=self.n_local, refit_lag=1 if self.refit is RefitMode.AHEAD else 0,
         )
@@ -470,7 +477,9 @@ def _parse_protocol(data: object) -> ProtocolConfig:
         window=t.integer("window", 2, lo=0, hi=max_breaths - 1),
         budget_min=budget_min,
         budget_breaths=budget_breaths,
-        stopping=t.choice("stopping", StoppingKind, StoppingKind.ADAPTIVE),
+        stopping=t.choice("stopping", StoppingKind, StoppingKind.SOUND),
+        min_decision_s=t.number("min_decision_s", 60.0, lo=0.0, hi=600.0),
+        a_floor=t.number("a_floor", 1.0, lo=0.0, hi=10.0),
         seed=t.integer("seed", 0, lo=0, hi=2**63 - 1),
         xi=t.number("xi", 0.0, lo=-1e6, hi=1e6),
         kernel=t.choice("kernel", KernelKind, KernelKind.MATERN52),
