@@ -149,6 +149,11 @@ class OptimizerConfig:
         remeasure_best_s: With a time budget: once at most this many seconds of it remain,
             measure the recommended setting again (once, for up to N breaths, no early stop) if
             it has fewer than N breaths in total; None (default) never does.
+        drift_hours: Adaptation drift (issue 17 part 3): with a number, the GP gets the
+            session time of each evaluation as an extra input, with a length-scale prior of
+            median ``drift_hours`` h (long relative to the session: the cost drifts slowly), and
+            predicts every setting (x*, the recommendation, EI) *now*; None (default) ignores
+            time. The clock is the optimizer's: breath time of all evaluations so far.
         seed: Seed of the run's random generator.
         xi: EI's ξ (seed 000 §II.B sign convention).
         kernel: ``"matern52"`` or ``"se"``.
@@ -183,6 +188,7 @@ class OptimizerConfig:
     recommend: RecommendKind | None = None
     recommend_beta: float = 1.0
     remeasure_best_s: float | None = None
+    drift_hours: float | None = None
     seed: int = 0
     xi: float = 0.0
     kernel: KernelKind = KernelKind.MATERN52
@@ -228,6 +234,10 @@ class OptimizerConfig:
         if r is not None and (isinstance(r, bool) or not isinstance(r, int | float)
                               or not (math.isfinite(r) and r > 0)):
             raise ConfigError(f"remeasure_best_s={r!r}; expected a positive number of seconds or None")
+        h = self.drift_hours
+        if h is not None and (isinstance(h, bool) or not isinstance(h, int | float)
+                              or not (math.isfinite(h) and h > 0)):
+            raise ConfigError(f"drift_hours={h!r}; expected a positive number of hours or None")
         try:
             object.__setattr__(self, "kernel", KernelKind(self.kernel))
         except ValueError as err:
@@ -859,6 +869,11 @@ class HILOptimizer:
     def _training_set(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         xs = np.array([self.space.from_dict(p.params) for p in self._priors], dtype=float)
         U = np.concatenate([self._evaluation_units(), self.space.to_unit(xs.reshape(-1, self.space.dim))])
+        if self.config.drift_hours is not None:
+            # Session time of each evaluation (its end), fast priors at time 0 (they came first).
+            ends_h = np.cumsum([e.duration_s for e in self._evaluations]) / 3600.0
+            t_h = np.concatenate([ends_h, np.zeros(len(self._priors))])
+            U = np.column_stack([U, self._time_column(t_h)])
         # Data-only observations (issue 16 part 2): the GP has its own prior.
         obs = [e.gp_observation for e in self._evaluations]
         y = [m for m, _ in obs] + [p.mean for p in self._priors]
@@ -894,9 +909,27 @@ class HILOptimizer:
             self._n_at_fit = int(y.size)
         return gp
 
+    def _time_column(self, t_h: np.ndarray) -> np.ndarray:
+        """The GP's time input: hours scaled so that the default length-scale prior's median
+        (√(d+1)/4 in the unit cube, gp.py) corresponds to ``drift_hours`` hours; clipped to the
+        cube, so times beyond drift_hours/(√(d+1)/4) hours (3 h for 6-D and 2 h) share one value."""
+        h = self.config.drift_hours
+        scale = 0.25 * math.sqrt(self.space.dim + 1) / float(h if h is not None else 1.0)
+        return np.clip(np.asarray(t_h, dtype=float) * scale, 0.0, 1.0)
+
+    def _now(self, U: np.ndarray) -> np.ndarray:
+        """GP query points for unit-cube settings U (m, d): with drift, at the present time."""
+        if self.config.drift_hours is None:
+            return U
+        now_h = sum(e.duration_s for e in self._evaluations) / 3600.0
+        cur = self._current
+        if cur is not None and cur.breaths:
+            now_h += cur.breaths[-1][0] / 3600.0
+        return np.column_stack([U, np.full(U.shape[0], float(self._time_column(np.array(now_h))))])
+
     def _posterior_best(self, gp: GaussianProcess) -> tuple[dict[str, float], float, float]:
         """The evaluated setting of lowest posterior mean + β·SD, with the GP posterior there."""
-        post_mean, post_var = gp.predict(self._evaluation_units())
+        post_mean, post_var = gp.predict(self._now(self._evaluation_units()))
         score = post_mean + self.config.recommend_beta * np.sqrt(post_var)
         k = int(np.argmin(score))
         return dict(self._evaluations[k].params), float(post_mean[k]), float(post_var[k])
@@ -906,7 +939,7 @@ class HILOptimizer:
         posterior of its cost (mean, variance; the model's noise accounted for), not the raw
         estimate (which is optimistically biased for the setting that looks best: the winner's
         curse, issue 17)."""
-        post_mean, post_var = gp.predict(self._evaluation_units())
+        post_mean, post_var = gp.predict(self._now(self._evaluation_units()))
         k = int(np.argmin(post_mean))
         return dict(self._evaluations[k].params), float(post_mean[k]), float(post_var[k])
 
@@ -922,7 +955,7 @@ class HILOptimizer:
         return params if breaths < c.max_breaths else None
 
     def _gp_best(self, gp: GaussianProcess) -> tuple[dict[str, float], float, float]:
-        post_mean = gp.predict_mean(self._evaluation_units())  # the variance is not needed here
+        post_mean = gp.predict_mean(self._now(self._evaluation_units()))  # the variance is not needed here
         ev = self._evaluations[int(np.argmin(post_mean))]
         return dict(ev.params), ev.mean, ev.var
 
@@ -941,9 +974,18 @@ class HILOptimizer:
         best_observed = min(e.mean for e in self._evaluations)  # min(S), seed 000 §II.B
         A_u, b_u = self.space.unit_constraints()
         cand = self.space.sample_unit(self.config.n_candidates, self._rng)
-        u, _ = maximize_ei(gp.predict, best_observed, candidates=cand, A_ub=A_u, b_ub=b_u,
+        d = self.space.dim
+
+        def predict(U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            return gp.predict(self._now(U))
+
+        def predict_grad(U: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+            m, v, dm, dv = gp.predict_with_grad(self._now(U))
+            return m, v, dm[:, :d], dv[:, :d]  # time is not a decision variable
+
+        u, _ = maximize_ei(predict, best_observed, candidates=cand, A_ub=A_u, b_ub=b_u,
                            rng=self._rng, xi=self.config.xi, n_local=self.config.n_local,
-                           predict_grad=gp.predict_with_grad)
+                           predict_grad=predict_grad)
         x = self.space.from_unit(np.clip(u, 0.0, 1.0))
         if not self.space.is_feasible(x):
             # Local refinement should never leave the set; if round-off does, the best
@@ -951,7 +993,7 @@ class HILOptimizer:
             x = self.space.from_unit(cand[0])
         prior = None
         if sound:
-            m, v = gp.predict(self.space.to_unit(x).reshape(1, -1))
+            m, v = gp.predict(self._now(self.space.to_unit(x).reshape(1, -1)))
             # The candidate's cost is f(x_t) plus the GP's learned homoscedastic term (what
             # varies between measurements of one setting beyond the estimator's own noise).
             nugget = gp.hyperparameters.noise_var * gp.y_std**2

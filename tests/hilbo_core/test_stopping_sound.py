@@ -252,3 +252,24 @@ def test_json_round_trip_mid_evaluation_keeps_the_candidate_prior() -> None:
             if o.observe_breath(t, cost(p) + r.normal(0, 40.0)).stop:
                 t = 0.0
     assert [e.to_json() for e in opt.evaluations] == [e.to_json() for e in clone.evaluations]
+
+
+def test_drift_time_input_predicts_now_and_follows_a_falling_cost() -> None:
+    """With drift_hours, the GP has one more input (the evaluation's session time), and the
+    posterior of a setting measured early follows what later measurements of it say."""
+    opt = HILOptimizer(SPACE, estimator_factory=product_estimator, n_explore=2, seed=0,
+                       n_candidates=64, drift_hours=2.0)
+    x = SPACE.to_dict(SPACE.from_unit(OPT_U))
+    far = SPACE.to_dict(SPACE.design(8, np.random.default_rng(9))[7])
+    for k in range(8):  # the same setting, 10 min apart, its cost falling 2 W per measurement
+        opt.tell(x, 400.0 - 2.0 * k, 3.0**2, duration_s=600.0)
+        opt.tell(far, 500.0, 3.0**2, duration_s=1.0)
+    U, _, _ = opt._training_set()
+    assert U.shape == (16, SPACE.dim + 1)
+    scale = 0.25 * math.sqrt(SPACE.dim + 1) / 2.0
+    assert U[2, -1] == pytest.approx(1201.0 / 3600.0 * scale)
+    _, mean, _ = opt.best()
+    assert mean < 392.0  # closer to the latest 386 W than to the 393 W average
+    opt.ask()  # a proposal with the time input works end to end
+    with pytest.raises(ConfigError, match="drift_hours"):
+        OptimizerConfig(drift_hours=0.0)
