@@ -18,10 +18,12 @@ name, stopping = sys.argv[1], sys.argv[2]
 a_floor, min_s, n = float(sys.argv[3]), float(sys.argv[4]), int(sys.argv[5])
 _orig = insim.HILOptimizer
 drift = float(sys.argv[6]) if len(sys.argv) > 6 and sys.argv[6] != "none" else None
-remeasure = float(sys.argv[7]) if len(sys.argv) > 7 else None
+remeasure = float(sys.argv[7]) if len(sys.argv) > 7 and sys.argv[7] != "none" else None
+beta = float(sys.argv[8]) if len(sys.argv) > 8 else 1.0
 if stopping == "sound":
     insim.HILOptimizer = lambda space, **kw: _orig(space, a_floor=a_floor, min_decision_s=min_s,
-                                                   drift_hours=drift, remeasure_best_s=remeasure, **kw)
+                                                   drift_hours=drift, remeasure_best_s=remeasure,
+                                                   recommend_beta=beta, **kw)
 rows, regrets, r30 = [], [], []
 for seed in range(1, n + 1):
     judge = make_wearer("realistic", preset("hip_6d"), seed=seed)
