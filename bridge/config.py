@@ -426,7 +426,11 @@ class ProtocolConfig:
             None (:class:`hilbo_core.protocol.SessionProtocolConfig`'s ``budget_s``).
         budget_breaths: Optimisation-bout budget in breaths, or None (at least one budget is set;
             with both, the first spent ends the bout).
-        stopping: ``adaptive`` (Algorithm 2 + the σ-scaled rule) or ``fixed`` (always N breaths).
+        stopping: ``sound`` (default: the σ-scaled rule with a time and a threshold floor and
+            the GP-posterior incumbent, issue 17), ``adaptive`` (Algorithm 2 + the seed's
+            σ-scaled rule) or ``fixed`` (always N breaths).
+        min_decision_s: The sound rule's seconds in a setting before any stop decision, 0–600.
+        a_floor: The sound rule's threshold floor in σ, 0–10.
         seed: The optimizer's random seed (>= 0).
         xi: Expected Improvement's ξ (seed 000 §II.B sign convention).
         kernel: ``matern52`` or ``se``.
@@ -454,6 +458,8 @@ class ProtocolConfig:
     budget_min: float | None = _DEFAULT_BUDGET_MIN
     budget_breaths: int | None = SessionProtocolConfig.budget_breaths
     stopping: StoppingKind = OptimizerConfig.stopping
+    min_decision_s: float = OptimizerConfig.min_decision_s
+    a_floor: float = OptimizerConfig.a_floor
     seed: int = OptimizerConfig.seed
     xi: float = OptimizerConfig.xi
     kernel: KernelKind = OptimizerConfig.kernel
@@ -495,6 +501,7 @@ class ProtocolConfig:
             n_explore=self.n_explore, max_breaths=self.max_breaths, window=self.window,
             budget_s=self.budget_s if with_budget else None,
             budget_breaths=self.budget_breaths if with_budget else None, stopping=self.stopping,
+            min_decision_s=self.min_decision_s, a_floor=self.a_floor,
             seed=self.seed, xi=self.xi, kernel=self.kernel, n_candidates=self.n_candidates,
             n_local=self.n_local, refit_lag=1 if self.refit is RefitMode.AHEAD else 0,
         )
@@ -522,6 +529,8 @@ def _parse_protocol(data: object) -> ProtocolConfig:
         budget_min=budget_min,
         budget_breaths=budget_breaths,
         stopping=t.choice("stopping", StoppingKind, d.stopping),
+        min_decision_s=t.number("min_decision_s", d.min_decision_s, lo=0.0, hi=600.0),
+        a_floor=t.number("a_floor", d.a_floor, lo=0.0, hi=10.0),
         seed=t.integer("seed", d.seed, lo=0, hi=2**63 - 1),
         xi=t.number("xi", d.xi, lo=-1e6, hi=1e6),
         kernel=t.choice("kernel", KernelKind, d.kernel),

@@ -164,7 +164,8 @@ def run_session(seed: int, arm: Arm, *, minutes: float = 60.0, preset: str = "hi
         fm = prof if arm.feature == "profile" else with_raw(prof, space.dim)
     opt = StudyOptimizer(space, n_explore=arm.n_explore, max_breaths=max_breaths, window=arm.window,
                          seed=opt_seed, prior_observations=list(priors), feature_map=fm,
-                         stopping_k=arm.stopping_k)
+                         stopping_k=arm.stopping_k,
+                         stopping="adaptive")  # the seed-003 studies are of the seed's rule
     _, opt_cost = wearer.true_optimum
     # The protocol of run_insim: the minutes are the whole session, no pause between the bouts.
     plan = SimConfig(minutes=minutes, n_explore=arm.n_explore, max_breaths=max_breaths, warmup_s=warmup_s)

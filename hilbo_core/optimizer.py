@@ -8,6 +8,11 @@ Phases (seed 000 §II.A, Algorithm 1):
 3. **Optimisation** — until the budget is spent: fit the GP to every evaluation's (μ, σ²), take
    x_t = argmax EI, then after every breath compare the running estimate with the incumbent x*
    and stop early when μ − μ* > A_i·σ (the σ-scaled offset rule, §II.D), or at N breaths.
+   The default ``stopping = "sound"`` (issue 17) makes three changes: the incumbent's (μ*, σ*²) is
+   the GP posterior at x* (not its raw, optimistically biased estimate), no decision is made
+   before ``min_decision_s`` in the setting, and the threshold is floored at ``a_floor`` ≥ 0
+   (:class:`~hilbo_core.stopping.SoundRule`); the candidate's estimate starts from the GP's
+   predictive at x_t (``gp_prior_stopping``). ``"adaptive"`` is the seed's rule unchanged.
 
 The GP is told each evaluation's estimator mean *and* variance: an early-stopped estimate is
 noisier, and the model must know (shared/DESIGN.md). It is told the *data-only* part
@@ -67,6 +72,7 @@ from hilbo_core.space import ParameterSpace
 from hilbo_core.stopping import (
     FixedIntervalRule,
     SigmaScaledRule,
+    SoundRule,
     StopDecision,
     StoppingRule,
     threshold_schedule,
@@ -81,6 +87,7 @@ __all__ = [
     "OptimizerConfig",
     "Phase",
     "PriorObservation",
+    "RecommendKind",
     "StoppingKind",
     "fit_hyperparameters",
 ]
@@ -102,8 +109,19 @@ class Phase(enum.Enum):
 class StoppingKind(enum.Enum):
     """Which rule ends an evaluation in the optimisation phase."""
 
+    SOUND = "sound"  # the default: SoundRule, GP-posterior incumbent (issue 17 part 1)
     ADAPTIVE = "adaptive"  # Algorithm 2 thresholds + σ-scaled offset rule (seed 000 §II.D)
     FIXED = "fixed"  # always N breaths (fixed-interval BO, the seed's baseline)
+
+
+class RecommendKind(enum.Enum):
+    """How :meth:`HILOptimizer.best` picks the recommended setting."""
+
+    # The default (issue 17 part 2): among the evaluated settings, the lowest GP posterior mean
+    # plus recommend_beta posterior SDs, reported with the GP posterior there.
+    POSTERIOR = "posterior"
+    # The seed's: the lowest GP posterior mean, reported with that evaluation's own estimate.
+    SEED = "seed"
 
 
 @dataclass(frozen=True)
@@ -116,7 +134,28 @@ class OptimizerConfig:
         window: Algorithm 2's window W (>= 0).
         budget_s: Optimisation-phase budget in seconds of breath time, or None.
         budget_breaths: Optimisation-phase budget in breaths, or None.
-        stopping: ``"adaptive"`` or ``"fixed"``.
+        stopping: ``"sound"`` (the default, :class:`~hilbo_core.stopping.SoundRule` with the
+            incumbent from the GP posterior), ``"adaptive"`` (seed 000's Algorithm 1/2) or
+            ``"fixed"``.
+        min_decision_s: The sound rule's time in a setting before any stop decision (s, >= 0;
+            default 60 s ≈ 1.5 × the estimator's median τ of 42 s, see SoundRule).
+        a_floor: The sound rule's threshold floor in σ (>= 0; default 1.0).
+        gp_prior_stopping: With the sound rule, the candidate's estimate for the stop decision
+            is the estimator's data-only estimate times the GP's predictive at x_t (the Bayesian
+            early decision, issue 17 part 1d); the GP is still told the data-only part.
+        recommend: ``"posterior"`` or ``"seed"``, see :class:`RecommendKind`; None (default)
+            means ``"posterior"`` with the sound rule and ``"seed"`` with the seed's rules.
+        recommend_beta: The posterior recommendation's penalty in posterior SDs (>= 0): a
+            setting measured for a few breaths only has a wide posterior and is not recommended
+            on the strength of a lucky estimate.
+        remeasure_best_s: With a time budget: once at most this many seconds of it remain,
+            measure the recommended setting again (once, for up to N breaths, no early stop) if
+            it has fewer than N breaths in total; None (default) never does.
+        drift_hours: Adaptation drift (issue 17 part 3): with a number, the GP gets the
+            session time of each evaluation as an extra input, with a length-scale prior of
+            median ``drift_hours`` h (long relative to the session: the cost drifts slowly), and
+            predicts every setting (x*, the recommendation, EI) *now*; None (default) ignores
+            time. The clock is the optimizer's: breath time of all evaluations so far.
         seed: Seed of the run's random generator.
         xi: EI's ξ (seed 000 §II.B sign convention).
         kernel: ``"matern52"`` or ``"se"``.
@@ -144,7 +183,14 @@ class OptimizerConfig:
     window: int = 2
     budget_s: float | None = None
     budget_breaths: int | None = None
-    stopping: StoppingKind = StoppingKind.ADAPTIVE
+    stopping: StoppingKind = StoppingKind.SOUND
+    min_decision_s: float = 60.0
+    a_floor: float = 1.0
+    gp_prior_stopping: bool = True
+    recommend: RecommendKind | None = None
+    recommend_beta: float = 1.0
+    remeasure_best_s: float | None = None
+    drift_hours: float | None = None
     seed: int = 0
     xi: float = 0.0
     kernel: KernelKind = KernelKind.MATERN52
@@ -167,6 +213,33 @@ class OptimizerConfig:
             raise ConfigError(
                 f"stopping={self.stopping!r}; expected one of {[k.value for k in StoppingKind]}"
             ) from err
+        if self.recommend is None:
+            # The sound rule comes with the posterior recommendation; the seed's rules keep the
+            # seed's recommendation, so "adaptive" and "fixed" stay the methods they were.
+            object.__setattr__(self, "recommend", RecommendKind.POSTERIOR
+                               if self.stopping is StoppingKind.SOUND else RecommendKind.SEED)
+        try:
+            object.__setattr__(self, "recommend", RecommendKind(self.recommend))
+        except ValueError as err:
+            raise ConfigError(
+                f"recommend={self.recommend!r}; expected one of {[k.value for k in RecommendKind]}"
+            ) from err
+        for name in ("min_decision_s", "a_floor", "recommend_beta"):
+            v = getattr(self, name)
+            if (isinstance(v, bool) or not isinstance(v, int | float | np.integer | np.floating)
+                    or not (math.isfinite(v) and v >= 0.0)):
+                raise ConfigError(f"{name}={v!r}; expected a finite number >= 0")
+            object.__setattr__(self, name, float(v))
+        if not isinstance(self.gp_prior_stopping, bool):
+            raise ConfigError(f"gp_prior_stopping={self.gp_prior_stopping!r}; expected true or false")
+        r = self.remeasure_best_s
+        if r is not None and (isinstance(r, bool) or not isinstance(r, int | float)
+                              or not (math.isfinite(r) and r > 0)):
+            raise ConfigError(f"remeasure_best_s={r!r}; expected a positive number of seconds or None")
+        h = self.drift_hours
+        if h is not None and (isinstance(h, bool) or not isinstance(h, int | float)
+                              or not (math.isfinite(h) and h > 0)):
+            raise ConfigError(f"drift_hours={h!r}; expected a positive number of hours or None")
         try:
             object.__setattr__(self, "kernel", KernelKind(self.kernel))
         except ValueError as err:
@@ -203,6 +276,7 @@ class OptimizerConfig:
         """JSON-able form."""
         d = asdict(self)
         d["stopping"] = self.stopping.value
+        d["recommend"] = RecommendKind(self.recommend).value
         d["kernel"] = self.kernel.value
         d["estimator"] = self.estimator.value
         return d
@@ -314,6 +388,11 @@ class _Current:
     breaths: list[tuple[float, float]] = field(default_factory=list)
     means: list[float] = field(default_factory=list)
     vars: list[float] = field(default_factory=list)
+    # The GP's predictive (mean, var) of the setting's cost when it was proposed (the sound
+    # rule's prior for the candidate), or None.
+    prior: tuple[float, float] | None = None
+    # A re-measurement of the recommended setting (remeasure_best_s): never stopped early.
+    remeasure: bool = False
 
 
 @dataclass(frozen=True, eq=False)
@@ -422,6 +501,9 @@ class HILOptimizer:
         self._units: np.ndarray = np.empty((0, space.dim))
         self._units_last: Evaluation | None = None
         self._incumbent: tuple[dict[str, float], float, float] | None = None
+        # Set by _propose for the setting ask() is about to start (see _Current).
+        self._pending: tuple[tuple[float, float] | None, bool] = (None, False)
+        self._remeasured = False  # remeasure_best_s has been used
         self._opt_breaths = 0
         self._opt_seconds = 0.0
 
@@ -475,9 +557,15 @@ class HILOptimizer:
     def best(self) -> tuple[dict[str, float], float, float]:
         """The recommended setting and its estimated cost ``(params, mean_w, var_w2)``.
 
-        The GP's estimated minimum among the evaluated points (seed 000 §III.2: "x_t be the GP's
-        estimated minimum point"), reported with that evaluation's own estimate. Before any GP
-        can be fitted, the lowest estimated mean.
+        ``recommend = "posterior"`` (the default, issue 17 part 2): among the evaluated settings,
+        the one with the lowest GP posterior mean + ``recommend_beta`` posterior SDs, reported
+        with the GP posterior (mean, variance of the latent cost) there. A raw estimate is
+        optimistically biased for the setting that looks best (the winner's curse), and a
+        setting measured for a few breaths has a wide posterior, so it is not recommended on
+        the strength of one lucky estimate. ``recommend = "seed"``: the GP's estimated minimum
+        among the evaluated points (seed 000 §III.2: "x_t be the GP's estimated minimum
+        point"), reported with that evaluation's own estimate. Before any GP can be fitted,
+        the lowest estimated mean.
         """
         if not self._evaluations:
             raise OptimizerStateError("no evaluation has completed yet; nothing to recommend")
@@ -489,7 +577,9 @@ class HILOptimizer:
         # hyperparameter refits (refit_growth > 1) the generator is unused and the GP is the one
         # the next proposal will condition.
         gp = self._fit_gp(np.random.default_rng([self.config.seed, len(self._evaluations)]), store=False)
-        return self._gp_best(gp)
+        if self.config.recommend is RecommendKind.SEED:
+            return self._gp_best(gp)
+        return self._posterior_best(gp)
 
     # ------------------------------------------------------------------ ask / observe / tell
     def ask(self) -> dict[str, float]:
@@ -514,7 +604,10 @@ class HILOptimizer:
         else:
             x = self._propose()
         x = self.space.check(x)
-        self._current = _Current(params=self.space.to_dict(x), x=x, phase=phase)
+        prior, remeasure = self._pending if phase is Phase.OPTIMIZATION else (None, False)
+        self._pending = (None, False)
+        self._current = _Current(params=self.space.to_dict(x), x=x, phase=phase, prior=prior,
+                                 remeasure=remeasure)
         self._estimator = self._new_estimator()
         return dict(self._current.params)
 
@@ -569,7 +662,12 @@ class HILOptimizer:
             return self._step(stop, "max_measurements", None)
         self._opt_breaths += 1
         self._opt_seconds += t - prev_t
-        decision = self._rule().decide(i, float(mean), float(var), *self._incumbent_stats())
+        rule = self._rule()
+        if isinstance(rule, SoundRule):
+            c_mean, c_var = self._candidate_estimate(float(mean), float(var))
+            decision = rule.decide(i, c_mean, c_var, *self._incumbent_stats(), t_s=t)
+        else:
+            decision = rule.decide(i, float(mean), float(var), *self._incumbent_stats())
         if decision.stop:
             reason = "threshold" if decision.index < self.config.max_breaths - 1 else "max_measurements"
             return self._step(True, reason, decision)
@@ -731,9 +829,35 @@ class HILOptimizer:
         return BreathStep(True, mean, var, i, cur.phase, decision, ev)
 
     def _rule(self) -> StoppingRule:
-        if self.config.stopping is StoppingKind.FIXED or self._thresholds is None:
-            return FixedIntervalRule(self.config.max_breaths)
+        c = self.config
+        cur = self._current
+        if c.stopping is StoppingKind.FIXED or (cur is not None and cur.remeasure):
+            return FixedIntervalRule(c.max_breaths)
+        if c.stopping is StoppingKind.SOUND:
+            # Without exploration traces (told evaluations), A = 0 and the floor decides.
+            a = self._thresholds if self._thresholds is not None else np.zeros(c.max_breaths)
+            return SoundRule(a, min_decision_s=c.min_decision_s, a_floor=c.a_floor)
+        if self._thresholds is None:
+            return FixedIntervalRule(c.max_breaths)
         return SigmaScaledRule(self._thresholds)
+
+    def _candidate_estimate(self, mean: float, var: float) -> tuple[float, float]:
+        """The sound rule's (mean, var) of the current candidate's cost.
+
+        With ``gp_prior_stopping`` and an estimator that can say what its breaths alone carry:
+        the data-only estimate times the GP's predictive at x_t (a Gaussian product; the
+        Bayesian early decision, issue 17 part 1d). The estimator's own weak prior on c is
+        divided out first, so no prior is counted twice; the GP is told the data-only part
+        (:meth:`_step`) as always. Otherwise the estimator's posterior.
+        """
+        cur = self._current
+        if (not self.config.gp_prior_stopping or cur is None or cur.prior is None
+                or not isinstance(self._estimator, DataOnlyEstimator)):
+            return mean, var
+        d_mean, d_var = self._estimator.data_only()
+        p_mean, p_var = cur.prior
+        prec = 1.0 / d_var + 1.0 / p_var
+        return (d_mean / d_var + p_mean / p_var) / prec, 1.0 / prec
 
     def _incumbent_stats(self) -> tuple[float, float]:
         if self._incumbent is None:
@@ -767,6 +891,11 @@ class HILOptimizer:
     def _training_set(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         xs = np.array([self.space.from_dict(p.params) for p in self._priors], dtype=float)
         U = np.concatenate([self._evaluation_units(), self.space.to_unit(xs.reshape(-1, self.space.dim))])
+        if self.config.drift_hours is not None:
+            # Session time of each evaluation (its end), fast priors at time 0 (they came first).
+            ends_h = np.cumsum([e.duration_s for e in self._evaluations]) / 3600.0
+            t_h = np.concatenate([ends_h, np.zeros(len(self._priors))])
+            U = np.column_stack([U, self._time_column(t_h)])
         # Data-only observations (issue 16 part 2): the GP has its own prior.
         obs = [e.gp_observation for e in self._evaluations]
         y = [m for m, _ in obs] + [p.mean for p in self._priors]
@@ -802,8 +931,53 @@ class HILOptimizer:
             self._n_at_fit = int(y.size)
         return gp
 
+    def _time_column(self, t_h: np.ndarray) -> np.ndarray:
+        """The GP's time input: hours scaled so that the default length-scale prior's median
+        (√(d+1)/4 in the unit cube, gp.py) corresponds to ``drift_hours`` hours; clipped to the
+        cube, so times beyond drift_hours/(√(d+1)/4) hours (3 h for 6-D and 2 h) share one value."""
+        h = self.config.drift_hours
+        scale = 0.25 * math.sqrt(self.space.dim + 1) / float(h if h is not None else 1.0)
+        return np.clip(np.asarray(t_h, dtype=float) * scale, 0.0, 1.0)
+
+    def _now(self, U: np.ndarray) -> np.ndarray:
+        """GP query points for unit-cube settings U (m, d): with drift, at the present time."""
+        if self.config.drift_hours is None:
+            return U
+        now_h = sum(e.duration_s for e in self._evaluations) / 3600.0
+        cur = self._current
+        if cur is not None and cur.breaths:
+            now_h += cur.breaths[-1][0] / 3600.0
+        return np.column_stack([U, np.full(U.shape[0], float(self._time_column(np.array(now_h))))])
+
+    def _posterior_best(self, gp: GaussianProcess) -> tuple[dict[str, float], float, float]:
+        """The evaluated setting of lowest posterior mean + β·SD, with the GP posterior there."""
+        post_mean, post_var = gp.predict(self._now(self._evaluation_units()))
+        score = post_mean + self.config.recommend_beta * np.sqrt(post_var)
+        k = int(np.argmin(score))
+        return dict(self._evaluations[k].params), float(post_mean[k]), float(post_var[k])
+
+    def _gp_incumbent(self, gp: GaussianProcess) -> tuple[dict[str, float], float, float]:
+        """The sound rule's x*: the evaluated setting of lowest posterior mean, with the GP
+        posterior of its cost (mean, variance; the model's noise accounted for), not the raw
+        estimate (which is optimistically biased for the setting that looks best: the winner's
+        curse, issue 17)."""
+        post_mean, post_var = gp.predict(self._now(self._evaluation_units()))
+        k = int(np.argmin(post_mean))
+        return dict(self._evaluations[k].params), float(post_mean[k]), float(post_var[k])
+
+    def _remeasure_due(self, gp: GaussianProcess) -> dict[str, float] | None:
+        """The recommended setting, if it is time to measure it again (``remeasure_best_s``)."""
+        c = self.config
+        if (c.remeasure_best_s is None or c.budget_s is None or self._remeasured
+                or c.budget_s - self._opt_seconds > c.remeasure_best_s):
+            return None
+        params = (self._gp_best(gp) if c.recommend is RecommendKind.SEED
+                  else self._posterior_best(gp))[0]
+        breaths = sum(e.breaths for e in self._evaluations if e.params == params)
+        return params if breaths < c.max_breaths else None
+
     def _gp_best(self, gp: GaussianProcess) -> tuple[dict[str, float], float, float]:
-        post_mean = gp.predict_mean(self._evaluation_units())  # the variance is not needed here
+        post_mean = gp.predict_mean(self._now(self._evaluation_units()))  # the variance is not needed here
         ev = self._evaluations[int(np.argmin(post_mean))]
         return dict(ev.params), ev.mean, ev.var
 
@@ -811,18 +985,42 @@ class HILOptimizer:
         gp = self._fit_gp(self._rng, store=True)
         # x* for the stopping rule: the GP's best evaluated setting with its own estimate
         # (seed 000 §II.D: "the best parameter setting found thus far as defined by the GP").
-        self._incumbent = self._gp_best(gp)
+        sound = self.config.stopping is StoppingKind.SOUND
+        self._incumbent = self._gp_incumbent(gp) if sound else self._gp_best(gp)
+        again = self._remeasure_due(gp)
+        if again is not None:
+            self._remeasured = True
+            x = self.space.from_dict(again)
+            self._pending = (None, True)
+            return x
         best_observed = min(e.mean for e in self._evaluations)  # min(S), seed 000 §II.B
         A_u, b_u = self.space.unit_constraints()
         cand = self.space.sample_unit(self.config.n_candidates, self._rng)
-        u, _ = maximize_ei(gp.predict, best_observed, candidates=cand, A_ub=A_u, b_ub=b_u,
+        d = self.space.dim
+
+        def predict(U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            return gp.predict(self._now(U))
+
+        def predict_grad(U: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+            m, v, dm, dv = gp.predict_with_grad(self._now(U))
+            return m, v, dm[:, :d], dv[:, :d]  # time is not a decision variable
+
+        u, _ = maximize_ei(predict, best_observed, candidates=cand, A_ub=A_u, b_ub=b_u,
                            rng=self._rng, xi=self.config.xi, n_local=self.config.n_local,
-                           predict_grad=gp.predict_with_grad)
+                           predict_grad=predict_grad)
         x = self.space.from_unit(np.clip(u, 0.0, 1.0))
         if not self.space.is_feasible(x):
             # Local refinement should never leave the set; if round-off does, the best
             # candidate is feasible by construction.
             x = self.space.from_unit(cand[0])
+        prior = None
+        if sound:
+            m, v = gp.predict(self._now(self.space.to_unit(x).reshape(1, -1)))
+            # The candidate's cost is f(x_t) plus the GP's learned homoscedastic term (what
+            # varies between measurements of one setting beyond the estimator's own noise).
+            nugget = gp.hyperparameters.noise_var * gp.y_std**2
+            prior = (float(m[0]), float(v[0]) + float(nugget))
+        self._pending = (prior, False)
         return x
 
     # ------------------------------------------------------------------ serialisation
@@ -843,8 +1041,10 @@ class HILOptimizer:
             "thresholds": None if self._thresholds is None else self._thresholds.tolist(),
             "current": None if cur is None else {
                 "params": cur.params, "x": cur.x.tolist(), "phase": cur.phase.value,
-                "breaths": cur.breaths,
+                "breaths": cur.breaths, "prior": None if cur.prior is None else list(cur.prior),
+                "remeasure": cur.remeasure,
             },
+            "remeasured": self._remeasured,
             "hyp": None if self._hyp is None else self._hyp.to_dict(),
             "n_at_fit": self._n_at_fit,
             "incumbent": None if self._incumbent is None else list(self._incumbent),
@@ -868,6 +1068,8 @@ class HILOptimizer:
             config_data = dict(data["config"])
             # States written before issue 16 come from sessions that ran the seed's UKF.
             config_data.setdefault("estimator", EstimatorKind.SEED_UKF.value)
+            # ... and states written before issue 17 recommended the seed's way.
+            config_data.setdefault("recommend", RecommendKind.SEED.value)
             opt = cls(space, config=OptimizerConfig.from_json(config_data),
                       estimator_factory=estimator_factory,
                       prior_observations=[PriorObservation(**p) for p in data["priors"]])
@@ -887,6 +1089,7 @@ class HILOptimizer:
             if data["incumbent"] is not None:
                 p, m, v = data["incumbent"]
                 opt._incumbent = (dict(p), float(m), float(v))
+            opt._remeasured = bool(data.get("remeasured", False))  # absent before issue 17
             opt._opt_breaths = int(data["opt_breaths"])
             opt._opt_seconds = float(data["opt_seconds"])
             handover = data.get("handover")  # absent in states written before issue 16
@@ -896,8 +1099,11 @@ class HILOptimizer:
         except (KeyError, TypeError, ValueError) as err:
             raise ConfigError(f"invalid optimizer state: {err!r}") from err
         if cur is not None:
+            prior = cur.get("prior")
             opt._current = _Current(params=dict(cur["params"]), x=np.array(cur["x"], dtype=float),
-                                    phase=Phase(cur["phase"]))
+                                    phase=Phase(cur["phase"]),
+                                    prior=None if prior is None else (float(prior[0]), float(prior[1])),
+                                    remeasure=bool(cur.get("remeasure", False)))
             opt._estimator = opt._new_estimator()
             for t, w in cur["breaths"]:
                 mean, var = opt._estimator.update(float(t), float(w))

@@ -7,6 +7,7 @@ session of ``minutes`` on the wearer's breath clock (default 60, like the seed's
 §IV.A.3): a 3-minute unassisted warm-up, a first bout, a second 3-minute warm-up and a second
 bout until the session ends. The methods:
 
+* ``sound`` — BO with the default sound stopping rule and recommendation (issue 17).
 * ``adaptive`` / ``fixed`` — Bayesian optimisation with / without the estimator stopping process,
   exactly as ``hilbo sim`` runs it (:func:`bridge.insim.run_insim`): bout 1 is the exploration
   (6 points × N = 45 breaths, ≈ 14 min), bout 2 the optimisation until the session ends (≈ 40
@@ -103,7 +104,7 @@ __all__ = [
     "tune_constant_k",
 ]
 
-DEFAULT_HIL_METHODS: tuple[str, ...] = ("adaptive", "fixed", "cmaes", "random")
+DEFAULT_HIL_METHODS: tuple[str, ...] = ("sound", "adaptive", "fixed", "cmaes", "random")
 """What ``hilbo bench hil`` runs without ``--methods``."""
 PRIOR_METHODS: tuple[str, ...] = ("adaptive-prior", "adaptive-prior-e3")
 THESIS_METHODS: tuple[str, ...] = ("adaptive-day2", *PRIOR_METHODS, "adaptive-features",
@@ -111,7 +112,7 @@ THESIS_METHODS: tuple[str, ...] = ("adaptive-day2", *PRIOR_METHODS, "adaptive-fe
 """The seed-003 methods (module docstring)."""
 HIL_METHODS: tuple[str, ...] = (*DEFAULT_HIL_METHODS, "adaptive-ahead", *THESIS_METHODS)
 _PRIOR_E3 = 3  # exploration points of adaptive-prior-e3 (docs/results_thesis.md §2)
-_BO_METHODS = ("adaptive", "fixed")
+_BO_METHODS = ("sound", "adaptive", "fixed")
 _CMA_STREAM = 0xC3A
 _RANDOM_STREAM = 0x5A3D
 
@@ -602,8 +603,8 @@ def run_hil_task(task: HilTask) -> dict[str, Any]:
     """
     blas_threads(1)  # wherever it runs: see bridge.bench.common.blas_threads
     t0 = time.perf_counter()
-    runner = {"adaptive": _run_bo, "fixed": _run_bo, "adaptive-ahead": _run_bo, "cmaes": _run_cmaes,
-              "random": _run_random,
+    runner = {"sound": _run_bo, "adaptive": _run_bo, "fixed": _run_bo, "adaptive-ahead": _run_bo,
+              "cmaes": _run_cmaes, "random": _run_random,
               **dict.fromkeys(THESIS_METHODS, _run_thesis)}[task.method]
     out = runner(task)
     # The true landscape of the same subject (same seed); the optimum is found numerically.

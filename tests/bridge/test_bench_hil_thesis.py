@@ -50,7 +50,7 @@ def _check_session(r: dict, proto: HilProtocol) -> None:
 
 
 def test_method_lists() -> None:
-    assert DEFAULT_HIL_METHODS == ("adaptive", "fixed", "cmaes", "random")
+    assert DEFAULT_HIL_METHODS == ("sound", "adaptive", "fixed", "cmaes", "random")  # issue 17
     # adaptive-ahead: adaptive with the hyperparameters fitted ahead, as the bridge runs it.
     assert set(HIL_METHODS) == set(DEFAULT_HIL_METHODS) | set(THESIS_METHODS) | {"adaptive-ahead"}
 

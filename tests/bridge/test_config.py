@@ -187,7 +187,7 @@ def test_the_example_documents_every_key(table):
 def test_to_json_is_strict_json_and_round_trips_through_the_logged_toml():
     cfg = load_config(EXAMPLE)
     data = json.loads(json.dumps(cfg.to_json(), allow_nan=False))
-    assert data["limits"]["max_force_n"] == 250.0 and data["protocol"]["stopping"] == "adaptive"
+    assert data["limits"]["max_force_n"] == 250.0 and data["protocol"]["stopping"] == "sound"
     assert data["space"]["definition"]["name"] == "hip_6d" and data["can"]["channel"] == "vcan0"
     assert data["cart"]["options"]["port"] == 5050
     assert parse_config(data["toml"]) == cfg

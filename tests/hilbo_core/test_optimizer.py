@@ -121,7 +121,9 @@ def test_adaptive_stops_early_and_fixed_never_does() -> None:
 
 def test_json_round_trip_mid_evaluation_gives_identical_future() -> None:
     rng = np.random.default_rng(9)
-    opt = make(budget_breaths=30)
+    # The seed's rule: its first breath after the round trip ends the evaluation, so run()'s
+    # clock restarting at 3 s is valid (the sound rule's round trip: test_stopping_sound.py).
+    opt = make(budget_breaths=30, stopping="adaptive")
     # Finish exploration and part of an optimisation evaluation.
     for _ in range(5):
         params = opt.ask()
@@ -152,9 +154,11 @@ def test_best_has_no_side_effect_on_proposals() -> None:
             if opt is a and len(opt.evaluations) >= 2:
                 opt.best()
     assert asked_a == asked_b
-    params, mean, var = a.best()
+    params, _mean, var = a.best()
     assert SPACE.is_feasible(params) and var > 0
-    assert mean == min(e.mean for e in a.evaluations if e.params == params)
+    # The default (sound) recommendation reports the GP posterior at an evaluated setting
+    # (tests/hilbo_core/test_stopping_sound.py); the seed's, that evaluation's own estimate.
+    assert any(e.params == params for e in a.evaluations)
 
 
 @pytest.mark.parametrize(
