@@ -45,7 +45,7 @@ class SimConfig:
         max_breaths: N, the maximum breaths per evaluation.
         window: Algorithm 2's window W.
         warmup_s: Warm-up at the start of each bout, without assistance (seed: 3 min).
-        stopping: ``"adaptive"`` or ``"fixed"``.
+        stopping: ``"sound"`` (the default rule), ``"adaptive"`` (seed 000's Algorithm 1/2) or ``"fixed"``.
         refit: ``"at_proposal"`` (GP hyperparameters refitted in every proposal) or ``"ahead"``
             (as the bridge does by default: fitted on the completed evaluations while the next
             setting is measured, ``refit_lag`` 1).
@@ -61,7 +61,7 @@ class SimConfig:
     max_breaths: int = OptimizerConfig.max_breaths
     window: int = OptimizerConfig.window
     warmup_s: float = SessionProtocolConfig.warmup_s
-    stopping: str = "adaptive"
+    stopping: str = "sound"
     refit: str = "at_proposal"
     wearer: str = WearerKind.REALISTIC.value
 

@@ -56,7 +56,7 @@ class VirtualSimConfig:
         seed: The subject (wearer) and the optimizer's seed.
         speed: Real-time factor (None = :data:`MAX_SPEED`).
         preset: Parameter space.
-        stopping: ``adaptive`` or ``fixed``.
+        stopping: ``sound`` (the default rule), ``adaptive`` (seed 000's Algorithm 1/2) or ``fixed``.
         n_explore, max_breaths, window, warmup_s: The protocol (seed 000 §IV.A.3 by default).
         body_mass_kg: The simulated wearer's mass.
         feedback_hz: The virtual exosuit's force-feedback rate per actuator.
@@ -71,7 +71,7 @@ class VirtualSimConfig:
     seed: int = 1
     speed: float | None = None
     preset: str = "hip_6d"
-    stopping: str = "adaptive"
+    stopping: str = "sound"
     n_explore: int = 6
     max_breaths: int = 45
     window: int = 2
