@@ -133,7 +133,9 @@ async def test_close_while_a_read_is_pending(ptys: list[Pty]) -> None:
     t = SerialTransport(SerialOptions(port=ptys[0].name, read_timeout_s=0.05))
     async with t:
         reader = asyncio.ensure_future(t.__anext__())
-        await asyncio.sleep(0.02)
+        async with asyncio.timeout(5.0):
+            while t._pending is None:  # the read is in pyserial's executor thread: pending
+                await asyncio.sleep(0)
         reader.cancel()
         with pytest.raises(asyncio.CancelledError):
             await reader
