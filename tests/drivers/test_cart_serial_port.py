@@ -94,11 +94,13 @@ async def test_unplug_and_replug_reconnects(ptys: list[Pty], tmp_path: Path) -> 
         ptys.append(second)
         link.unlink()
         link.symlink_to(second.name)
+        # Wall: the bytes cross a real pty and pyserial's executor thread; no event to wait on.
         await asyncio.sleep(0.1)  # let the partial line reach the reader before the unplug
         first.unplug()
         reading = asyncio.ensure_future(next_line(t))
-        while t.reconnects == 0 and not reading.done():
-            await asyncio.sleep(0.01)
+        async with asyncio.timeout(5.0):  # bounded: the reconnect happens in an executor thread
+            while t.reconnects == 0 and not reading.done():
+                await asyncio.sleep(0.01)  # real pty: poll for the reconnect, bounded
         second.write(b"after\r\n")
         assert await reading == b"after"
     assert t.drops == 1 and t.reconnects == 1
