@@ -37,7 +37,7 @@ def wait_for_marker(path: str) -> bool:
     while time.monotonic() < deadline:
         if os.path.exists(path):
             return True
-        time.sleep(0.02)
+        time.sleep(0.02)  # in a pool worker process: waits for a file the parent makes, bounded
     return False
 
 

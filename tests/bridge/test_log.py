@@ -384,7 +384,7 @@ def test_the_timer_flushes_pending_messages(tmp_path: Path) -> None:
         assert path.stat().st_size == size0
         deadline = time.monotonic() + 5.0
         while path.stat().st_size == size0 and time.monotonic() < deadline:
-            time.sleep(0.005)
+            time.sleep(0.005)  # the flush timer is a wall-time thread by design: bounded poll
         assert path.stat().st_size > size0
         assert log.stats.flushes >= 2
         # Read while the writer is still open: the flushed part is a readable (truncated) log.

@@ -33,7 +33,7 @@ for i in range(1, 3001):
     log.log_force_feedback(actuator=0, desired_n=[float(i)] * 20, measured_n=[float(i)] * 20)
     sys.stdout.write(f"{i}\n")
     sys.stdout.flush()
-    time.sleep(max(0.0, t0 + 0.02 * i - time.monotonic()))
+    time.sleep(max(0.0, t0 + 0.02 * i - time.monotonic()))  # a real process paced to be SIGKILLed mid-run
 """
 
 

@@ -54,7 +54,7 @@ async def test_one_turn_of_the_loop_hands_the_request_to_the_worker(kind: Worker
         await worker.worker_pid()  # started and serving
         task = worker.start_ask(optimizer())
         await asyncio.sleep(0)
-        time.sleep(block_s)  # the session's synchronous logging, exaggerated
+        time.sleep(block_s)  # blocking the loop in wall time is the point: the session's sync logging
         asked = await task
     # Handed over before the block: received within it, not after it.
     assert asked.to_worker_s < block_s / 2
@@ -144,7 +144,7 @@ def test_a_worker_exits_when_its_session_is_killed() -> None:
     # The worker reads EOF on its stdin and exits; bounded wait for a real process to end.
     deadline = time.monotonic() + 20.0
     while _alive(worker_pid) and time.monotonic() < deadline:
-        time.sleep(0.05)
+        time.sleep(0.05)  # a real process exiting: bounded poll
     assert not _alive(worker_pid)
 
 

@@ -57,7 +57,7 @@ def test_lost_device_heartbeat_turns_assistance_off_and_resumes(tmp_path) -> Non
     def operator(session: BridgeSession) -> None:
         async def resume_when_healthy() -> None:
             while True:
-                await asyncio.sleep(0.05)
+                await asyncio.sleep(0.05)  # an operator's wall-time poll beside a 100x ScaledClock session
                 if session.status.state.startswith("paused: device") and session.status.device == "ok":
                     session.command(Command.RESUME)
         asyncio.get_running_loop().create_task(resume_when_healthy())

@@ -24,7 +24,7 @@ def test_session_collects_at_each_applied_profile_and_the_bout_pause_never_the_w
 
         async def sample() -> None:
             while not session.records:
-                await asyncio.sleep(0.01)
+                await asyncio.sleep(0.01)  # samples gc state from outside the session; ends with it
             frozen_during.append(gc.get_freeze_count())
         tasks.append(asyncio.get_running_loop().create_task(sample()))
 

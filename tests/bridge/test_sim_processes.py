@@ -184,7 +184,7 @@ def test_ctrl_c_ends_the_session_and_stops_the_devices(tmp_path: Path) -> None:
         while not ((tmp_path / "session.mcap").exists() and len(_children(proc.pid)) >= 3):
             assert proc.poll() is None, proc.communicate()
             assert time.monotonic() < deadline, "the session did not start"
-            time.sleep(0.1)
+            time.sleep(0.1)  # real processes starting: bounded poll
         children = _children(proc.pid)
         proc.send_signal(signal.SIGINT)  # what Ctrl-C sends hilbo (the children are not in its group)
         out, err = proc.communicate(timeout=60)

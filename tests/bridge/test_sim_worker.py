@@ -21,7 +21,7 @@ def test_killed_worker_costs_no_evaluation(tmp_path) -> None:
     def killer(session: BridgeSession) -> None:
         async def kill_after_two_evaluations() -> None:
             while not (len(session.records) >= 2 and session.proposal_worker.pid is not None):
-                await asyncio.sleep(0.02)
+                await asyncio.sleep(0.02)  # polls a real worker process's pid; ends with the session
             pid = session.proposal_worker.pid
             os.kill(pid, signal.SIGKILL)
             killed.append(pid)

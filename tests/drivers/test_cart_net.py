@@ -130,8 +130,9 @@ async def test_udp_overflow_is_counted_not_buffered() -> None:
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
             for i in range(5):
                 tx.sendto(f"d{i}\n".encode(), t.local_address)
-            while t.counters[RejectReason.OVERFLOW] < 3:
-                await asyncio.sleep(0.01)
+            async with asyncio.timeout(5.0):  # bounded: datagrams cross a real socket
+                while t.counters[RejectReason.OVERFLOW] < 3:
+                    await asyncio.sleep(0.01)  # real UDP socket: poll the counter, bounded
             assert await take(t, 2) == [b"d0", b"d1"]
     assert t.counters == {RejectReason.OVERFLOW: 3}
 

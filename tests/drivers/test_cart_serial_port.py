@@ -94,11 +94,13 @@ async def test_unplug_and_replug_reconnects(ptys: list[Pty], tmp_path: Path) -> 
         ptys.append(second)
         link.unlink()
         link.symlink_to(second.name)
+        # Wall: the bytes cross a real pty and pyserial's executor thread; no event to wait on.
         await asyncio.sleep(0.1)  # let the partial line reach the reader before the unplug
         first.unplug()
         reading = asyncio.ensure_future(next_line(t))
-        while t.reconnects == 0 and not reading.done():
-            await asyncio.sleep(0.01)
+        async with asyncio.timeout(5.0):  # bounded: the reconnect happens in an executor thread
+            while t.reconnects == 0 and not reading.done():
+                await asyncio.sleep(0.01)  # real pty: poll for the reconnect, bounded
         second.write(b"after\r\n")
         assert await reading == b"after"
     assert t.drops == 1 and t.reconnects == 1
@@ -133,7 +135,9 @@ async def test_close_while_a_read_is_pending(ptys: list[Pty]) -> None:
     t = SerialTransport(SerialOptions(port=ptys[0].name, read_timeout_s=0.05))
     async with t:
         reader = asyncio.ensure_future(t.__anext__())
-        await asyncio.sleep(0.02)
+        async with asyncio.timeout(5.0):
+            while t._pending is None:  # the read is in pyserial's executor thread: pending
+                await asyncio.sleep(0)
         reader.cancel()
         with pytest.raises(asyncio.CancelledError):
             await reader

@@ -60,7 +60,7 @@ async def settle(endpoint: CanEndpoint, n_acks: int, timeout_s: float = 2.0) -> 
     deadline = loop.time() + timeout_s
     while endpoint.received.get("ProfileAck", 0) < n_acks:
         assert loop.time() < deadline, f"only {endpoint.received.get('ProfileAck', 0)} acks"
-        await asyncio.sleep(0.005)
+        await asyncio.sleep(0.005)  # acks cross python-can's bus thread: bounded poll
 
 
 async def test_an_ack_before_the_commit_is_rejected_and_counted() -> None:
@@ -112,6 +112,7 @@ class LateFirstAnswer(Responder):
     async def handle(self, endpoint: CanEndpoint, message: object) -> None:
         if isinstance(message, ProfileCommit) and not self.delayed:
             async def later() -> None:
+                # Wall (loop time): the bridge's 100 ms ack timeout is loop time by design.
                 await asyncio.sleep(0.15)
                 await super(LateFirstAnswer, self).handle(endpoint, message)
 

@@ -68,7 +68,7 @@ def remote_server() -> Iterator[str]:
                     raise RuntimeError(
                         f"can_remote server did not start (rc {server.poll()})"
                     ) from err
-                time.sleep(0.05)
+                time.sleep(0.05)  # a real server process starting: bounded poll of its port
         yield f"ws://127.0.0.1:{port}/"
     finally:
         server.kill()
@@ -210,7 +210,7 @@ async def test_heartbeat_status_and_assistance_off_cross_the_link(rig: Rig) -> N
     while loop.time() < deadline and not (
         seen.assistance_off and seen.heartbeats and seen.heartbeats[-1][1] == BridgeState.PAUSED
     ):
-        await asyncio.sleep(0.01)
+        await asyncio.sleep(0.01)  # frames cross a real websocket to the server: bounded poll
     await ep.stop_heartbeat()
     assert seen.assistance_off == [AssistanceOffReason.OPERATOR_STOP]
     counters = [c for c, _ in seen.heartbeats]

@@ -87,11 +87,19 @@ async def test_101_point_profile_pushes_commits_and_acks_across_processes(
         ep.bridge_state = BridgeState.RUNNING
         ep.start_heartbeat(period_s=0.01)
         result = await ep.push_profile(TABLE, 33)
-        await asyncio.sleep(0.05)
+        # The device is another process on a real (v)CAN bus: poll its stats, bounded, until it
+        # has counted 3 running heartbeats, instead of sleeping a fixed time for them.
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + 10.0
+        while True:
+            seen = device.stats()
+            running = [c for c, state in seen["heartbeats"] if state == BridgeState.RUNNING]
+            if len(running) >= 3 or loop.time() > deadline:
+                break
+            await asyncio.sleep(0.01)  # real bus, other process: a bounded poll, not a fixed wait
         await ep.stop_heartbeat()
     transfer = ProfileTransfer.from_forces(TABLE, 33)
     assert (result.version, result.n_points, result.attempts) == (33, 101, 1)
-    seen = device.stats()
     assert [33, list(transfer.forces_n)] in seen["acked"]
     counters = [c for c, state in seen["heartbeats"] if state == BridgeState.RUNNING]
     assert len(counters) >= 3

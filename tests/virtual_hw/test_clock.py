@@ -234,7 +234,12 @@ async def test_stuck_clock_warns_naming_the_busy_participant(caplog: pytest.LogC
 
     with caplog.at_level(logging.WARNING, logger="virtual_hw.clock"):
         tasks = [asyncio.create_task(stuck()), asyncio.create_task(sleeper())]
-        await asyncio.sleep(0.2)
+        # stall_warning_s is wall time by design (a stuck session is stuck in wall time): wait,
+        # bounded, for the warning itself rather than a fixed 0.2 s.
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + 5.0
+        while "participant 'estimator' busy" not in caplog.text and loop.time() < deadline:
+            await asyncio.sleep(0.01)  # the watched-for warning is raised after wall time passes
         release.set()
         await asyncio.wait_for(asyncio.gather(*tasks), timeout=5.0)
     assert "participant 'estimator' busy" in caplog.text

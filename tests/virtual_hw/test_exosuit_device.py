@@ -111,7 +111,7 @@ async def heartbeat_back(r: Rig, timeout_s: float = 5.0) -> None:
     deadline = loop.time() + timeout_s
     while r.exo.heartbeat_back_s() < r.exo.heartbeat_clear_s:
         assert loop.time() < deadline, "the bridge heartbeat did not come back"
-        await asyncio.sleep(0.01)
+        await asyncio.sleep(0.01)  # the device's heartbeat-back time is loop time: bounded poll
 
 
 async def test_profile_is_pending_then_active_at_a_gait_boundary_and_applied_bit_for_bit() -> None:
@@ -230,10 +230,11 @@ async def test_assistance_off_command_zeroes_the_force_latches_and_a_new_ack_res
     async with rig(feedback_hz=200.0) as r:
         await push_and_assist(r, TABLE, 13)
         with r.ep.subscribe(ForceFeedback, DeviceStatus, timestamps=True) as sub:
+            # Wall: force feedback is a loop-time rate (200 Hz), so windows of it are wall time.
             await asyncio.sleep(0.1)
             t_off = time.time()
             await r.ep.send(AssistanceOff(AssistanceOffReason.OPERATOR_STOP))  # heartbeat: running
-            await asyncio.sleep(0.4)
+            await asyncio.sleep(0.4)  # wall: a window of 200 Hz (loop-time) feedback after the stop
             items = [sub.get_nowait() for _ in range(sub.qsize())]
         await push_and_assist(r, TABLE, 14)  # acked while running: the latch clears
     before = [m for t, m in items if isinstance(m, ForceFeedback) and t < t_off]
@@ -271,7 +272,7 @@ async def test_lost_bridge_heartbeat_stops_assistance_even_if_a_stale_counter_re
             async def stale() -> None:  # a hung bridge whose adapter repeats the last frame
                 while True:
                     await r.ep.send(BridgeHeartbeat(200, BridgeState.RUNNING))
-                    await asyncio.sleep(0.02)
+                    await asyncio.sleep(0.02)  # a bridge heartbeat period (loop time, as the watchdog)
 
             repeater = asyncio.create_task(stale())
             off = await until(sub, lambda s: s.mode == DeviceMode.ASSISTANCE_OFF, timeout_s=2.0)
@@ -302,14 +303,14 @@ async def test_watchdog_waits_for_heartbeats_queued_while_the_device_loop_was_st
                     if stop.is_set():
                         return
                     bus.send(BridgeHeartbeat(counter, BridgeState.RUNNING).to_frame())
-                    time.sleep(0.02)
+                    time.sleep(0.02)  # a heartbeat period in a real thread: the watchdog is wall time
 
         beater = threading.Thread(target=bridge_in_another_thread, daemon=True)
         beater.start()
         try:
             await push_and_assist(r, TABLE, 23)
             time.sleep(0.3)  # the device's event loop (this one) stalls for 3 watchdog periods
-            await asyncio.sleep(0.2)
+            await asyncio.sleep(0.2)  # wall: room for a false watchdog expiry after the stall
             modes = [r.exo.mode(a) for a in (0, 1)]
         finally:
             stop.set()

@@ -1,7 +1,10 @@
 """Each virtual-exosuit fault, switched on through the Python API and observed from the bridge side.
 
 Fault times are simulated seconds on a ScaledClock whose epoch is the start of the test, at
-SPEED simulated seconds per wall second.
+SPEED simulated seconds per wall second. Not a VirtualClock: the gaps these tests measure are seen
+by the bridge's wall-clock watchdogs, and the device's bus-level periods run on loop (wall) time
+(virtual_hw/exosuit.py), so the tests wait on the device's ScaledClock for fault windows and on
+the wall only where a wall-time rate is the point.
 """
 
 from __future__ import annotations
@@ -77,7 +80,7 @@ async def test_drop_status_stops_the_device_heartbeat_for_the_window_only() -> N
     async with rig(["drop-status@0.6+0.8"]) as (exo, ep):
         with ep.subscribe(DeviceStatus, ForceFeedback, timestamps=True) as sub:
             t0 = time.time()
-            await asyncio.sleep(1.0)
+            await exo.clock.sleep_until(2.0)  # past the window's end (1.4) on the device's clock
             items = drain(sub)
     status_t = [t - t0 for t, m in items if isinstance(m, DeviceStatus) and m.actuator == 0]
     feedback_t = [t - t0 for t, m in items if isinstance(m, ForceFeedback) and m.actuator == 0]
@@ -117,10 +120,10 @@ async def test_bus_off_silences_the_node_then_reports_a_bus_error_and_refuses_pr
 
 
 async def test_bus_off_leaves_a_gap_in_all_device_traffic() -> None:
-    async with rig(["bus-off@0.6+0.8"]) as (_, ep):  # 0.3..0.7 wall s
+    async with rig(["bus-off@0.6+0.8"]) as (exo, ep):  # 0.3..0.7 wall s
         with ep.subscribe(timestamps=True) as sub:
             t0 = time.time()
-            await asyncio.sleep(1.0)
+            await exo.clock.sleep_until(2.0)  # past the window's end (1.4) on the device's clock
             times = [t - t0 for t, _ in drain(sub)]
     assert max_gap(times) >= 0.35
     assert max(times) > 0.75
@@ -152,9 +155,15 @@ async def test_malformed_frames_are_counted_by_the_bridge_and_valid_traffic_stil
     async with rig(faults, malformed_rate_hz=200.0) as (exo, ep):
         with ep.subscribe(DeviceStatus) as statuses, \
                 ep.subscribe(AssistanceOff, BridgeHeartbeat, ProfileSegment, ProfileCommit) as own:
-            await asyncio.sleep(0.5)
+            await asyncio.sleep(0.5)  # wall: the malformed rate (200 Hz) is a loop-time rate by design
             sent = dict(exo.stats)
-            await asyncio.sleep(0.05)  # let the last frames arrive
+            loop = asyncio.get_running_loop()
+            deadline = loop.time() + 2.0
+            while loop.time() < deadline and not (  # the frames in flight reach the bridge
+                ep.counters["bad_length"] >= sent["malformed_wrong-dlc"]
+                and ep.counters["unknown_id"] >= sent["malformed_unknown-id"]
+            ):
+                await asyncio.sleep(0.01)  # they cross python-can's bus thread: a bounded poll
             n_status = statuses.qsize()
             impersonated = own.qsize()
         counters = dict(ep.counters)
@@ -167,7 +176,9 @@ async def test_malformed_frames_are_counted_by_the_bridge_and_valid_traffic_stil
 
 async def test_counted_malformed_burst_sends_exactly_that_many_frames() -> None:
     async with rig(["unknown-id@0.2x7"], malformed_rate_hz=100.0) as (exo, ep):
-        await asyncio.sleep(0.4)
+        # The burst starts at 0.2 sim s and takes 70 ms wall at 100 Hz; wait well past it on the
+        # device's clock so that an 8th frame, if any, would have been sent and counted.
+        await exo.clock.sleep_until(0.8)
         counted = ep.counters["unknown_id"]
     assert exo.stats["malformed_sent"] == 7
     assert counted == 7

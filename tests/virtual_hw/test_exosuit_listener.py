@@ -135,7 +135,7 @@ async def test_profile_feed_drives_a_cart_from_a_hip_ankle_exosuit_on_the_bus() 
         for _ in range(500):
             if len(cart.calls) >= n:
                 return
-            await asyncio.sleep(0.01)
+            await asyncio.sleep(0.01)  # reports cross python-can's bus thread: bounded poll
         raise AssertionError(f"the cart got {len(cart.calls)} of {n} reports")
 
     joints = ("hip", "ankle")
@@ -144,6 +144,7 @@ async def test_profile_feed_drives_a_cart_from_a_hip_ankle_exosuit_on_the_bus() 
         feed = asyncio.create_task(applied_profile_feed(config, joints=joints)(cart))
         bridge.bridge_state = BridgeState.RUNNING
         bridge.start_heartbeat()
+        # Wall: the feed opens its own bus in an executor thread and exposes no readiness event.
         await asyncio.sleep(0.2)  # the feed's endpoint is open and listening
         await bridge.push_profile(table, 3)
         await calls(1)

@@ -61,7 +61,7 @@ async def wait_for(check: Callable[[], bool], timeout_s: float = 5.0) -> None:
     deadline = loop.time() + timeout_s
     while not check():
         assert loop.time() < deadline, "condition not reached"
-        await asyncio.sleep(0.01)
+        await asyncio.sleep(0.01)  # state set by frames from python-can's bus thread: bounded poll
 
 
 async def push_and_assist(ep: CanEndpoint, version: int) -> None:
@@ -92,6 +92,7 @@ async def test_heartbeat_lost_is_cleared_only_once_the_heartbeat_is_back_then_a_
         done = await ep.clear_faults()
         with ep.subscribe(DeviceStatus) as sub:
             clean = await until_all(sub, lambda s: s.faults == DeviceFault(0))
+            # Wall: a negative claim (no assist without a commit) needs a window of device traffic.
             await asyncio.sleep(0.3)  # cleared, but not assisting without a new commit
             idle = await until_all(sub, lambda s: True)
         await push_and_assist(ep, 3)
