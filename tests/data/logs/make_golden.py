@@ -43,8 +43,9 @@ class _Clock:
 def write_session(path: Path, **log_kwargs: Any) -> None:
     """The golden session: 3 evaluations (2 exploration, 1 optimisation) and every channel."""
     space = hip_6d()
+    # The seed's rule (it stops within 3 breaths, so every channel gets its records).
     opt = HILOptimizer(space, n_explore=2, max_breaths=3, window=1, budget_breaths=4, seed=1,
-                       n_candidates=32, n_local=0,
+                       stopping="adaptive", n_candidates=32, n_local=0,
                        estimator_factory=lambda: GaussianProductEstimator(400.0, 1e4, 1600.0))
     with SessionLog(path, session_id="golden", config_json={"protocol": {"n_explore": 2, "max_breaths": 3}},
                     param_names=list(space.names), clock_ns=_Clock(), flush_interval_s=None,
