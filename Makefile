@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 OUT ?= runs/sim
 PYTEST_ARGS ?=
-# Small GP matrices: threaded BLAS only adds contention (see bridge/cli.py).
+# Small GP matrices: threaded BLAS only adds contention (see bridge/cli/main.py).
 export OPENBLAS_NUM_THREADS ?= 1
 export OMP_NUM_THREADS ?= 1
 
@@ -30,6 +30,7 @@ lint: $(STAMP)
 test: $(STAMP)
 	@bash scripts/ensure-uml.sh
 	$(BIN)/ruff check .
+	$(BIN)/lint-imports
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
 
 clean:

@@ -877,7 +877,7 @@ def _parse_inline_prior(space: ParameterSpace, entry: object, i: int,
 def _read_prior_log(space: ParameterSpace, path: Path, i: int,
                     noise: PriorNoise) -> list[PriorObservation]:
     from bridge.log import LogError
-    from bridge.logread import read_log
+    from bridge.log.reader import read_log
 
     where = f"prior.logs[{i}] = {str(path)!r}"
     if not path.is_file():

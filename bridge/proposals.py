@@ -62,7 +62,7 @@ _REAP_TIMEOUT_S = 5.0
 #: GP's matrices are small, and a second BLAS thread only takes CPU from the bridge's process
 #: (measured: a fitted-ahead ask at 60 observations, 20 reps beside a busy core, used 22 ms of
 #: CPU for 15 ms of wall time with 2 threads, 14 for 14 with one). ``hilbo`` sets the same for
-#: itself (bridge/cli.py); this covers sessions started from Python.
+#: itself (bridge/cli/main.py); this covers sessions started from Python.
 _WORKER_ENV_DEFAULTS = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
 
 

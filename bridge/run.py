@@ -1,7 +1,7 @@
 """``hilbo run``: wire a config's devices into a :class:`~bridge.runtime.BridgeSession` and run it.
 
 The same function runs the lab session (real CAN adapter and cart) and ``hilbo sim`` (virtual
-devices started by :mod:`bridge.sim`, reached over the same transports). A session writes
+devices started by :mod:`bridge.sim.virtual`, reached over the same transports). A session writes
 ``OUT_DIR/<subject>_<time>.mcap`` and, at the end, ``<same name>.summary.json``; a resumed session
 writes a new log linked to the old one.
 """
@@ -25,8 +25,8 @@ from rich.console import Console
 from bridge.config import HilboConfig
 from bridge.live import LiveServer
 from bridge.log import DEFAULT_FILE_MODE, SessionLog, new_session_id
+from bridge.log.resume import rebuild_optimizer
 from bridge.operator_view import run_operator_view
-from bridge.resume import rebuild_optimizer
 from bridge.runtime import BridgeSession, Command, RuntimeSettings
 from drivers.cart import BreathStream
 from drivers.exosuit import CanEndpoint

@@ -72,7 +72,7 @@ ObjectiveFn = Callable[[Sequence[Any], int, Mapping[str, Any], Mapping[str, floa
 """``objective(observations, halt_step, context, params) -> cost`` of halting after ``halt_step``
 steps. Algorithm 1's GetObjectVal needs only the trajectory; ``params`` is there for episodes
 that pose several stopping decisions at once (e.g. one breath trace against several incumbents,
-``bridge.tune_stopping``), whose cost the policy's own decisions determine."""
+``bridge.bench.tune_stopping``), whose cost the policy's own decisions determine."""
 ExecuteFn = Callable[[dict[str, float], np.random.Generator], "Trajectory"]
 """``execute(policy_params, rng) -> Trajectory``: run the policy in the real world."""
 

@@ -3,7 +3,7 @@
 ``hilbo bench perf --bridge-minutes M`` runs the virtual exosuit and cart inside the bridge's
 process, so its CPU figure is the bridge's plus the devices'. This runs the same session (the
 bench's protocol: 2 exploration points, N = 10, 20 s warm-ups, 2 × 1 kHz force feedback, speed
-1) through ``hilbo sim --processes`` (bridge/sim_processes.py: the devices as child processes on
+1) through ``hilbo sim --processes`` (bridge/sim/processes.py: the devices as child processes on
 vcan0 or a python-can-remote server), so this process is the bridge alone, with its CAN client:
 
     nice -n -5 .venv/bin/python scripts/bridge_cpu_processes.py 5 --bus remote
@@ -28,11 +28,11 @@ import numpy as np
 from bridge.bench.bridge_perf import BridgeRtConfig, _stat_cpu_s
 from bridge.bench.common import blas_threads
 from bridge.runtime import BridgeSession
-from bridge.sim_processes import run_process_sim
+from bridge.sim.processes import run_process_sim
 
 
 async def main(minutes: float, bus: str) -> None:
-    # As `hilbo` runs: single-threaded BLAS here and in the children (bridge/cli.py).
+    # As `hilbo` runs: single-threaded BLAS here and in the children (bridge/cli/main.py).
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     blas_threads(1)
     samples: list[tuple[float, float, float, int]] = []  # wall, own CPU, worker CPU, frames

@@ -32,7 +32,7 @@ from bridge.bench.bridge_perf import BridgeRtConfig
 from bridge.collector import GcMode
 from bridge.proposals import WorkerKind
 from bridge.runtime import BridgeSession
-from bridge.sim import run_virtual_sim
+from bridge.sim.virtual import run_virtual_sim
 
 STALL_S = 0.008
 

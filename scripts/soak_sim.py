@@ -22,7 +22,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from bridge.logread import read_log
+from bridge.log.reader import read_log
 
 
 def _burn() -> None:
@@ -31,7 +31,7 @@ def _burn() -> None:
 
 
 def _run(out: Path, minutes: float, seed: int, processes: bool, timeout_s: float) -> dict:
-    cmd = [sys.executable, "-m", "bridge.cli", "sim", "--minutes", f"{minutes:g}", "--seed", str(seed),
+    cmd = [sys.executable, "-m", "bridge.cli.main", "sim", "--minutes", f"{minutes:g}", "--seed", str(seed),
            "--out", str(out)] + (["--processes"] if processes else [])
     t0 = time.monotonic()
     with open(out.parent / f"{out.name}.stderr", "w") as err:

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import os
 
-# Small GP matrices: threaded BLAS only adds contention (see bridge/cli.py); before numpy loads.
+# Small GP matrices: threaded BLAS only adds contention (see bridge/cli/main.py); before numpy loads.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 

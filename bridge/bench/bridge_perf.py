@@ -1,6 +1,6 @@
 """``hilbo bench perf --bridge-minutes M``: the bridge at real time (issue 6).
 
-A short :func:`bridge.sim.run_virtual_sim` session at ``speed`` (1 = real time) with the virtual
+A short :func:`bridge.sim.virtual.run_virtual_sim` session at ``speed`` (1 = real time) with the virtual
 exosuit sending force feedback of both actuators at ``feedback_hz`` (1 kHz), with one of two
 protocols (:class:`BridgeProtocol`): ``quick``, cut down so that profile pushes come often (2
 exploration points, N = 10 breaths, 20 s warm-ups), or ``lab``, the lab's own (seed 000 §IV.A.3,
@@ -66,11 +66,10 @@ from bridge.bench.common import blas_threads, markdown_table
 from bridge.log import Topic
 from bridge.log.reader import read_log
 from bridge.runtime import BridgeSession
-from bridge.sim import VirtualSimConfig, run_virtual_sim
+from bridge.sim.devices import SUIT_JOINTS, ScaledClock, VirtualExosuit
+from bridge.sim.virtual import VirtualSimConfig, run_virtual_sim
 from drivers.exosuit import CanBusConfig
 from hilbo_core.errors import ConfigError
-from virtual_hw.clock import ScaledClock
-from virtual_hw.exosuit import SUIT_JOINTS, VirtualExosuit
 
 __all__ = ["BRIDGE_TARGETS", "BridgeProtocol", "BridgeRtConfig", "bridge_realtime", "bridge_table"]
 
@@ -84,13 +83,14 @@ class BridgeProtocol(StrEnum):
 
     #: 2 exploration points, N = 10, 20 s warm-ups: a stop decision every ~20 s, many per minute.
     QUICK = "quick"
-    #: The lab's own (seed 000 §IV.A.3, ``hilbo config example``, :class:`~bridge.sim.VirtualSimConfig`'s
-    #: defaults): 6 exploration points, N = 45, 180 s warm-ups; the GP sizes of a real session.
+    #: The lab's own (seed 000 §IV.A.3, ``hilbo config example``,
+    #: :class:`~bridge.sim.virtual.VirtualSimConfig`'s defaults): 6 exploration points, N = 45,
+    #: 180 s warm-ups; the GP sizes of a real session.
     LAB = "lab"
 
     def settings(self) -> dict[str, Any]:
         """``n_explore``, ``max_breaths`` and ``warmup_s`` of this protocol: :class:`BridgeRtConfig`'s
-        defaults for ``quick``, :class:`~bridge.sim.VirtualSimConfig`'s for ``lab``."""
+        defaults for ``quick``, :class:`~bridge.sim.virtual.VirtualSimConfig`'s for ``lab``."""
         source = BridgeRtConfig if self is BridgeProtocol.QUICK else VirtualSimConfig
         keys = ("n_explore", "max_breaths", "warmup_s")
         return {f.name: f.default for f in fields(source) if f.name in keys}
@@ -177,7 +177,7 @@ class BridgeRtConfig:
         return next((p.value for p in BridgeProtocol if p.settings() == mine), "custom")
 
     def sim_config(self) -> VirtualSimConfig:
-        """The :class:`~bridge.sim.VirtualSimConfig` of this session."""
+        """The :class:`~bridge.sim.virtual.VirtualSimConfig` of this session."""
         sim = VirtualSimConfig(minutes=self.minutes, seed=self.seed, speed=self.speed, preset=self.preset,
                                n_explore=self.n_explore, max_breaths=self.max_breaths,
                                warmup_s=self.warmup_s, feedback_hz=self.feedback_hz, gc=self.gc)

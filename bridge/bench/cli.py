@@ -21,9 +21,9 @@ from rich.console import Console
 from bridge.bench.bridge_perf import BridgeProtocol
 from bridge.bench.common import choices, machine_info, numbers, round_sig, write_json
 from bridge.collector import GcMode
-from hilbo_core.benchmarks import FUNCTIONS, METHODS, NOISE_LEVELS, StoppingProtocol
+from bridge.sim.devices import WEARER_CHOICES, WearerKind
 from hilbo_core.errors import ConfigError, HilboError
-from virtual_hw.wearer import WEARER_CHOICES, WearerKind
+from hilbo_core.studies.benchmarks import FUNCTIONS, METHODS, NOISE_LEVELS, StoppingProtocol
 
 __all__ = ["add_bench_parser", "bench_main"]
 

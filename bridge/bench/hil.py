@@ -9,7 +9,7 @@ bout until the session ends. The methods:
 
 * ``sound`` — BO with the default sound stopping rule and recommendation (issue 17).
 * ``adaptive`` / ``fixed`` — Bayesian optimisation with / without the estimator stopping process,
-  exactly as ``hilbo sim`` runs it (:func:`bridge.insim.run_insim`): bout 1 is the exploration
+  exactly as ``hilbo sim`` runs it (:func:`bridge.sim.core.run_insim`): bout 1 is the exploration
   (6 points × N = 45 breaths, ≈ 14 min), bout 2 the optimisation until the session ends (≈ 40
   min). The recommendation after every evaluation is :meth:`HILOptimizer.best`.
 * ``cmaes`` — CMA-ES as HIL studies run it (the ``cma`` package): generations of 8 conditions of
@@ -31,7 +31,7 @@ bout until the session ends. The methods:
   same UKF estimate; recommendation: the lowest estimate so far. Bout 1 is its first 8 conditions.
 
 The seed-003 methods (:data:`THESIS_METHODS`, not run by default) are BO sessions of
-:func:`bridge.thesis_session.run_session` — the same protocol and recommendation as
+:func:`bridge.bench.thesis_session.run_session` — the same protocol and recommendation as
 ``adaptive``, with one thing changed:
 
 * ``adaptive-day2`` — a second "day" of the same wearer (a fresh breath-noise stream and
@@ -74,8 +74,9 @@ import numpy as np
 from scipy.optimize import linprog, minimize
 
 from bridge.bench.common import blas_threads, markdown_table, round_sig
-from bridge.insim import SimConfig, SimEvaluation, run_insim
-from bridge.thesis_session import Arm, run_session
+from bridge.bench.thesis_session import Arm, run_session
+from bridge.sim.core import SimConfig, SimEvaluation, run_insim
+from bridge.sim.devices import RealisticWearerConfig, WearerConfig, WearerKind, make_wearer, wearer_kind
 from hilbo_core.errors import ConfigError, InfeasibleError
 from hilbo_core.metabolic import MetabolicUKF
 from hilbo_core.optimizer import HILOptimizer, OptimizerConfig
@@ -83,8 +84,6 @@ from hilbo_core.presets import PRESETS, preset
 from hilbo_core.priors import priors_from_evaluations
 from hilbo_core.protocol import ActionKind, SessionPhase, SessionProtocol, SessionProtocolConfig
 from hilbo_core.space import ParameterSpace
-from virtual_hw.wearer import WearerConfig, WearerKind, make_wearer, wearer_kind
-from virtual_hw.wearer_realistic import RealisticWearerConfig
 
 __all__ = [
     "DEFAULT_HIL_METHODS",
@@ -233,7 +232,7 @@ class HilTask:
 def check_methods_for_wearer(methods: Iterable[str], wearer: str) -> None:
     """Refuse the seed-003 methods on any wearer but the legacy one.
 
-    :func:`bridge.thesis_session.run_session` builds the legacy wearer itself; scoring its sessions
+    :func:`bridge.bench.thesis_session.run_session` builds the legacy wearer itself; scoring its sessions
     on another wearer's landscape would be meaningless.
 
     Raises:
@@ -242,7 +241,7 @@ def check_methods_for_wearer(methods: Iterable[str], wearer: str) -> None:
     bad = [m for m in methods if m in THESIS_METHODS]
     if bad and wearer != WearerKind.LEGACY.value:
         raise ConfigError(f"method(s) {', '.join(bad)} run on the legacy wearer only "
-                          f"(bridge/thesis_session.py), not wearer={wearer!r}; use --wearer legacy")
+                          f"(bridge/bench/thesis_session.py), not wearer={wearer!r}; use --wearer legacy")
 
 
 # --------------------------------------------------------------------------------------------
@@ -531,7 +530,7 @@ def run_training_session(task: HilTask) -> list[list[list[float]]]:
 def tune_constant_k(trajectories: Sequence[Sequence[Sequence[float]]], protocol: HilProtocol, *,
                     pick: str = "bo", error_weight: float = 2.0, n_real: int = 60,
                     seed: int = 0) -> dict[str, Any]:
-    """Tune the constant K of the σ-scaled rule offline (:func:`bridge.tune_stopping.tune_stopping`).
+    """Tune the constant K of the σ-scaled rule offline (:func:`bridge.bench.tune_stopping.tune_stopping`).
 
     BO-RESAMPLE (seed 003 §4.2) over K on the trajectories' replays, as ``hilbo tune-stopping``
     does on logs; the cost of a rule is the breaths it uses plus ``error_weight`` evaluations for
@@ -554,7 +553,7 @@ def tune_constant_k(trajectories: Sequence[Sequence[Sequence[float]]], protocol:
     Raises:
         ConfigError: Unknown ``pick``, or fewer than 3 full-length trajectories.
     """
-    from bridge.tune_stopping import TuneStoppingConfig, tune_stopping
+    from bridge.bench.tune_stopping import TuneStoppingConfig, tune_stopping
 
     if pick not in ("bo", "grid"):
         raise ConfigError(f"pick={pick!r}; expected 'bo' (BO-RESAMPLE) or 'grid' (exhaustive grid)")

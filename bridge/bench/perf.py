@@ -14,10 +14,10 @@
   the bridge's default (``[protocol] refit = "ahead"``): the hyperparameters were fitted on the
   n − 1 earlier evaluations while the n-th was measured, so the timed ``ask()`` conditions the GP
   on all n and maximises EI. This is what stands between a stop decision and the next push.
-* **Session wall time** — :func:`bridge.insim.run_insim` of a 60-minute ``hip_6d`` session
+* **Session wall time** — :func:`bridge.sim.core.run_insim` of a 60-minute ``hip_6d`` session
   (adaptive stopping) at ``speed=max``, for a few subject seeds.
 * **The bridge at real time** (opt-in, ``bridge_minutes`` > 0; issue 6) — a
-  :func:`bridge.sim.run_virtual_sim` session at speed 1 with 2 × 1 kHz force feedback: stop →
+  :func:`bridge.sim.virtual.run_virtual_sim` session at speed 1 with 2 × 1 kHz force feedback: stop →
   ack latency, dropped and logged feedback frames, CPU (:mod:`bridge.bench.bridge_perf`).
 
 Runs in this process (latency is a single-process property); other load on the machine shows up
@@ -40,12 +40,12 @@ import numpy as np
 
 from bridge.bench.bridge_perf import BridgeRtConfig, bridge_realtime, bridge_table
 from bridge.bench.common import blas_threads, markdown_table, round_sig
-from bridge.insim import SimConfig, run_insim
+from bridge.sim.core import SimConfig, run_insim
+from bridge.sim.devices import SimulatedWearer
 from hilbo_core.errors import ConfigError
 from hilbo_core.metabolic import brockway_watts
 from hilbo_core.optimizer import HILOptimizer, Phase
 from hilbo_core.presets import hip_6d
-from virtual_hw.wearer import SimulatedWearer
 
 __all__ = [
     "PerfConfig",

@@ -1,6 +1,6 @@
 """``hilbo bench stopping``: seed 000 §III.2's simulation study, campaign and summary.
 
-One *trial* is :func:`hilbo_core.benchmarks.stopping_trial` for one (function, noise, method,
+One *trial* is :func:`hilbo_core.studies.benchmarks.stopping_trial` for one (function, noise, method,
 seed). A campaign runs ``trials`` seeds for every function × noise level × method; the methods
 of one trial share the seed, hence the exploration design, the exploration measurements and x_0,
 so methods are compared pairwise on the same trials (as the seed compares them).
@@ -44,7 +44,10 @@ import numpy as np
 
 from bridge.bench.common import blas_threads, markdown_table, round_sig
 from bridge.bench.executors import keep_freed_memory
-from hilbo_core.benchmarks import (
+from hilbo_core.errors import ConfigError, OptimizerStateError
+from hilbo_core.metabolic import GaussianProductEstimator
+from hilbo_core.optimizer import HILOptimizer, OptimizerConfig, Phase
+from hilbo_core.studies.benchmarks import (
     _NOISE_STREAM,  # the trial's measurement stream: peers must measure what the BO methods measure
     FUNCTIONS,
     METHODS,
@@ -59,9 +62,6 @@ from hilbo_core.benchmarks import (
     stopping_trial,
     y_metric,
 )
-from hilbo_core.errors import ConfigError, OptimizerStateError
-from hilbo_core.metabolic import GaussianProductEstimator
-from hilbo_core.optimizer import HILOptimizer, OptimizerConfig, Phase
 
 __all__ = [
     "PEER_METHODS",
@@ -125,7 +125,7 @@ def _import_optuna() -> Any:
 
 def peer_trial(function: str, noise: float, method: str, seed: int,
                protocol: StoppingProtocol | None = None) -> dict[str, Any]:
-    """One trial of an Optuna peer in the harness of :func:`hilbo_core.benchmarks.stopping_trial`.
+    """One trial of an Optuna peer in the harness of :func:`hilbo_core.studies.benchmarks.stopping_trial`.
 
     Same trial identity and output fields as ``stopping_trial`` (``y`` on the same measurement
     grid, normalised by the same x_0), plus ``pruned`` (settings the pruner stopped).
@@ -286,9 +286,9 @@ class StoppingCampaign:
     """Which trials a ``bench stopping`` run consists of; validated before any work starts.
 
     Attributes:
-        functions: Names in :data:`hilbo_core.benchmarks.FUNCTIONS`.
+        functions: Names in :data:`hilbo_core.studies.benchmarks.FUNCTIONS`.
         noises: σ_z²/σ̃² factors (the seed's: 0.1, 1, 10).
-        methods: Names in :data:`hilbo_core.benchmarks.METHODS` or :data:`PEER_METHODS`.
+        methods: Names in :data:`hilbo_core.studies.benchmarks.METHODS` or :data:`PEER_METHODS`.
         trials: Trials per function × noise (>= 1); trial k uses seed ``seed + k``.
         seed: Seed of the first trial (>= 0).
         protocol: The study's protocol.

@@ -37,7 +37,7 @@ process; ``os.fsync`` (only needed against power loss or a kernel crash) runs ev
 ``fsync_interval_s`` in the background thread and on close, never per message.
 
 Measured here (a writer logging a breath every 2 ms, SIGKILL after 3 s, 6 runs each, read back
-with :func:`bridge.logread.read_log`; machine under load):
+with :func:`bridge.log.reader.read_log`; machine under load):
 
 * mcap defaults (1 MiB chunks, no flush): 0 % kept (0-byte files).
 * 4 KiB chunks, no flush: 83 % kept; up to 98 messages lost per kill, some 0-byte files.
@@ -51,10 +51,10 @@ File size for 5 000 breaths and 20 000 force-feedback batches: 0.67 MB with the 
 The default costs ~60 µs per flushed message (vs ~40 µs) and a chunk per message on the
 breath-rate channels (a few per breath), which is why the kilohertz channels stay on the timer.
 Unchunked files have no chunk index and no compression; both kinds are read by the mcap package
-and by :mod:`bridge.logread` (a cut-off file only by a front-to-back reader: mcap's seeking
-reader needs the footer, which :func:`bridge.logread.recover` writes).
+and by :mod:`bridge.log.reader` (a cut-off file only by a front-to-back reader: mcap's seeking
+reader needs the footer, which :func:`bridge.log.reader.recover` writes).
 
-A file cut off by a crash is read by :mod:`bridge.logread` (``read_log``, ``recover``).
+A file cut off by a crash is read by :mod:`bridge.log.reader` (``read_log``, ``recover``).
 """
 
 from __future__ import annotations

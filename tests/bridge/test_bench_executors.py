@@ -6,8 +6,8 @@ import pytest
 
 from bridge.bench.executors import DaskExecutor, LocalExecutor, make_executor
 from bridge.bench.stopping import StoppingTask, run_stopping_task
-from hilbo_core.benchmarks import StoppingProtocol
 from hilbo_core.errors import ConfigError
+from hilbo_core.studies.benchmarks import StoppingProtocol
 
 TOY = StoppingProtocol(n_explore=3, max_breaths=4, window=1, budget=8, n_candidates=32, n_local=0)
 TASKS = [StoppingTask("branin", 1.0, m, s, TOY) for s in (0, 1) for m in ("fixed", "adaptive")]

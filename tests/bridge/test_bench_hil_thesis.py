@@ -23,10 +23,10 @@ from bridge.bench.hil import (
     tune_constant_k,
 )
 from bridge.bench.hil import _thesis_arm as _thesis_arm  # the method → session mapping
-from bridge.thesis_session import Arm, run_session
+from bridge.bench.thesis_session import Arm, run_session
 from hilbo_core.errors import ConfigError
 
-# The seed-003 methods run on the legacy wearer (bridge/thesis_session.py builds it).
+# The seed-003 methods run on the legacy wearer (bridge/bench/thesis_session.py builds it).
 TOY = HilProtocol(minutes=5.5, warmup_s=30.0, n_explore=2, max_breaths=5, condition_s=30.0, popsize=4,
                   bout1_conditions=4, grid_min=0.5, wearer="legacy")
 # The feature kernel costs ~1 s per proposal (profiles of every EI candidate): a shorter session.
@@ -108,7 +108,7 @@ def test_task_validation() -> None:
         HilTask("adaptive", "hip_6d", 1, TOY, stopping_k=1.0)
     with pytest.raises(ConfigError, match="feature='dog'"):
         Arm("x", feature="dog")
-    # bridge/thesis_session.py builds the legacy wearer: the realistic one is refused by name.
+    # bridge/bench/thesis_session.py builds the legacy wearer: the realistic one is refused by name.
     with pytest.raises(ConfigError, match=r"adaptive-day2 run on the legacy wearer only .*'realistic'"):
         HilTask("adaptive-day2", "hip_6d", 1, dataclasses.replace(TOY, wearer="realistic"))
 

@@ -18,8 +18,8 @@ from bridge.bench.stopping import (
     stopping_table,
     summarize_stopping,
 )
-from hilbo_core.benchmarks import StoppingProtocol
 from hilbo_core.errors import ConfigError
+from hilbo_core.studies.benchmarks import StoppingProtocol
 
 TOY = StoppingProtocol(n_explore=3, max_breaths=4, window=1, budget=8, n_candidates=32, n_local=0)
 

@@ -10,8 +10,8 @@ import pytest
 
 from bridge.bench.cli import bench_main
 from bridge.bench.stopping import PEER_METHODS, StoppingCampaign, peer_trial
-from hilbo_core.benchmarks import StoppingProtocol, stopping_trial
 from hilbo_core.errors import ConfigError
+from hilbo_core.studies.benchmarks import StoppingProtocol, stopping_trial
 
 pytest.importorskip("optuna")
 

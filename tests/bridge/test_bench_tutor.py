@@ -1,4 +1,4 @@
-"""Tests for bridge.bench_tutor (``hilbo bench tutor``) at a toy size."""
+"""Tests for bridge.bench.tutor (``hilbo bench tutor``) at a toy size."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from bridge.bench_tutor import (
+from bridge.bench.tutor import (
     TutorBenchConfig,
     add_tutor_bench_parser,
     bkt_threshold_reference,
@@ -16,7 +16,7 @@ from bridge.bench_tutor import (
     run_tutor_repetition,
 )
 from hilbo_core.errors import ConfigError
-from hilbo_core.tutor import FIG7_STUDENTS, best_count_policy
+from hilbo_core.studies.tutor import FIG7_STUDENTS, best_count_policy
 
 TOY = TutorBenchConfig(figures=("fig9",), students=4, repetitions=2, resamples=2, max_reuse=2,
                        t_max=5, seed=3)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-import bridge.cli as cli
+import bridge.cli.main as cli
 from bridge.config import check_out_dir, config_warnings, example_config_text, parse_config
 from bridge.errors import BridgeConfigError
 from bridge.proposals import ProposalWorker
@@ -276,5 +276,5 @@ def test_every_documented_can_remote_server_binds_loopback(name: str) -> None:
 
 
 def test_the_process_sim_starts_can_remote_on_loopback() -> None:
-    source = (ROOT / "bridge" / "sim_processes.py").read_text(encoding="utf-8")
+    source = (ROOT / "bridge" / "sim" / "processes.py").read_text(encoding="utf-8")
     assert '"--host", _LOOPBACK' in source and '_LOOPBACK = "127.0.0.1"' in source

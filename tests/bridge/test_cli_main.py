@@ -1,4 +1,4 @@
-"""bridge.cli.main: exit codes of the top-level command line."""
+"""bridge.cli.main.main: exit codes of the top-level command line."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import argparse
 
 import pytest
 
-import bridge.cli as cli
+import bridge.cli.main as cli
 
 
 def test_a_reader_that_leaves_early_is_exit_141_without_traceback(

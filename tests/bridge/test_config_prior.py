@@ -12,12 +12,12 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-import bridge.sim
+import bridge.sim.virtual
 from bridge.config import _cmd_check, parse_config, summarize
 from bridge.errors import BridgeConfigError
 from bridge.log import SessionLog
-from bridge.logread import read_log
-from bridge.resume import rebuild_optimizer
+from bridge.log.reader import read_log
+from bridge.log.resume import rebuild_optimizer
 from hilbo_core.optimizer import Evaluation, PriorObservation
 from hilbo_core.presets import hip_6d
 
@@ -295,10 +295,10 @@ def test_bad_logs_name_the_path(tmp_path: Path) -> None:
 def test_run_session_starts_with_the_priors_and_the_log_keeps_them(day1_log: Path, tmp_path: Path,
                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
     prior = f'\n[prior]\nlogs = ["{day1_log.as_posix()}"]\n'
-    real = bridge.sim.parse_config
-    monkeypatch.setattr(bridge.sim, "parse_config", lambda text, source: real(text + prior, source))
-    cfg = bridge.sim.VirtualSimConfig(minutes=5.0, seed=2, n_explore=3, max_breaths=10, warmup_s=20.0)
-    asyncio.run(bridge.sim.run_virtual_sim(cfg, tmp_path))
+    real = bridge.sim.virtual.parse_config
+    monkeypatch.setattr(bridge.sim.virtual, "parse_config", lambda text, source: real(text + prior, source))
+    cfg = bridge.sim.virtual.VirtualSimConfig(minutes=5.0, seed=2, n_explore=3, max_breaths=10, warmup_s=20.0)
+    asyncio.run(bridge.sim.virtual.run_virtual_sim(cfg, tmp_path))
     log = read_log(tmp_path / "session.mcap")
     (event,) = [e for e in log.data("/events") if e["kind"] == "prior"]
     assert event["message"].startswith("5 prior observations: 5 from log")

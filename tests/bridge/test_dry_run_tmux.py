@@ -35,10 +35,10 @@ from pathlib import Path
 import pytest
 from mcap.exceptions import McapError
 
-from bridge.cli import main
+from bridge.cli.main import main
 from bridge.config import example_config_text
 from bridge.errors import BridgeError
-from bridge.logread import read_log
+from bridge.log.reader import read_log
 
 pytestmark = [
     pytest.mark.slow,
@@ -49,7 +49,7 @@ pytestmark = [
     ),
 ]
 
-HILBO = [sys.executable, "-m", "bridge.cli"]  # = the venv's `hilbo` console script
+HILBO = [sys.executable, "-m", "bridge.cli.main"]  # = the venv's `hilbo` console script
 HOST = "127.0.0.1"
 #: The README says --speed 10; 30 keeps the session to seconds (the clock runs 30x the wall).
 SPEED = "30"

@@ -6,8 +6,8 @@ import json
 
 import pytest
 
-from bridge.cli import main
-from bridge.insim import SimConfig, run_insim
+from bridge.cli.main import main
+from bridge.sim.core import SimConfig, run_insim
 from hilbo_core.errors import ConfigError
 from hilbo_core.presets import hip_6d
 

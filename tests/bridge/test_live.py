@@ -359,7 +359,7 @@ def test_the_live_table_refuses_unknown_keys_and_bad_values(table, text) -> None
 @pytest.mark.slow
 def test_a_simulated_session_streams_breaths_and_estimates_live(tmp_path: Path) -> None:
     from bridge.runtime import BridgeSession, Command
-    from bridge.sim import VirtualSimConfig, run_virtual_sim
+    from bridge.sim.virtual import VirtualSimConfig, run_virtual_sim
 
     seen: dict[str, list[dict[str, Any]]] = {}
     errors: list[BaseException] = []

@@ -30,7 +30,7 @@ from bridge.log import (
     check_message,
     new_session_id,
 )
-from bridge.logread import read_log
+from bridge.log.reader import read_log
 from drivers.exosuit.codec import DeviceFault, DeviceMode, NackReason
 from hilbo_core.metabolic import GaussianProductEstimator
 from hilbo_core.optimizer import HILOptimizer

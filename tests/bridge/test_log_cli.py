@@ -1,4 +1,4 @@
-"""``hilbo log info`` and ``hilbo log recover`` (bridge.cli_log)."""
+"""``hilbo log info`` and ``hilbo log recover`` (bridge.cli.log)."""
 
 from __future__ import annotations
 
@@ -8,14 +8,14 @@ from pathlib import Path
 
 import pytest
 
-from bridge.cli_log import add_log_parser, default_recovered_path
+from bridge.cli.log import add_log_parser, default_recovered_path
 from bridge.log import SessionLog, Topic
-from bridge.logread import read_log
+from bridge.log.reader import read_log
 from hilbo_core.types import BreathRecord
 
 
 def run(argv: list[str]) -> int:
-    """Parse and run like bridge.cli.main does once ``add_log_parser`` is registered there."""
+    """Parse and run like bridge.cli.main.main does once ``add_log_parser`` is registered there."""
     parser = argparse.ArgumentParser(prog="hilbo")
     add_log_parser(parser.add_subparsers(dest="command", required=True))
     args = parser.parse_args(argv)

@@ -13,7 +13,7 @@ import pytest
 from mcap.reader import make_reader
 
 from bridge.log import Topic
-from bridge.logread import read_log, recover
+from bridge.log.reader import read_log, recover
 
 ROOT = Path(__file__).resolve().parents[2]
 

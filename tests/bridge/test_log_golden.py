@@ -13,14 +13,14 @@ from typing import Any
 import pytest
 
 from bridge.bench.bridge_perf import _log_counts
-from bridge.cli import main
-from bridge.cli_log import log_info
+from bridge.bench.tune_stopping import evaluations_from_log, trajectories_from_log
+from bridge.cli.log import log_info
+from bridge.cli.main import main
 from bridge.log import FORMAT_VERSION, READABLE_VERSIONS, RECORD_TYPES, Topic
 from bridge.log import records as rec
 from bridge.log.reader import read_log, recover
-from bridge.resume import ResumeError, rebuild_optimizer
-from bridge.review import load_session
-from bridge.tune_stopping import evaluations_from_log, trajectories_from_log
+from bridge.log.resume import ResumeError, rebuild_optimizer
+from bridge.review.session import load_session
 from hilbo_core.metabolic import GaussianProductEstimator
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "logs"

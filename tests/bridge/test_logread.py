@@ -1,4 +1,4 @@
-"""bridge.logread: reading logs whole or cut off by a crash, and recovering them."""
+"""bridge.log.reader: reading logs whole or cut off by a crash, and recovering them."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 
 from bridge.log import LogFormatError, LogWriteError, SessionLog, Topic
-from bridge.logread import read_log, recover
+from bridge.log.reader import read_log, recover
 from hilbo_core.types import BreathRecord
 
 N_BREATHS = 12

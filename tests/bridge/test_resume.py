@@ -1,4 +1,4 @@
-"""bridge.resume: a session cut off by kill -9 at any byte resumes with every evaluation once."""
+"""bridge.log.resume: a session cut off by kill -9 at any byte resumes with every evaluation once."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from bridge.log import LogFormatError, SessionLog, Topic
-from bridge.logread import read_log
-from bridge.resume import ResumeError, ResumePolicy, rebuild_optimizer
+from bridge.log.reader import read_log
+from bridge.log.resume import ResumeError, ResumePolicy, rebuild_optimizer
 from hilbo_core.metabolic import GaussianProductEstimator
 from hilbo_core.optimizer import HILOptimizer
 from hilbo_core.presets import hip_6d

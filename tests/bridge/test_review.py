@@ -14,11 +14,11 @@ from pathlib import Path
 
 import pytest
 
-from bridge.cli import main
-from bridge.logread import read_log
-from bridge.review import default_review_dir, review_session
-from bridge.review_plots import PLOT_FILES, PLOT_SIZES_PX
-from bridge.sim import VirtualSimConfig, run_virtual_sim
+from bridge.cli.main import main
+from bridge.log.reader import read_log
+from bridge.review.command import default_review_dir, review_session
+from bridge.review.plots import PLOT_FILES, PLOT_SIZES_PX
+from bridge.sim.virtual import VirtualSimConfig, run_virtual_sim
 
 pytestmark = pytest.mark.slow
 

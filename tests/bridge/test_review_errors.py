@@ -7,10 +7,10 @@ from pathlib import Path
 import pytest
 from mcap.writer import Writer
 
-from bridge.cli import main
+from bridge.cli.main import main
 from bridge.errors import BridgeError, ReviewError
 from bridge.log import SessionLog
-from bridge.review import load_session
+from bridge.review.session import load_session
 
 
 def other_programs_mcap(path: Path) -> Path:

@@ -13,9 +13,10 @@ import numpy as np
 import pytest
 
 from bridge.log import SessionLog
-from bridge.logread import read_log
-from bridge.resume import rebuild_optimizer
-from bridge.review import load_session, review_session
+from bridge.log.reader import read_log
+from bridge.log.resume import rebuild_optimizer
+from bridge.review.command import review_session
+from bridge.review.session import load_session
 from hilbo_core.metabolic import GaussianProductEstimator
 from hilbo_core.optimizer import HILOptimizer
 from hilbo_core.presets import hip_6d

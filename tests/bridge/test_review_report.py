@@ -6,8 +6,9 @@ import csv
 from pathlib import Path
 
 from bridge.log import EventLevel, SessionLog
-from bridge.review import load_session, review_session
-from bridge.review_report import BREATH_COLUMNS
+from bridge.review.command import review_session
+from bridge.review.report import BREATH_COLUMNS
+from bridge.review.session import load_session
 from hilbo_core.types import BreathRecord
 
 

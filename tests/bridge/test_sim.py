@@ -8,10 +8,10 @@ import json
 import numpy as np
 import pytest
 
-from bridge.logread import read_log
+from bridge.log.reader import read_log
 from bridge.runtime import BridgeSession, Command
 from bridge.safety import ProfileLimits, check_profile
-from bridge.sim import VirtualSimConfig, run_virtual_sim
+from bridge.sim.virtual import VirtualSimConfig, run_virtual_sim
 from hilbo_core.presets import hip_6d
 from hilbo_core.profiles import ForceProfile
 

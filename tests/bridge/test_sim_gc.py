@@ -8,9 +8,9 @@ import gc
 import pytest
 
 from bridge.collector import GcMode
-from bridge.logread import read_log
+from bridge.log.reader import read_log
 from bridge.runtime import BridgeSession
-from bridge.sim import VirtualSimConfig, run_virtual_sim
+from bridge.sim.virtual import VirtualSimConfig, run_virtual_sim
 
 pytestmark = pytest.mark.slow
 

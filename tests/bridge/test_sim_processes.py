@@ -1,6 +1,6 @@
 """The bridge, the virtual exosuit and the virtual cart as separate processes.
 
-* ``hilbo sim --processes`` (bridge/sim_processes.py): the bridge in this process, the two
+* ``hilbo sim --processes`` (bridge/sim/processes.py): the bridge in this process, the two
   devices as children, over SocketCAN vcan0 (marked ``vcan``: natively, or inside user-mode
   Linux, tests/conftest.py) and over python-can-remote on this host.
 * ``hilbo run`` with the example config (``hilbo config example``) as a process of its own, the
@@ -30,12 +30,12 @@ from typing import Any
 
 import pytest
 
-from bridge.cli import main
+from bridge.cli.main import main
 from bridge.config import example_config_text
 from bridge.errors import DeviceProcessError
-from bridge.logread import LogContents, read_log
-from bridge.sim import VirtualSimConfig
-from bridge.sim_processes import ChildProcess, device_processes, run_process_sim, vcan_problem
+from bridge.log.reader import LogContents, read_log
+from bridge.sim.processes import ChildProcess, device_processes, run_process_sim, vcan_problem
+from bridge.sim.virtual import VirtualSimConfig
 from hilbo_core.presets import hip_6d
 from virtual_hw.wearer_realistic import RealisticWearer
 
@@ -175,7 +175,7 @@ async def test_every_child_is_stopped_when_the_block_fails(tmp_path: Path) -> No
 def test_ctrl_c_ends_the_session_and_stops_the_devices(tmp_path: Path) -> None:
     needs("remote")
     proc = subprocess.Popen(
-        [sys.executable, "-m", "bridge.cli", "sim", "--processes", "--bus", "remote", "--minutes", "60",
+        [sys.executable, "-m", "bridge.cli.main", "sim", "--processes", "--bus", "remote", "--minutes", "60",
          "--speed", "1", "--out", str(tmp_path)],
         cwd=ROOT, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
@@ -263,7 +263,7 @@ async def test_hilbo_run_with_the_example_config_drives_the_device_processes(
     tmp_path: Path, bus: str,
 ) -> None:
     needs(bus)
-    hilbo = [sys.executable, "-m", "bridge.cli"]  # = the hilbo console script
+    hilbo = [sys.executable, "-m", "bridge.cli.main"]  # = the hilbo console script
     cart_port = _free_port()
     servers: list[ChildProcess] = []
     if bus == "remote":

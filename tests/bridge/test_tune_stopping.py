@@ -1,4 +1,4 @@
-"""Tests for bridge.tune_stopping: offline tuning of the stopping rule with BO-RESAMPLE."""
+"""Tests for bridge.bench.tune_stopping: offline tuning of the stopping rule with BO-RESAMPLE."""
 
 from __future__ import annotations
 
@@ -9,8 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bridge.log import SessionLog
-from bridge.tune_stopping import (
+from bridge.bench.tune_stopping import (
     BreathTrace,
     TuneStoppingConfig,
     add_tune_stopping_parser,
@@ -19,6 +18,7 @@ from bridge.tune_stopping import (
     trajectories_from_log,
     tune_stopping,
 )
+from bridge.log import SessionLog
 from hilbo_core import HILOptimizer, presets
 from hilbo_core.errors import ConfigError, MeasurementError
 from hilbo_core.metabolic import GaussianProductEstimator

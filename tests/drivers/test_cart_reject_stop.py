@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from bridge import cli
+import bridge.cli.main as cli
 from drivers.cart import BreathStream, CartConfig
 from drivers.cart.errors import CartError
 from drivers.errors import DriverError
@@ -94,7 +94,7 @@ def test_max_leading_rejects_is_validated(tmp_path: Path) -> None:
 
 
 def _config_toml(tmp_path: Path, cart_path: Path, csv_extra: str = "") -> Path:
-    text = cli.__loader__ and Path(cli.__file__).with_name("config_example.toml").read_text()
+    text = (Path(cli.__file__).parents[1] / "config_example.toml").read_text()
     start, end = text.index("[cart]"), text.index("[can]")
     cart = (f'[cart]\ntransport = "replay"\nformat = "csv"\n[cart.options]\npath = "{cart_path}"\n'
             'speed = "max"\n[cart.csv]\ntime_column = "t"\nvo2_column = "VO2"\nvco2_column = "VCO2"\n'

@@ -15,7 +15,7 @@ import pytest
 
 from bridge.config import parse_config
 from bridge.run import run_session
-from bridge.sim import VirtualSimConfig, sim_config_text
+from bridge.sim.virtual import VirtualSimConfig, sim_config_text
 from drivers.cart import CartConfig
 from drivers.exosuit import CanBusConfig
 from virtual_hw.clock import ScaledClock

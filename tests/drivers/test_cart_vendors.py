@@ -14,7 +14,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from bridge import cli
+import bridge.cli.main as cli
 from drivers.cart import BreathStream, CartConfig
 from drivers.cart.inspect import inspect_file
 from drivers.cart.pipeline import iter_breaths

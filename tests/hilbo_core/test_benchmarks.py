@@ -1,4 +1,4 @@
-"""hilbo_core.benchmarks: Table I functions, the measurement model, y_t and one trial."""
+"""hilbo_core.studies.benchmarks: Table I functions, the measurement model, y_t and one trial."""
 
 from __future__ import annotations
 
@@ -9,7 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hilbo_core.benchmarks import (
+from hilbo_core.errors import ConfigError
+from hilbo_core.studies.benchmarks import (
     FUNCTIONS,
     METHODS,
     StoppingMethod,
@@ -22,7 +23,6 @@ from hilbo_core.benchmarks import (
     stopping_trial,
     y_metric,
 )
-from hilbo_core.errors import ConfigError
 
 TOY = StoppingProtocol(n_explore=3, max_breaths=5, window=1, budget=20, n_candidates=64, n_local=0)
 

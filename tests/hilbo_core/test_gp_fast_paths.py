@@ -17,8 +17,8 @@ from hypothesis.extra.numpy import arrays
 from scipy.linalg import cho_solve, solve_triangular
 from scipy.spatial.distance import cdist
 
-from hilbo_core.benchmarks import StoppingMethod, StoppingProtocol, stopping_trial
 from hilbo_core.gp import GaussianProcess, KernelKind, _matern52_from_r2
+from hilbo_core.studies.benchmarks import StoppingMethod, StoppingProtocol, stopping_trial
 
 _SQRT5 = math.sqrt(5.0)
 

@@ -14,7 +14,7 @@ from hilbo_core.resample import (
     replay_halt_step,
     simulate_policy_exec,
 )
-from hilbo_core.tutor import FIG9_STUDENTS, TutorProblem, afm_space
+from hilbo_core.studies.tutor import FIG9_STUDENTS, TutorProblem, afm_space
 
 
 def _count_halt(params, history, context) -> bool:

@@ -1,4 +1,4 @@
-"""Tests for hilbo_core.tutor: BKT students, the AFM threshold policy, R(π) (seed 003 §4.1-4.4)."""
+"""Tests for hilbo_core.studies.tutor: BKT students, the AFM threshold policy, R(π) (seed 003 §4.1-4.4)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from hilbo_core.errors import ConfigError
 from hilbo_core.resample import replay_halt_step
-from hilbo_core.tutor import (
+from hilbo_core.studies.tutor import (
     FIG7_STUDENTS,
     FIG9_STUDENTS,
     AFMPolicy,

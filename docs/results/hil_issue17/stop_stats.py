@@ -7,9 +7,9 @@ import sys
 
 import numpy as np
 
-import bridge.insim as insim
+import bridge.sim.core as insim
 from bridge.bench.common import blas_threads
-from bridge.insim import SimConfig, run_insim
+from bridge.sim.core import SimConfig, run_insim
 from hilbo_core.presets import preset
 from virtual_hw.wearer import make_wearer
 

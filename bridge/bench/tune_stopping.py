@@ -33,7 +33,7 @@ same numbers for Algorithm 2's schedule with the session's window (W = 2 by defa
 judged with the schedule built from ``n_explore`` = 6 *other* trajectories, as a session builds it
 from its own exploration bout and then applies it to new settings.
 
-Logs are read with :func:`bridge.logread.read_log`: the ``/estimator`` channel holds every breath
+Logs are read with :func:`bridge.log.reader.read_log`: the ``/estimator`` channel holds every breath
 the optimizer consumed (``t_setting_s``, ``watts``) by evaluation, ``/observations`` how many
 breaths each evaluation kept.
 """
@@ -370,7 +370,7 @@ def tune_stopping(trajectories: Sequence[Any], config: TuneStoppingConfig | None
 
 
 # --------------------------------------------------------------------------------------------
-# Log adapters (bridge.logread)
+# Log adapters (bridge.log.reader)
 # --------------------------------------------------------------------------------------------
 
 

@@ -15,7 +15,7 @@ after every student, over many repetitions:
 Within a repetition every method meets the *same* students in the same order (common random
 numbers: a student is a pre-drawn answer sequence, and a policy only decides how much of it is
 used). The plotted value is the exact expected cost 1 − E[R] over the student population of the
-policy each method recommends after n students (:func:`hilbo_core.tutor.expected_reward`), so the
+policy each method recommends after n students (:func:`hilbo_core.studies.tutor.expected_reward`), so the
 curves carry no evaluation noise. Reference lines: the best AFM threshold policy (brute force
 over its effective "stop at the c-th correct answer" form) and the best BKT threshold policy with
 the students' true parameters (exact, over a grid of 48 thresholds).
@@ -41,7 +41,7 @@ import numpy as np
 
 from hilbo_core.errors import ConfigError
 from hilbo_core.resample import ResampleConfig, Trajectory, bo_resample
-from hilbo_core.tutor import (
+from hilbo_core.studies.tutor import (
     FIG7_STUDENTS,
     FIG9_STUDENTS,
     AFMPolicy,
@@ -168,7 +168,7 @@ def run_tutor_repetition(figure: str, rep: int, cfg: TutorBenchConfig) -> dict[s
 def bkt_threshold_reference(bkt: BKTParams, t_max: int) -> tuple[float, float]:
     """Best BKT threshold policy with the students' true parameters: (threshold, 1 − E[R]).
 
-    Exact expectations (:func:`hilbo_core.tutor.bkt_threshold_expected_reward`) over a fixed
+    Exact expectations (:func:`hilbo_core.studies.tutor.bkt_threshold_expected_reward`) over a fixed
     grid of thresholds.
     """
     values = [(float(thr), 1.0 - bkt_threshold_expected_reward(bkt, float(thr), t_max))

@@ -1,8 +1,8 @@
 """One simulated HIL session with the seed-003 options: fast prior, feature kernel, constant-K stopping.
 
-Shared by the study script (:mod:`bridge.thesis_study`, docs/results_thesis.md §2–4) and the
+Shared by the study script (:mod:`bridge.bench.thesis_study`, docs/results_thesis.md §2–4) and the
 ``adaptive-*`` methods of ``hilbo bench hil`` (:mod:`bridge.bench.hil`). The protocol is that of
-:func:`bridge.insim.run_insim` (a warm-up, the exploration bout of E × N breaths, a second
+:func:`bridge.sim.core.run_insim` (a warm-up, the exploration bout of E × N breaths, a second
 warm-up, optimisation until the session ends, all on the wearer's breath clock); a session with
 the default :class:`Arm` is the same session as ``hilbo sim`` / the ``adaptive`` method.
 
@@ -23,7 +23,8 @@ from typing import Any
 
 import numpy as np
 
-from bridge.insim import SimConfig, check_optimisation_ran
+from bridge.sim.core import SimConfig, check_optimisation_ran
+from bridge.sim.devices import SimulatedWearer
 from hilbo_core import HILOptimizer, brockway_watts, presets
 from hilbo_core.acquisition import maximize_ei
 from hilbo_core.errors import ConfigError
@@ -32,7 +33,6 @@ from hilbo_core.gp import GaussianProcess
 from hilbo_core.optimizer import BreathStep, Evaluation, OptimizerConfig, Phase, PriorObservation
 from hilbo_core.protocol import SessionProtocol, SessionProtocolConfig, drive
 from hilbo_core.stopping import FixedIntervalRule, SigmaScaledRule, StoppingRule
-from virtual_hw.wearer import SimulatedWearer
 
 __all__ = ["FEATURE_KINDS", "Arm", "StudyOptimizer", "run_session"]
 
@@ -127,7 +127,7 @@ def run_session(seed: int, arm: Arm, *, minutes: float = 60.0, preset: str = "hi
                 priors: Sequence[PriorObservation] = (),
                 max_breaths: int = OptimizerConfig.max_breaths,
                 warmup_s: float = SessionProtocolConfig.warmup_s) -> dict[str, Any]:
-    """One simulated session (the protocol of :func:`bridge.insim.run_insim`).
+    """One simulated session (the protocol of :func:`bridge.sim.core.run_insim`).
 
     Args:
         seed: The simulated wearer (subject) and, on day 1, the optimizer's seed.

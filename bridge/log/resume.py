@@ -124,7 +124,7 @@ def rebuild_optimizer(
     """Rebuild a session's optimizer from its (possibly crash-truncated) log.
 
     Args:
-        source: The log path, or its :func:`bridge.logread.read_log` contents (decoded with
+        source: The log path, or its :func:`bridge.log.reader.read_log` contents (decoded with
             at least :data:`RESUME_TOPICS`).
         estimator_factory: The estimator the session used (default: HILOptimizer's UKF).
         policy: What to do with an evaluation cut off by the crash.

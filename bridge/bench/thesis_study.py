@@ -1,7 +1,7 @@
 """Simulated-wearer study of the seed-003 methods in whole HIL sessions (docs/results_thesis.md).
 
 Three questions, each answered with paired sessions on the same simulated wearers
-(:class:`virtual_hw.wearer.SimulatedWearer`) under the protocol of :func:`bridge.insim.run_insim`
+(:class:`virtual_hw.wearer.SimulatedWearer`) under the protocol of :func:`bridge.sim.core.run_insim`
 (3-min warm-up, exploration bout of E × N breaths, 3-min warm-up, optimisation until the session
 ends), measuring the true regret of the recommendation (:meth:`HILOptimizer.best`) at fixed
 minutes of walking:
@@ -16,7 +16,7 @@ minutes of walking:
    ``tune_stopping`` on *other* wearers' full-length trajectories vs Algorithm 2's schedule.
 
 The sessions themselves (the optimizer scaffolding for feature maps and constant-K stopping,
-the "new day" of a wearer) are :mod:`bridge.thesis_session`, shared with the ``adaptive-*``
+the "new day" of a wearer) are :mod:`bridge.bench.thesis_session`, shared with the ``adaptive-*``
 methods of ``hilbo bench hil``.
 
 The simulated wearer's landscape does not change between sessions, so the prior experiment is a
@@ -40,8 +40,8 @@ from typing import Any
 import numpy as np
 
 from bridge.bench.hil import regret_at
-from bridge.thesis_session import Arm, StudyOptimizer, run_session
-from bridge.tune_stopping import TuneStoppingConfig, tune_stopping
+from bridge.bench.thesis_session import Arm, StudyOptimizer, run_session
+from bridge.bench.tune_stopping import TuneStoppingConfig, tune_stopping
 from hilbo_core import presets
 from hilbo_core.optimizer import PriorObservation
 from hilbo_core.priors import priors_from_evaluations
@@ -148,8 +148,9 @@ def run_study(test_seeds: Sequence[int], train_seeds: Sequence[int], *, minutes:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m bridge.thesis_study --out FILE [--test 201-210] [--train 101-110]``."""
-    p = argparse.ArgumentParser(prog="python -m bridge.thesis_study", description=__doc__.splitlines()[0])
+    """``python -m bridge.bench.thesis_study --out FILE [--test 201-210] [--train 101-110]``."""
+    p = argparse.ArgumentParser(prog="python -m bridge.bench.thesis_study",
+                                description=__doc__.splitlines()[0])
     p.add_argument("--test", default="201-210", help="test wearer seeds a-b (default 201-210)")
     p.add_argument("--train", default="101-110", help="training wearer seeds a-b (default 101-110)")
     p.add_argument("--minutes", type=float, default=60.0)

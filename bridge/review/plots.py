@@ -17,7 +17,7 @@ import numpy as np
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
-    from bridge.review import Session
+    from bridge.review.session import Session
 
 __all__ = ["DPI", "PLOT_FILES", "PLOT_SIZES_PX", "compare_plot", "session_plots"]
 

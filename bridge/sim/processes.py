@@ -19,7 +19,7 @@ The bus (``--bus``):
 * ``auto`` (default): ``vcan`` where a raw CAN socket can bind ``vcan0``, else ``remote``.
 
 Clock: the devices share one :class:`~virtual_hw.clock.ScaledClock` through ``--speed`` and
-``--epoch``; ``--speed max`` stands for :data:`~bridge.sim.MAX_SPEED` here too (an
+``--epoch``; ``--speed max`` stands for :data:`~bridge.sim.virtual.MAX_SPEED` here too (an
 as-fast-as-possible clock cannot be shared between processes). Heartbeats now cross process
 boundaries on a possibly loaded PC, so both watchdogs are looser than in one process
 (:data:`DEVICE_HEARTBEAT_TIMEOUT_S`, :data:`BRIDGE_DEVICE_TIMEOUT_MS`), and a simulated operator
@@ -60,7 +60,7 @@ from bridge.config import parse_config
 from bridge.errors import BridgeConfigError, DeviceProcessError
 from bridge.run import RunResult, run_session, write_json_atomic
 from bridge.runtime import BridgeSession, Command
-from bridge.sim import MAX_SPEED, VirtualSimConfig, add_simulation_truth, sim_config_text
+from bridge.sim.virtual import MAX_SPEED, VirtualSimConfig, add_simulation_truth, sim_config_text
 from drivers.cart import CartConfig, TcpOptions
 from drivers.errors import DriverError
 from drivers.exosuit import CanBusConfig
@@ -410,7 +410,7 @@ async def device_processes(
         cfg: The simulated session (preset, seed, body mass, faults, feedback rate).
         bus: ``"vcan"`` or ``"remote"`` (see :func:`resolve_bus`).
         log_dir: Where each child's stderr goes (``NAME.log``).
-        speed: Real-time factor (default: ``cfg.speed``, else :data:`~bridge.sim.MAX_SPEED`).
+        speed: Real-time factor (default: ``cfg.speed``, else :data:`~bridge.sim.virtual.MAX_SPEED`).
         heartbeat_timeout_s: The virtual exosuit's bridge-heartbeat watchdog.
 
     Raises:

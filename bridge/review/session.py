@@ -3,7 +3,7 @@
 ``hilbo review LOG.mcap [LOG2.mcap ...] [--out DIR]``
     Reads one session: one log, or the files of a session resumed after a crash (the old log
     and the one ``hilbo run --resume`` wrote; any order: the ``previous_log`` link orders them).
-    A log cut off by a crash is read up to its last intact record (:func:`bridge.logread.read_log`).
+    A log cut off by a crash is read up to its last intact record (:func:`bridge.log.reader.read_log`).
     Writes into DIR (default ``<log dir>/<log stem>-review/``):
 
     * ``timeline.png``: breath-by-breath metabolic power (W) with the UKF estimate of each
@@ -32,7 +32,7 @@ last breath logged before them.
 
 The recommended setting is what the session itself recommends: ``HILOptimizer.best()`` (the
 GP's estimated minimum among the evaluated points, with that evaluation's estimate) of the last
-``/optimizer_state`` snapshot, or of the optimizer rebuilt by :func:`bridge.resume.rebuild_optimizer`
+``/optimizer_state`` snapshot, or of the optimizer rebuilt by :func:`bridge.log.resume.rebuild_optimizer`
 when evaluations completed after that snapshot; failing both, the lowest estimated mean.
 
 A log damaged *inside* the file (garbage over a chunk, a bad CRC: not the cut-off tail a crash
@@ -48,12 +48,10 @@ message names the file and what was expected; ``hilbo`` turns it into exit statu
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import logging
 import math
 import os
-import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -62,7 +60,7 @@ from typing import Any
 import msgspec
 import numpy as np
 
-from bridge.errors import ReviewError, UsageError
+from bridge.errors import ReviewError
 from bridge.log import EventLevel, LogError, LogFormatError, Topic
 from bridge.log import records as rec
 from bridge.log.reader import LogContents, read_log
@@ -80,17 +78,10 @@ __all__ = [
     "ThresholdData",
     "TimelineEvent",
     "ZTrace",
-    "add_review_parser",
-    "compare_sessions",
-    "default_compare_dir",
-    "default_review_dir",
     "load_session",
-    "review_session",
 ]
 
 logger = logging.getLogger(__name__)
-
-_EXIT_DAMAGED = 1
 
 
 # ---------------------------------------------------------------------------------- data
@@ -927,7 +918,7 @@ def _recommend(contents: Sequence[LogContents], snapshot: rec.OptimizerState | N
         except (HilboError, KeyError, TypeError, ValueError) as err:
             notes.append(f"the last optimizer snapshot cannot be loaded ({err})")
     if opt is None:
-        from bridge.resume import rebuild_optimizer
+        from bridge.log.resume import rebuild_optimizer
 
         try:
             opt, _ = rebuild_optimizer(contents[-1])
@@ -1014,115 +1005,3 @@ def _feedback(scan: _FileScan, index: int, obs_pos: int, notes: list[str]) -> Fe
 
 
 # ---------------------------------------------------------------------------------- outputs
-def default_review_dir(first_log: str | os.PathLike[str]) -> Path:
-    """``dir/name.mcap`` → ``dir/name-review/``."""
-    p = Path(first_log)
-    stem = p.stem if p.suffix == ".mcap" else p.name
-    return p.with_name(stem + "-review")
-
-
-def default_compare_dir(log_a: str | os.PathLike[str], log_b: str | os.PathLike[str]) -> Path:
-    """``dirA/a.mcap``, ``dirB/b.mcap`` → ``dirA/compare-a-vs-b/``."""
-    a, b = Path(log_a), Path(log_b)
-    return a.with_name(f"compare-{a.stem}-vs-{b.stem}")
-
-
-def _out_dir(out: str | os.PathLike[str]) -> Path:
-    p = Path(out)
-    try:
-        p.mkdir(parents=True, exist_ok=True)
-    except FileExistsError as err:
-        raise ReviewError(f"--out {str(p)!r} exists and is not a directory; expected a directory") from err
-    except OSError as err:
-        raise ReviewError(f"--out {str(p)!r}: cannot create the output directory: {err.strerror}") from err
-    if not os.access(p, os.W_OK):
-        raise ReviewError(f"--out {str(p)!r}: the output directory is not writable")
-    return p
-
-
-def review_session(paths: Sequence[str | os.PathLike[str]],
-                   out_dir: str | os.PathLike[str] | None = None) -> ReviewResult:
-    """Review one session: plots, ``report.md``/``report.html``, ``evaluations.csv``, ``breaths.csv``.
-
-    Args:
-        paths: The session's log file(s) (a resumed session: the old file and the new one).
-        out_dir: Output directory (default :func:`default_review_dir` of the first log).
-
-    Returns:
-        The files written (in order) and the data shown.
-
-    Raises:
-        ReviewError: Bad input or an unwritable output directory (the message names it).
-    """
-    from bridge import review_plots, review_report
-
-    session = load_session(paths)
-    out = _out_dir(out_dir if out_dir is not None else default_review_dir(paths[0]))
-    written: list[Path] = []
-    plots, skipped = review_plots.session_plots(session, out)
-    written.extend(plots.values())
-    written.extend(review_report.write_report(session, out, plots, skipped))
-    written.append(review_report.write_evaluations_csv(session, out / "evaluations.csv"))
-    written.append(review_report.write_breaths_csv(session, out / "breaths.csv"))
-    return ReviewResult(out, tuple(written), session, skipped)
-
-
-def compare_sessions(log_a: str | os.PathLike[str], log_b: str | os.PathLike[str],
-                     out_dir: str | os.PathLike[str] | None = None) -> CompareResult:
-    """Two sessions side by side: ``compare.png``, ``compare.md`` and ``compare.html``.
-
-    Args:
-        log_a: The first session's log.
-        log_b: The second session's log.
-        out_dir: Output directory (default :func:`default_compare_dir`).
-
-    Raises:
-        ReviewError: Bad input or an unwritable output directory.
-    """
-    from bridge import review_plots, review_report
-
-    a, b = load_session([log_a]), load_session([log_b])
-    out = _out_dir(out_dir if out_dir is not None else default_compare_dir(log_a, log_b))
-    png = review_plots.compare_plot((a, b), out / "compare.png")
-    written = [png, *review_report.write_compare_report((a, b), out, png)]
-    return CompareResult(out, tuple(written), (a, b))
-
-
-# ---------------------------------------------------------------------------------- CLI
-def add_review_parser(subparsers: Any) -> argparse.ArgumentParser:
-    """Register ``hilbo review`` on the top-level ``add_subparsers()`` object (sets ``func``)."""
-    p = subparsers.add_parser(
-        "review", help="plots, a report and CSV tables of a session from its log",
-        description="Review a session from its MCAP log: PNG plots (breath-by-breath power with the UKF "
-                    "estimate, best so far against minutes walked, parameters per evaluation, threshold "
-                    "schedule, desired vs measured force of the recommended setting), report.md and "
-                    "report.html (self-contained), evaluations.csv and breaths.csv. Give both files of a "
-                    "session resumed after a crash to review it as one; a log cut off by a crash is read "
-                    "up to its last intact record. With --compare, two sessions side by side. Prints the "
-                    "path of every file written.")
-    p.add_argument("logs", nargs="+", metavar="LOG.mcap",
-                   help="the session log(s); with --compare exactly two, one per session")
-    p.add_argument("--compare", action="store_true",
-                   help="compare two sessions: compare.png, compare.md, compare.html")
-    p.add_argument("--out", metavar="DIR", default=None,
-                   help="output directory (default: LOG-review/ next to the first log, e.g. "
-                        "runs/sim/session-review/; with --compare: compare-A-vs-B/ next to A)")
-    p.set_defaults(func=_cmd_review)
-    return p
-
-
-def _cmd_review(args: argparse.Namespace) -> int:
-    if args.compare:
-        if len(args.logs) != 2:
-            raise UsageError(f"--compare takes exactly two logs (A.mcap B.mcap), got {len(args.logs)}")
-        files = compare_sessions(args.logs[0], args.logs[1], args.out).files
-    else:
-        result = review_session(args.logs, args.out)
-        files = result.files
-    for path in files:
-        print(path)  # noqa: T201 (CLI output: one line per file written)
-    damaged = [f for f in result.session.files if f.damage] if not args.compare else []
-    for f in damaged:
-        sys.stderr.write(f"hilbo review: warning: {f.path} is damaged inside the file: {f.damage}; what lies "
-                         "after the damage was read and reviewed, the report lists the damage\n")
-    return _EXIT_DAMAGED if damaged else 0

@@ -69,7 +69,7 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     from rich.console import Console
 
     from bridge.config import LiveConfig, check_out_dir
-    from bridge.sim import MAX_SPEED, VirtualSimConfig, run_virtual_sim
+    from bridge.sim.virtual import MAX_SPEED, VirtualSimConfig, run_virtual_sim
 
     console = Console(stderr=True)
     cfg = VirtualSimConfig(minutes=args.minutes, seed=args.seed, speed=args.speed,
@@ -78,7 +78,7 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     speed = cfg.speed or MAX_SPEED
     where = "the virtual exosuit and cart"
     if args.processes:
-        from bridge.sim_processes import resolve_bus, run_process_sim
+        from bridge.sim.processes import resolve_bus, run_process_sim
 
         bus = resolve_bus(args.bus or "auto")
         where += f" as processes ({'SocketCAN vcan0' if bus == 'vcan' else 'python-can-remote'})"
@@ -152,8 +152,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
 def _cmd_sim_core(args: argparse.Namespace) -> int:
     from rich.console import Console
 
-    from bridge.insim import SimConfig, SimEvaluation, run_insim
     from bridge.run import write_json_atomic
+    from bridge.sim.core import SimConfig, SimEvaluation, run_insim
     from hilbo_core import HILOptimizer
 
     console = Console(stderr=True)
@@ -267,25 +267,24 @@ def build_parser() -> argparse.ArgumentParser:
     add_config_parser(sub)
 
     from bridge.bench.cli import add_bench_parser
-    from bridge.bench_tutor import add_tutor_bench_parser
-    from bridge.cli_log import add_log_parser
-    from bridge.tune_stopping import add_tune_stopping_parser
+    from bridge.bench.tune_stopping import add_tune_stopping_parser
+    from bridge.bench.tutor import add_tutor_bench_parser
+    from bridge.cli.log import add_log_parser
 
     add_tutor_bench_parser(add_bench_parser(sub))
     add_tune_stopping_parser(sub)
 
     add_log_parser(sub)
 
-    from bridge.cli_cart import add_cart_parser
+    from bridge.cli.cart import add_cart_parser
 
     add_cart_parser(sub)
 
-    from bridge.review import add_review_parser
+    from bridge.review.command import add_review_parser
 
     add_review_parser(sub)
 
-    from virtual_hw.cli_cart import add_virtual_cart_parser
-    from virtual_hw.cli_exosuit import add_virtual_exosuit_parser
+    from bridge.sim.devices import add_virtual_cart_parser, add_virtual_exosuit_parser
 
     add_virtual_cart_parser(sub)
     add_virtual_exosuit_parser(sub)

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from bridge.review import Session
+    from bridge.review.session import Session
 
 __all__ = [
     "BREATH_COLUMNS",

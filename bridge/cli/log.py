@@ -113,11 +113,11 @@ def _info_text(s: dict[str, Any]) -> str:
 
 
 def _say(text: str) -> None:
-    print(text)  # noqa: T201 (CLI output)
+    print(text)
 
 
 def _fail(action: str, err: Exception) -> int:
-    print(f"hilbo log {action}: error: {err}", file=sys.stderr)  # noqa: T201 (CLI output)
+    print(f"hilbo log {action}: error: {err}", file=sys.stderr)
     return _EXIT_ERROR
 
 

@@ -1,0 +1,1 @@
+"""The `hilbo` command line (entry point :func:`bridge.cli.main.main`)."""
