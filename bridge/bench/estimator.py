@@ -24,8 +24,8 @@ Estimators:
 Data:
 
 * synthetic (default): :func:`synthetic_people` — a small pure generator of breath trajectories
-  (documented there). ``--wearer NAME`` picks a registered wearer (:data:`WEARERS`); the
-  realistic wearer of ``virtual_hw`` (issue 16 part 3) is meant to be registered there.
+  (documented there). ``--wearer NAME`` picks a registered wearer (:data:`WEARERS`):
+  ``synthetic`` or ``realistic`` (the simulated wearer of ``virtual_hw``, issue 16 part 3).
 * ``--replay FILE --transitions t1,t2,...``: a recorded breath file (hilbo-line, or a vendor CSV
   with ``--csv-columns TIME,VO2,VCO2``) read with the cart driver's parsers and validator;
   the bouts are [t_k, t_{k+1}) (the last to the end of the file), the truth of each is the mean
@@ -46,9 +46,12 @@ from typing import Any
 import numpy as np
 
 from bridge.bench.common import machine_info, markdown_table, round_sig, write_json
+from bridge.sim.devices import WearerKind, make_wearer
+from hilbo_core import brockway_watts
 from hilbo_core.errors import ConfigError, EstimatorError, MeasurementError
 from hilbo_core.estimation import StartState, TransitionEstimator
 from hilbo_core.metabolic import MetabolicUKF
+from hilbo_core.presets import hip_6d
 
 __all__ = [
     "ESTIMATORS",
@@ -58,6 +61,7 @@ __all__ = [
     "add_estimator_bench_parser",
     "comparison_table",
     "evaluate",
+    "realistic_people",
     "replay_people",
     "run_estimator_bench",
     "summarize",
@@ -144,10 +148,49 @@ def synthetic_people(n: int, seed: int, *, bouts: int = 5) -> list[list[Bout]]:
     return people
 
 
-WEARERS: dict[str, Callable[[int, int], list[list[Bout]]]] = {"synthetic": synthetic_people}
-"""Wearers ``--wearer`` can name: ``name -> (n, seed) -> people``. The realistic wearer of
-``virtual_hw`` (issue 16 part 3) joins here once it exists, e.g. a function that walks its
-wearer through a sequence of settings and returns the :class:`Bout` lists."""
+def realistic_people(n: int, seed: int, *, bouts: int = 6) -> list[list[Bout]]:
+    """The realistic simulated wearer (virtual_hw, issue 16 part 3) walked through settings.
+
+    Person k is the wearer of seed ``1000·seed + k`` in the ``hip_6d`` space; each bout applies a
+    random feasible setting at the breath clock's current time and lasts as the synthetic
+    bouts do (45–120 s or 200–300 s), so its transition starts wherever the previous one left
+    the body. The truth of a bout is the setting's steady-state cost at the bout's end (the
+    wearer adapts, 0–3 % over the hour); the first bout only starts the chained estimator.
+    Steps between hip settings are small (5–25 % of the cost at most), unlike the walking /
+    running transitions of the real data of issue 16.
+
+    Pure given (n, seed): the same people every time.
+    """
+    space = hip_6d()
+    rng = np.random.default_rng([int(seed), 0x5EA])
+    people: list[list[Bout]] = []
+    for k in range(n):
+        wearer = make_wearer(WearerKind.REALISTIC, space, seed=1000 * int(seed) + k)
+        person: list[Bout] = []
+        for b in range(bouts):
+            params = space.to_dict(space.from_unit(space.sample_unit(1, rng))[0])
+            t0 = wearer.t_s
+            wearer.apply_params(params, t0)
+            dur = rng.uniform(45.0, 120.0) if rng.random() < 0.5 else rng.uniform(200.0, 300.0)
+            first_level = wearer.metabolic_rate_w(t0)
+            ts: list[float] = []
+            ys: list[float] = []
+            while True:
+                rec = wearer.next_breath()  # the one past the end is lost to the next setting
+                if rec.t_s - t0 > dur:
+                    break
+                ts.append(rec.t_s - t0)
+                ys.append(brockway_watts(rec.vo2_ml_min, rec.vco2_ml_min))
+            truth = wearer.true_cost_w(params, t0 + dur)
+            person.append(Bout(np.array(ts), np.array(ys), truth, abs(first_level - truth) / truth,
+                               evaluate=b > 0))
+        people.append(person)
+    return people
+
+
+WEARERS: dict[str, Callable[[int, int], list[list[Bout]]]] = {
+    "synthetic": synthetic_people, "realistic": realistic_people}
+"""Wearers ``--wearer`` can name: ``name -> (n, seed) -> people``."""
 
 
 # ------------------------------------------------------------------------------ replay

@@ -14,6 +14,7 @@ from bridge.bench.estimator import (
     ESTIMATORS,
     HORIZONS_S,
     evaluate,
+    realistic_people,
     replay_people,
     summarize,
     synthetic_people,
@@ -37,6 +38,20 @@ def test_synthetic_people_are_pure_and_follow_the_stated_model() -> None:
             dt = np.diff(bout.t_s)
             assert np.all(dt >= 2.0) and np.all(dt <= 3.5)
             assert np.all(bout.watts > 0) and 120.0 <= bout.truth_w <= 1200.0
+
+
+def test_realistic_people_walk_the_wearer_through_settings_in_a_row() -> None:
+    a, b = realistic_people(2, 3, bouts=3), realistic_people(2, 3, bouts=3)
+    assert all(np.array_equal(x.watts, y.watts) for p, q in zip(a, b, strict=True)
+               for x, y in zip(p, q, strict=True))
+    for person in a:
+        assert [bout.evaluate for bout in person] == [False, True, True]
+        for bout in person:
+            assert np.all(np.diff(bout.t_s) > 0) and bout.t_s[0] > 0
+            assert np.all(bout.watts > 0) and 150.0 < bout.truth_w < 1000.0
+            assert 0.0 <= bout.first_distance < 0.5  # hip settings change the cost by < 25 %
+    # The people are different subjects.
+    assert a[0][0].truth_w != a[1][0].truth_w
 
 
 def test_evaluate_and_summarize_toy() -> None:
@@ -120,7 +135,7 @@ def test_cli_synthetic_and_replay(tmp_path: Path, capsys: pytest.CaptureFixture[
     (["--replay", "x.hbr"], "needs --transitions"),
     (["--transitions", "10"], "go with --replay"),
     (["--n", "0"], "--n 0"),
-    (["--wearer", "realistic"], "--wearer 'realistic'"),
+    (["--wearer", "nobody"], "--wearer 'nobody'"),
     (["--estimators", "kalman"], "kalman"),
 ])
 def test_cli_bad_input_exits_2(argv: list[str], message: str, tmp_path: Path,
