@@ -90,7 +90,7 @@ def assert_the_wearer_felt_the_applied_profiles(log: LogContents, seed: int) -> 
     warm_up = [r for t, r in ratio if t <= first_push]
     assert warm_up and all(abs(r - 1.0) < 1e-9 for r in warm_up)
     t0 = breaths[0]["t_s"]  # evaluation times are seconds since the first breath
-    checked = 0
+    checked, targets = 0, []
     for obs in log.data("/observations"):
         inside = [r for t, r in ratio if t0 + obs["t_start"] < t <= t0 + obs["t_end"] + 1e-9]
         if len(inside) < 6:
@@ -99,8 +99,13 @@ def assert_the_wearer_felt_the_applied_profiles(log: LogContents, seed: int) -> 
         mid, last = inside[len(inside) // 2], inside[-1]
         assert abs(last - target) <= abs(mid - target) + 1e-3, (obs["index"], mid, last, target)
         checked += 1
+        targets.append(target)
     assert checked >= 2
-    assert min(r for _, r in ratio) < 0.97  # assisted breaths, not a cart that ignored the suit
+    # Assisted breaths, not a cart that ignored the suit: a quarter of the way to the reduction
+    # of the best setting measured at least (the realistic wearer's settings save 0-25 %, and a
+    # short evaluation ends a time constant or less after its switch).
+    assert min(targets) < 1.0
+    assert min(r for _, r in ratio) < 1.0 - 0.25 * (1.0 - min(targets))
 
 
 def assert_log_and_summary_agree(log: LogContents, s: dict[str, Any]) -> None:
@@ -126,7 +131,10 @@ def assert_the_device_acked_every_push(log: LogContents, device_stats: dict[str,
 @pytest.mark.parametrize("bus", BUSES)
 def test_three_processes_log_summary_and_wearer_agree(tmp_path: Path, bus: str) -> None:
     needs(bus)
-    s = asyncio.run(run_process_sim(small(), tmp_path, bus=bus))
+    # The session's time is walking time (issue 17): the bridge's start (the proposal worker's
+    # imports) and every push count against it, and inside user-mode Linux at 30x real time those
+    # take minutes of simulated walking; 12 minutes leave several evaluations.
+    s = asyncio.run(run_process_sim(small(minutes=12.0), tmp_path, bus=bus))
     on_disk = json.loads((tmp_path / "summary.json").read_text())
     assert on_disk == json.loads(json.dumps(s))
     assert s["n_evaluations"] > 3
