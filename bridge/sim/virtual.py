@@ -63,6 +63,7 @@ class VirtualSimConfig:
         exosuit_faults: Fault specs of the virtual exosuit (``virtual_hw.exosuit.EXOSUIT_FAULTS``).
         cart_faults: Fault specs of the virtual cart (``virtual_hw.cart.CART_FAULTS``).
         gc: The bridge's ``[protocol] gc`` (``freeze`` or ``automatic``, bridge/collector.py).
+        proposal_worker: The bridge's ``[protocol] proposal_worker`` (``process`` or ``thread``).
         wearer: The simulated wearer (:class:`virtual_hw.wearer.WearerKind` value): ``realistic``
             (default) or ``legacy``.
     """
@@ -81,6 +82,7 @@ class VirtualSimConfig:
     exosuit_faults: tuple[str, ...] = ()
     cart_faults: tuple[str, ...] = ()
     gc: str = "freeze"
+    proposal_worker: str = "process"
     wearer: str = WearerKind.REALISTIC.value
 
     def __post_init__(self) -> None:
@@ -136,6 +138,7 @@ stopping = "{cfg.stopping}"
 seed = {cfg.seed}
 pause_between_bouts = true
 gc = "{cfg.gc}"
+proposal_worker = "{cfg.proposal_worker}"
 
 [cart]
 transport = "tcp"
