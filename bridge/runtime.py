@@ -35,7 +35,8 @@ import numpy as np
 
 from bridge.collector import Collector, GcMode
 from bridge.errors import UnsafeProfileError
-from bridge.log import LogError, SessionLog
+from bridge.log import EventLevel, LogError, SessionLog
+from bridge.loop_monitor import LoopMonitor
 from bridge.proposals import ProposalWorker, WorkerKind
 from bridge.safety import AdmittedProfile
 from bridge.supervisor import PushRefused, Supervisor
@@ -43,6 +44,7 @@ from drivers.errors import DriverError, ProfilePushAborted, ProfilePushError
 from drivers.exosuit import (
     CLEARABLE_FAULTS,
     DEFAULT_PACE_S,
+    HEARTBEAT_WATCHDOG_S,
     AssistanceOffReason,
     CanEndpoint,
     DeviceFault,
@@ -311,6 +313,10 @@ class BridgeSession:
         self._worker = ProposalWorker(self.settings.proposal_worker)
         #: The garbage-collection policy; its ``stats`` hold the collections' pauses.
         self.collector = Collector(self.settings.gc)
+        #: Every stall of the event loop (it sends the heartbeat), counted once a device has
+        #: reported: none may exceed half the device's heartbeat watchdog (issue 15).
+        self.loop_monitor = LoopMonitor(HEARTBEAT_WATCHDOG_S / 2, self._on_loop_stall,
+                                        connected=lambda: bool(self.device.status))
         self._worker_lost_logged = False
         # A hyperparameter fit running ahead of the next proposal (refit_lag >= 1).
         self._fit_ahead: tuple[HyperparameterFit, asyncio.Task[Any]] | None = None
@@ -353,12 +359,14 @@ class BridgeSession:
                                mode=self.collector.mode.value, **self.collector.stats.to_json())
             with contextlib.suppress(DriverError):
                 await self.endpoint.stop_heartbeat()
-        self._event("session_end", f"session ended after {len(self.records)} evaluations")
+        loop = self.loop_monitor.stats
+        self._event("session_end", f"session ended after {len(self.records)} evaluations; worst "
+                    f"event-loop stall {loop.worst_stall_ms:.1f} ms", loop=loop.to_json())
         return self.summary()
 
     async def _run_tasks(self) -> None:
         try:
-            async with asyncio.TaskGroup() as tg:
+            async with self.loop_monitor, asyncio.TaskGroup() as tg:
                 tasks = [
                     tg.create_task(self._cart_task(), name="cart"),
                     tg.create_task(self._status_task(), name="device-status"),
@@ -390,6 +398,7 @@ class BridgeSession:
             # Session time is walking time (issue 17): where every walked second went.
             "walking": self.protocol.walking.to_json(),
             "end_reason": None if self.protocol.end_reason is None else self.protocol.end_reason.value,
+            "loop": self.loop_monitor.stats.to_json(),
         }
         if self.opt.evaluations:
             params, mean, var = self.opt.best()
@@ -969,10 +978,20 @@ class BridgeSession:
     def _session_time(self, t_cart: float) -> float:
         return t_cart - (self._t_session0 if self._t_session0 is not None else t_cart)
 
-    def _event(self, kind: str, text: str) -> None:
+    def _event(self, kind: str, text: str, **details: Any) -> None:
         logger.info("%s: %s", kind, text)
         self.status.event(text)
-        self.log.log_event(kind, text)
+        self.log.log_event(kind, text, **details)
+
+    def _on_loop_stall(self, stall_s: float) -> None:
+        """A stall longer than the monitor's threshold: log it with what the session was doing."""
+        phase, state = self.protocol.phase.value, self.supervisor.describe()
+        text = (f"event loop stalled {stall_s * 1e3:.1f} ms (> {self.loop_monitor.threshold_s * 1e3:.0f} ms, "
+                f"half the device's heartbeat watchdog) in {phase}, {state}")
+        logger.warning("%s", text)
+        self.log.log_event("loop_stall", text, level=EventLevel.WARNING,
+                           t_s=self._breaths.last_t, stall_ms=round(stall_s * 1e3, 3),
+                           threshold_ms=self.loop_monitor.stats.threshold_ms, phase=phase, state=state)
 
 
 

@@ -3,7 +3,9 @@
 Runs ``hilbo sim --minutes M`` N times in a row, in-process and/or with ``--processes``,
 optionally beside one CPU-burning process per core (``--burn``, the busy lab PC), each with a
 wall-clock timeout, and prints one row per run: exit status, wall time, evaluations (and how many
-in the optimisation bout), pauses, resumes, and whether the log says the session ended. Exit
+in the optimisation bout), pauses, resumes, the worst event-loop stall (ms) and the stalls over
+half the device's heartbeat watchdog (summary.json's ``loop``), and whether the log says the
+session ended. Exit
 status 1 if any run failed, stalled past its timeout or ended without optimisation evaluations.
 
     .venv/bin/python scripts/soak_sim.py --runs 20 --processes-runs 20 --minutes 30 --burn
@@ -50,6 +52,9 @@ def _run(out: Path, minutes: float, seed: int, processes: bool, timeout_s: float
         evals = s.get("evaluations", [])
         row["evaluations"] = len(evals)
         row["optimisation"] = sum(1 for e in evals if e.get("phase") == "optimization")
+        loop = s.get("loop") or {}
+        row.update(worst_stall_ms=loop.get("worst_stall_ms"),
+                   stalls_over_half_heartbeat=loop.get("stalls_over_half_heartbeat"))
     log_path = out / "session.mcap"
     if log_path.exists():
         kinds = [e["kind"] for e in read_log(log_path).data("/events")]
@@ -90,6 +95,10 @@ def main(argv: list[str] | None = None) -> int:
     bad = [r for r in rows if r["rc"] != 0 or not r.get("ended") or not r.get("optimisation")]
     sys.stdout.write(f"{len(rows) - len(bad)} of {len(rows)} runs reached their end with optimisation "
                      "evaluations\n")
+    stalls = [r["worst_stall_ms"] for r in rows if r.get("worst_stall_ms") is not None]
+    if stalls:
+        sys.stdout.write(f"worst event-loop stall: {max(stalls):.1f} ms (per run: "
+                         f"{', '.join(f'{x:.1f}' for x in stalls)})\n")
     return 1 if bad else 0
 
 

@@ -135,6 +135,7 @@ EVENT_LEVELS: Mapping[str, EventLevel] = {
     "time_jump": EventLevel.WARNING,
     "stale_ack": EventLevel.WARNING,
     "early_ack": EventLevel.WARNING,
+    "loop_stall": EventLevel.WARNING,
     "heartbeat_lost": EventLevel.ERROR,
     "device_fault": EventLevel.ERROR,
     "fault": EventLevel.ERROR,

@@ -64,6 +64,7 @@ __all__ = [
     "DEFAULT_PACE_S",
     "DEFAULT_RETRIES",
     "HEARTBEAT_PERIOD_S",
+    "HEARTBEAT_WATCHDOG_S",
     "INTERFACE_OPTIONS",
     "RETRYABLE_NACKS",
     "CanBusConfig",
@@ -81,6 +82,9 @@ log = logging.getLogger(__name__)
 
 #: Bridge heartbeat period (the device's watchdog is 5 periods, 100 ms).
 HEARTBEAT_PERIOD_S = 0.020
+#: The device's bridge-heartbeat watchdog (PROTOCOL.md): 100 ms without an advancing counter
+#: latches ``heartbeat_lost``. The bridge keeps every event-loop stall under half of it.
+HEARTBEAT_WATCHDOG_S = 0.100
 #: Gap between profile segments: one 135-bit frame per 1 ms is 13.5 % of a 1 Mbit/s bus while a
 #: push lasts (34 ms for 101 points), and an AssistanceOff queued behind segments is on the wire
 #: within 2.68 ms in the worst case (PROTOCOL.md, "Bus budget"; drivers/exosuit/busload.py).

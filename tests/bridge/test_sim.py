@@ -50,6 +50,12 @@ def test_session_log_and_summary_agree(tmp_path) -> None:
     assert s["true_cost_of_best"] >= s["true_optimum"]["cost_w"] - 1e-9
     kinds = [e["kind"] for e in log.data("/events")]
     assert kinds[0] == "session_start" and "session_end" in kinds
+    # The event-loop stall monitor (issue 15): in the summary and in the session-end record.
+    loop = on_disk["loop"]
+    assert loop["half_heartbeat_ms"] == 50.0 and loop["wakeups"] > 100
+    assert 0.0 < loop["worst_stall_ms"] and loop["stalls_over_half_heartbeat"] >= 0
+    end = next(e for e in log.data("/events") if e["kind"] == "session_end")
+    assert end["details"]["loop"] == loop
 
 
 def test_lost_device_heartbeat_turns_assistance_off_and_resumes(tmp_path) -> None:
