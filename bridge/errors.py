@@ -48,5 +48,6 @@ class UnsafeProfileError(BridgeError, ValueError):
 
 
 class UsageError(BridgeError, ValueError):
-    """The command line asks for options that do not go together: ``hilbo`` exits with status 2,
-    like argparse's own usage errors (every other error is 1)."""
+    """The command line asks for options that do not go together, or gives a value refused before
+    any work starts (``hilbo bench``): ``hilbo`` exits with status 2, like argparse's own usage
+    errors (every other error, a failure at run time, is 1)."""

@@ -12,7 +12,8 @@ The first line on stdout says where to connect, machine-readably, and is flushed
     udp 127.0.0.1 5005                       # the cart sends datagrams to this address
 
 Logs go to stderr. SIGINT/SIGTERM stop the cart cleanly (exit status 0); so does the end of
-``--minutes``. Bad options exit with status 2 and a message naming the option.
+``--minutes``. Bad options exit with status 2 and a message naming the option; a failure once
+the cart runs (an address in use, a bus that cannot be opened) exits with status 1 and one line.
 
 Clock: ``--speed 1`` is real time; ``--speed X`` runs X times faster; processes given the same
 ``--epoch`` (a Unix time) and ``--speed`` share one simulated clock (the virtual exosuit, the
@@ -40,7 +41,7 @@ from typing import Any, TextIO
 
 from drivers.cart import CartFormat
 from drivers.errors import DriverError
-from hilbo_core.errors import HilboError
+from hilbo_core.errors import ConfigError, HilboError
 from hilbo_core.presets import PRESETS, preset
 from virtual_hw.cart import CART_FAULTS, CartLink, LinkKind, VirtualCart
 from virtual_hw.clock import make_clock, parse_speed
@@ -213,8 +214,11 @@ async def serve(
 
 async def _run(args: argparse.Namespace, out: TextIO) -> None:
     feed = profile_feed_from_args(args)
-    wearer = make_wearer(args.wearer, preset(args.preset), seed=args.seed,
-                         body_mass_kg=args.body_mass_kg)
+    try:
+        wearer = make_wearer(args.wearer, preset(args.preset), seed=args.seed,
+                             body_mass_kg=args.body_mass_kg)
+    except ConfigError as err:  # a value of the command line: a usage error (exit status 2)
+        raise VirtualConfigError(f"--body-mass-kg {args.body_mass_kg:g}: {err}") from err
     clock = make_clock(args.speed, args.epoch)
     link = CartLink(kind=LinkKind(args.transport), host=args.host, port=args.port)
     cart = VirtualCart(
@@ -233,12 +237,21 @@ async def _run(args: argparse.Namespace, out: TextIO) -> None:
 
 
 def run_from_args(args: argparse.Namespace) -> int:
-    """Run the cart for parsed arguments; the exit status (0 ok, 2 bad option or failure)."""
+    """Run the cart for parsed arguments.
+
+    Returns:
+        The exit status: 0 after a clean stop; 2 for options refused before serving (a
+        :class:`VirtualConfigError`: bad values or combinations); 1 for a failure once it runs
+        (an address in use, a CAN bus that cannot be opened, a failed cart).
+    """
     try:
         asyncio.run(_run(args, sys.stdout))
-    except (VirtualHwError, HilboError, DriverError, OSError) as err:
+    except VirtualConfigError as err:
         sys.stderr.write(f"hilbo virtual-cart: error: {err}\n")
         return 2
+    except (VirtualHwError, HilboError, DriverError, OSError) as err:
+        sys.stderr.write(f"hilbo virtual-cart: error: {err}\n")
+        return 1
     except KeyboardInterrupt:
         return 0  # Ctrl-C where asyncio has no signal handlers: a normal way to stop
     return 0

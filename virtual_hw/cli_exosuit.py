@@ -15,7 +15,8 @@ Once the bus is open the process prints ONE machine-readable line on stdout, a J
 ``"event": "ready"`` (pid, bus, clock, seed, joints, faults); on SIGINT or SIGTERM (or after
 ``--lifetime`` seconds) it stops the device within a bounded time and prints a last JSON line
 with ``"event": "stopped"``, the device's counters and the applied-profile reports, then exits 0
-(1 if the device failed, 2 on a bad option).
+(1 if the device failed or its bus could not be opened; 2 for an option refused before the
+device opens).
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ import sys
 from collections.abc import Sequence
 from typing import Any
 
-from drivers.errors import DriverError
+from drivers.errors import DriverConfigError, DriverError
 from drivers.exosuit.endpoint import CanBusConfig
 from virtual_hw.clock import ScaledClock, parse_speed
 from virtual_hw.errors import VirtualConfigError, VirtualHwError
@@ -127,8 +128,12 @@ def _build(args: argparse.Namespace) -> tuple[VirtualExosuit, ScaledClock]:
         )
     clock = ScaledClock(speed, args.epoch)
     joints = SUIT_JOINTS[args.suit]
+    try:
+        bus = CanBusConfig(args.interface, args.channel, args.bitrate)
+    except DriverConfigError as err:  # a value of the command line: a usage error (exit status 2)
+        raise VirtualConfigError(f"--interface/--channel/--bitrate: {err}") from err
     device = VirtualExosuit(
-        CanBusConfig(args.interface, args.channel, args.bitrate),
+        bus,
         clock,
         n_actuators=len(joints),
         joints=joints,
@@ -196,13 +201,18 @@ def run(args: argparse.Namespace) -> int:
     """Run the device until a signal, ``--lifetime`` or a failure.
 
     Returns:
-        The exit status: 0 after a clean stop, 1 if the device failed, 2 on a bad option.
+        The exit status: 0 after a clean stop; 2 for options refused before the device opens
+        (a :class:`VirtualConfigError`: bad values or combinations); 1 if the device failed or
+        its CAN bus could not be opened.
     """
     try:
         return asyncio.run(_serve(args))
-    except (VirtualHwError, DriverError) as err:
+    except VirtualConfigError as err:
         sys.stderr.write(f"hilbo virtual-exosuit: error: {err}\n")
         return 2
+    except (VirtualHwError, DriverError, OSError) as err:
+        sys.stderr.write(f"hilbo virtual-exosuit: error: {err}\n")
+        return 1
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -1,18 +1,22 @@
 """The ``hilbo bench`` subcommands: ``stopping``, ``hil`` and ``perf``.
 
 :func:`add_bench_parser` registers them on the main ``hilbo`` parser; :func:`bench_main` is a
-standalone entry point (``python -m bridge.bench ...``) with the same exit codes: 0 on success,
-2 for bad input (named in the message, before any work starts), 130 when interrupted.
+standalone entry point (``python -m bridge.bench ...``) with the same exit codes as ``hilbo``:
+0 on success; 2 for a wrong command line (argparse's errors, and option values or combinations
+refused before any work starts, named in the message); 1 for a failure once the work has
+started (an input file that cannot be used, a failed run, a missing optional dependency such
+as Optuna); 130 when interrupted.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -21,11 +25,13 @@ from rich.console import Console
 from bridge.bench.bridge_perf import BridgeProtocol
 from bridge.bench.common import choices, machine_info, numbers, round_sig, write_json
 from bridge.collector import GcMode
+from bridge.errors import BridgeError, UsageError
 from bridge.sim.devices import WEARER_CHOICES, WearerKind
+from drivers.errors import DriverError
 from hilbo_core.errors import ConfigError, HilboError
 from hilbo_core.studies.benchmarks import FUNCTIONS, METHODS, NOISE_LEVELS, StoppingProtocol
 
-__all__ = ["add_bench_parser", "bench_main"]
+__all__ = ["add_bench_parser", "bench_main", "options"]
 
 logger = logging.getLogger(__name__)
 
@@ -50,9 +56,24 @@ def _add_executor_args(p: argparse.ArgumentParser) -> None:
 def _executor(args: argparse.Namespace) -> Any:
     from bridge.bench.executors import make_executor
 
-    if args.workers is not None and args.workers < 1:
-        raise ConfigError(f"--workers {args.workers}; expected an integer >= 1")
+    with options():
+        if args.workers is not None and args.workers < 1:
+            raise ConfigError(f"--workers {args.workers}; expected an integer >= 1")
+    # A scheduler that cannot be reached is a runtime failure (exit status 1), not a usage error.
     return make_executor(args.workers, args.scheduler, progress=False if args.no_progress else None)
+
+
+@contextlib.contextmanager
+def options() -> Iterator[None]:
+    """Checks of the command line's values before any work: their ConfigError is a usage error
+    (exit status 2). A missing optional dependency (a ConfigError from an ImportError) is not:
+    the command line is right, the installation is not (exit status 1)."""
+    try:
+        yield
+    except ConfigError as err:
+        if isinstance(err.__cause__, ImportError):
+            raise
+        raise UsageError(str(err)) from err
 
 
 def _console() -> Console:
@@ -85,22 +106,23 @@ def _cmd_stopping(args: argparse.Namespace) -> int:
         summarize_stopping,
     )
 
-    # Everything is validated before any work starts (exit code 2 with the offending value).
-    functions = choices(args.functions, FUNCTIONS, "function", list(FUNCTIONS))
-    methods = choices(args.methods, {**METHODS, **PEER_METHODS}, "method", ["fixed", "adaptive"])
-    noises = numbers(args.noise, "noise level", NOISE_LEVELS)
-    if args.grid_step < 1:
-        raise ConfigError(f"--grid-step {args.grid_step}; expected an integer >= 1")
-    protocol = StoppingProtocol(n_explore=args.n_explore, max_breaths=args.max_breaths, window=args.window,
-                                budget=args.budget, noise_model=args.noise_model,
-                                n_candidates=args.n_candidates)
-    campaign = StoppingCampaign(functions=tuple(functions), noises=tuple(noises), methods=tuple(methods),
-                                trials=args.trials, seed=args.seed, protocol=protocol,
-                                refit_growth=args.refit_growth)
+    # Every option is checked before any work starts (exit status 2 with the offending value).
+    with options():
+        functions = choices(args.functions, FUNCTIONS, "function", list(FUNCTIONS))
+        methods = choices(args.methods, {**METHODS, **PEER_METHODS}, "method", ["fixed", "adaptive"])
+        noises = numbers(args.noise, "noise level", NOISE_LEVELS)
+        if args.grid_step < 1:
+            raise ConfigError(f"--grid-step {args.grid_step}; expected an integer >= 1")
+        protocol = StoppingProtocol(n_explore=args.n_explore, max_breaths=args.max_breaths,
+                                    window=args.window, budget=args.budget, noise_model=args.noise_model,
+                                    n_candidates=args.n_candidates)
+        campaign = StoppingCampaign(functions=tuple(functions), noises=tuple(noises),
+                                    methods=tuple(methods), trials=args.trials, seed=args.seed,
+                                    protocol=protocol, refit_growth=args.refit_growth)
+        if args.merge and not args.summarize_only:
+            raise ConfigError("--merge only goes with --summarize-only")
     out = Path(args.out)
     console = _console()
-    if args.merge and not args.summarize_only:
-        raise ConfigError("--merge only goes with --summarize-only")
     if args.summarize_only:
         have: dict[Any, dict[str, Any]] = {}
         sources = [out, *(Path(d) for d in args.merge or [])]
@@ -165,17 +187,18 @@ def _cmd_hil(args: argparse.Namespace) -> int:
     from bridge.bench.plots import plot_hil
     from hilbo_core.presets import PRESETS
 
-    spaces = choices(args.spaces, PRESETS, "space", list(PRESETS))
-    methods = choices(args.methods, HIL_METHODS, "method", list(DEFAULT_HIL_METHODS))
-    if args.subjects < 1:
-        raise ConfigError(f"--subjects {args.subjects}; expected an integer >= 1")
-    if args.seed < 0:
-        raise ConfigError(f"--seed {args.seed}; expected an integer >= 0")
-    protocol = HilProtocol(minutes=args.minutes, warmup_s=args.warmup_s, condition_s=args.condition_s,
-                           popsize=args.popsize, sigma0=args.sigma0, penalty_w=args.penalty_w,
-                           n_explore=args.n_explore, max_breaths=args.max_breaths, window=args.window,
-                           grid_min=args.grid_min, wearer=args.wearer)
-    check_methods_for_wearer(methods, protocol.wearer)  # before any tuning runs
+    with options():
+        spaces = choices(args.spaces, PRESETS, "space", list(PRESETS))
+        methods = choices(args.methods, HIL_METHODS, "method", list(DEFAULT_HIL_METHODS))
+        if args.subjects < 1:
+            raise ConfigError(f"--subjects {args.subjects}; expected an integer >= 1")
+        if args.seed < 0:
+            raise ConfigError(f"--seed {args.seed}; expected an integer >= 0")
+        protocol = HilProtocol(minutes=args.minutes, warmup_s=args.warmup_s, condition_s=args.condition_s,
+                               popsize=args.popsize, sigma0=args.sigma0, penalty_w=args.penalty_w,
+                               n_explore=args.n_explore, max_breaths=args.max_breaths, window=args.window,
+                               grid_min=args.grid_min, wearer=args.wearer)
+        check_methods_for_wearer(methods, protocol.wearer)  # before any tuning runs
     seeds = list(range(args.seed, args.seed + args.subjects))
     out = Path(args.out)
     console = _console()
@@ -256,23 +279,26 @@ def _hil_tuned_k(args: argparse.Namespace, methods: Sequence[str], spaces: Seque
     if "adaptive-tuned-k" not in methods:
         return {}
     text = str(args.tuned_k).strip()
-    if text not in ("bo", "grid"):
-        try:
-            k = float(text)
-        except ValueError as err:
-            raise ConfigError(f"--tuned-k {text!r}; expected bo, grid or a constant K >= 0 (in σ)") from err
-        if not (k >= 0 and k < float("inf")):
-            raise ConfigError(f"--tuned-k {text!r}; expected bo, grid or a constant K >= 0 (in σ)")
-        return {s: {"k": k, "pick": "given"} for s in spaces}
-    if args.tune_subjects < 1:
-        raise ConfigError(f"--tune-subjects {args.tune_subjects}; expected an integer >= 1")
-    if args.tune_seed < 0:
-        raise ConfigError(f"--tune-seed {args.tune_seed}; expected an integer >= 0")
-    train = list(range(args.tune_seed, args.tune_seed + args.tune_subjects))
-    overlap = sorted(set(train) & set(seeds))
-    if overlap:
-        raise ConfigError(f"--tune-seed {args.tune_seed} --tune-subjects {args.tune_subjects}: training "
-                          f"wearers {overlap} are also test subjects; K must be tuned on other wearers")
+    with options():
+        if text not in ("bo", "grid"):
+            try:
+                k = float(text)
+            except ValueError as err:
+                raise ConfigError(f"--tuned-k {text!r}; expected bo, grid or a constant K >= 0 "
+                                  "(in σ)") from err
+            if not (k >= 0 and k < float("inf")):
+                raise ConfigError(f"--tuned-k {text!r}; expected bo, grid or a constant K >= 0 (in σ)")
+            return {s: {"k": k, "pick": "given"} for s in spaces}
+        if args.tune_subjects < 1:
+            raise ConfigError(f"--tune-subjects {args.tune_subjects}; expected an integer >= 1")
+        if args.tune_seed < 0:
+            raise ConfigError(f"--tune-seed {args.tune_seed}; expected an integer >= 0")
+        train = list(range(args.tune_seed, args.tune_seed + args.tune_subjects))
+        overlap = sorted(set(train) & set(seeds))
+        if overlap:
+            raise ConfigError(f"--tune-seed {args.tune_seed} --tune-subjects {args.tune_subjects}: "
+                              f"training wearers {overlap} are also test subjects; K must be tuned "
+                              "on other wearers")
     if args.summarize_only:  # nothing is run: K as the sessions found used it
         found = {key[1]: r.get("stopping_k") for key, r in done.items() if key[0] == "adaptive-tuned-k"}
         return {s: {"k": float(found.get(s) or 0.0), "pick": f"{text} (as found in sessions.jsonl)"}
@@ -299,11 +325,13 @@ def _cmd_perf(args: argparse.Namespace) -> int:
     from bridge.bench.bridge_perf import bridge_table
     from bridge.bench.perf import PerfConfig, perf_table, run_perf
 
-    sizes = [int(v) for v in numbers(args.sizes, "observation count", (10, 30, 60, 100))]
-    cfg = PerfConfig(breaths=args.breaths, sizes=tuple(sizes), reps=args.reps, sessions=args.sessions,
-                     seed=args.seed, bridge_minutes=args.bridge_minutes, bridge_speed=args.bridge_speed,
-                     bridge_feedback_hz=args.bridge_feedback_hz, bridge_baseline_s=args.bridge_baseline_s,
-                     bridge_gc=args.bridge_gc, bridge_protocol=args.bridge_protocol)
+    with options():
+        sizes = [int(v) for v in numbers(args.sizes, "observation count", (10, 30, 60, 100))]
+        cfg = PerfConfig(breaths=args.breaths, sizes=tuple(sizes), reps=args.reps, sessions=args.sessions,
+                         seed=args.seed, bridge_minutes=args.bridge_minutes, bridge_speed=args.bridge_speed,
+                         bridge_feedback_hz=args.bridge_feedback_hz,
+                         bridge_baseline_s=args.bridge_baseline_s, bridge_gc=args.bridge_gc,
+                         bridge_protocol=args.bridge_protocol)
     console = _console()
     console.print("hilbo bench perf: timing breath, proposal and session (in this process)"
                   + (f", then the bridge at real time for {cfg.bridge_minutes:g} min"
@@ -496,9 +524,13 @@ def bench_main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING)
     try:
         return int(args.func(args))
-    except HilboError as err:
+    except UsageError as err:
         sys.stderr.write(f"hilbo bench {args.bench_command}: error: {err}\n")
         return 2
+    except (HilboError, BridgeError, DriverError) as err:
+        # Bad input found once the work started, or a failed run: 1 (as ``hilbo bench``).
+        sys.stderr.write(f"hilbo bench {args.bench_command}: error: {err}\n")
+        return 1
     except KeyboardInterrupt:
         sys.stderr.write(f"hilbo bench {args.bench_command}: interrupted\n")
         return 130

@@ -431,31 +431,34 @@ def run_estimator_bench(people: Sequence[list[Bout]], estimators: Sequence[str] 
 def _cmd_estimator(args: argparse.Namespace) -> int:
     from rich.console import Console
 
+    from bridge.bench.cli import options
     from bridge.bench.common import choices
 
     console = Console(highlight=False, soft_wrap=True)
-    estimators = choices(args.estimators, ESTIMATORS, "estimator", list(ESTIMATORS))
-    if args.replay is not None:
-        if args.transitions is None:
+    with options():  # the command line's values (exit status 2); the replay file's are 1
+        estimators = choices(args.estimators, ESTIMATORS, "estimator", list(ESTIMATORS))
+        if args.replay is not None and args.transitions is None:
             raise ConfigError("--replay needs --transitions t1,t2,... (s on the file's clock)")
-        try:
-            trans = [float(x) for x in args.transitions.split(",") if x.strip()]
-        except ValueError as err:
-            raise ConfigError(
-                f"--transitions {args.transitions!r}: expected comma-separated seconds") from err
+        if args.replay is None and (args.transitions is not None or args.csv_columns is not None):
+            raise ConfigError("--transitions and --csv-columns go with --replay")
+        if args.replay is None and args.wearer not in WEARERS:
+            raise ConfigError(f"--wearer {args.wearer!r}; expected one of {sorted(WEARERS)}")
+        if args.replay is None and args.n < 1:
+            raise ConfigError(f"--n {args.n}; expected an integer >= 1")
+        if args.replay is None and args.seed < 0:
+            raise ConfigError(f"--seed {args.seed}; expected an integer >= 0")
+        if args.replay is not None:
+            try:
+                trans = [float(x) for x in args.transitions.split(",") if x.strip()]
+            except ValueError as err:
+                raise ConfigError(
+                    f"--transitions {args.transitions!r}: expected comma-separated seconds") from err
+    if args.replay is not None:
         cols = args.csv_columns.split(",") if args.csv_columns else None
         people = replay_people(args.replay, trans, cols)
         source = f"--replay {args.replay} --transitions {args.transitions}" + (
             f" --csv-columns {args.csv_columns}" if args.csv_columns else "")
     else:
-        if args.transitions is not None or args.csv_columns is not None:
-            raise ConfigError("--transitions and --csv-columns go with --replay")
-        if args.wearer not in WEARERS:
-            raise ConfigError(f"--wearer {args.wearer!r}; expected one of {sorted(WEARERS)}")
-        if args.n < 1:
-            raise ConfigError(f"--n {args.n}; expected an integer >= 1")
-        if args.seed < 0:
-            raise ConfigError(f"--seed {args.seed}; expected an integer >= 0")
         people = WEARERS[args.wearer](args.n, args.seed)
         source = f"--wearer {args.wearer} --n {args.n} --seed {args.seed}"
     n_people = len(people)

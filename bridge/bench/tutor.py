@@ -282,10 +282,14 @@ def _plot(fig: dict[str, Any], figure: str, cfg: TutorBenchConfig, path: Path) -
 def _cmd_bench_tutor(args: argparse.Namespace) -> int:
     from rich.console import Console
 
+    from bridge.bench.cli import options
+
     console = Console(stderr=True)
-    cfg = TutorBenchConfig(figures=tuple(args.figures), students=args.students,
-                           repetitions=args.reps, resamples=args.resamples, max_reuse=args.max_reuse,
-                           t_max=args.t_max, seed=args.seed, workers=args.workers)
+    with options():  # a bad value on the command line: exit status 2
+        cfg = TutorBenchConfig(figures=tuple(args.figures), students=args.students,
+                               repetitions=args.reps, resamples=args.resamples,
+                               max_reuse=args.max_reuse, t_max=args.t_max, seed=args.seed,
+                               workers=args.workers)
     out = Path(args.out)
     console.print(f"hilbo bench tutor: {cfg.repetitions} repetitions × {cfg.students} students, "
                   f"K={cfg.resamples}, reuse ≤ {cfg.max_reuse}, t_max={cfg.t_max}")
