@@ -23,8 +23,11 @@ from bridge.bench.cli import bench_main
 from bridge.bench.perf import PerfConfig
 from hilbo_core.errors import ConfigError
 
-#: A session of ~2 s wall time: 1.8 simulated minutes at 60 × real time, short warm-ups.
-TOY = BridgeRtConfig(minutes=1.8, speed=60.0, feedback_hz=500.0, warmup_s=5.0, max_breaths=6,
+#: A session of ~15 s wall time: 5 simulated minutes at 20 × real time. Walking time counts the
+#: first ask's wait for the proposal worker process to start (numpy and scipy imports: 1.5 s idle,
+#: up to ~6 s beside CPU burners), which at 60 × ate a 1.8-minute session whole (0 evaluations);
+#: the first 60-s warm-up (3 s of wall time) hides most of that start, as the lab's 180 s do.
+TOY = BridgeRtConfig(minutes=5.0, speed=20.0, feedback_hz=500.0, warmup_s=60.0, max_breaths=6,
                      sample_period_s=0.25, baseline_s=0.5)
 
 
@@ -98,7 +101,7 @@ def test_toy_real_time_session_reports_latency_frames_and_cpu(tmp_path) -> None:
     assert summary["stop_to_ack_ms"]["n"] == b["stop_to_ack_ms"]["n"]
     table = bridge_table(b)
     assert "| stop decision → device ack of the next profile |" in table
-    assert "protocol custom (2 exploration points, N = 6, 5 s warm-ups)" in table
+    assert "protocol custom (2 exploration points, N = 6, 60 s warm-ups)" in table
     assert "stop decisions over 100 ms" in table
     assert "< 0.5 core" in table
     assert f"at quiet points {b['gc']['quiet_points']} " in table and "[freeze]" in table
@@ -108,7 +111,7 @@ def test_toy_real_time_session_reports_latency_frames_and_cpu(tmp_path) -> None:
 def test_perf_cli_with_bridge_minutes_writes_perf_and_perf_bridge_json(tmp_path) -> None:
     out = tmp_path / "perf"
     code = bench_main(["perf", "--breaths", "10", "--sizes", "3", "--reps", "1", "--sessions", "0",
-                       "--bridge-minutes", "2.7", "--bridge-speed", "60", "--bridge-feedback-hz", "500",
+                       "--bridge-minutes", "2.7", "--bridge-speed", "20", "--bridge-feedback-hz", "500",
                        "--bridge-baseline-s", "0", "--bridge-gc", "automatic", "--bridge-protocol", "quick",
                        "--out", str(out)])
     assert code == 0
@@ -117,11 +120,11 @@ def test_perf_cli_with_bridge_minutes_writes_perf_and_perf_bridge_json(tmp_path)
                 "proposal_profile", "session_60min_wall_s", "sessions", "targets", "wall_s", "command",
                 "machine", "bridge_realtime"):
         assert key in perf, key
-    assert ("--bridge-minutes 2.7 --bridge-speed 60 --bridge-feedback-hz 500 --bridge-baseline-s 0 "
+    assert ("--bridge-minutes 2.7 --bridge-speed 20 --bridge-feedback-hz 500 --bridge-baseline-s 0 "
             "--bridge-gc automatic --bridge-protocol quick") in perf["command"]
     small = json.loads((out / "perf_bridge.json").read_text())
     assert small["benchmark"] == "perf-bridge" and small["command"] == perf["command"]
-    cfg = BridgeRtConfig(minutes=2.7, speed=60.0, feedback_hz=500.0, baseline_s=0.0, gc="automatic")
+    cfg = BridgeRtConfig(minutes=2.7, speed=20.0, feedback_hz=500.0, baseline_s=0.0, gc="automatic")
     _check(small, cfg)
     assert small["protocol"] == "quick"
     assert small["cpu"]["device_alone"] is None and small["cpu"]["bridge_estimate_cores"] is None
