@@ -24,7 +24,7 @@ from enum import StrEnum
 from typing import Any
 
 from drivers.cart._numbers import parse_decimal, shorten
-from drivers.cart._options import check_keys, check_mapping, enum_value, int_value, text
+from drivers.cart._options import check_keys, check_mapping, enum_value, int_value, text, within
 from drivers.cart.errors import EncodeError
 from drivers.cart.line import ParsedBreath
 from drivers.cart.reasons import RejectReason
@@ -186,7 +186,7 @@ class CsvMapping:
         try:
             return cls(**kwargs)
         except DriverConfigError as err:
-            raise DriverConfigError(f"{where}.{err}") from err
+            raise within(where, err) from err
 
 
 def _set(obj: object, name: str, value: object) -> None:

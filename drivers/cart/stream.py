@@ -25,7 +25,7 @@ from enum import StrEnum
 from types import TracebackType
 from typing import Any, Self
 
-from drivers.cart._options import check_keys, check_mapping, enum_value, int_value
+from drivers.cart._options import check_keys, check_mapping, enum_value, int_value, within
 from drivers.cart.csvmap import CsvBreathParser, CsvMapping
 from drivers.cart.line import HbrLineParser
 from drivers.cart.pipeline import (
@@ -165,7 +165,7 @@ class CartConfig:
         try:
             return cls(transport=name, options=options, format=fmt, csv=csv, limits=limits, **extra)
         except DriverConfigError as err:
-            raise DriverConfigError(f"{where}.{err}") from err
+            raise within(where, err) from err
 
     def make_parser(self) -> BreathParser:
         """A fresh parser for this format (CSV parsers are stateful: one per stream)."""

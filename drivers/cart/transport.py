@@ -26,7 +26,7 @@ from dataclasses import MISSING, dataclass, fields
 from types import TracebackType
 from typing import Any, ClassVar, Self
 
-from drivers.cart._options import check_keys, check_mapping, int_value, number
+from drivers.cart._options import check_keys, check_mapping, int_value, number, within
 from drivers.cart.framing import DEFAULT_MAX_LINE_BYTES, LineFramer
 from drivers.errors import DriverConfigError, TransportError
 
@@ -83,7 +83,7 @@ class Backoff:
         try:
             return cls(**data)
         except DriverConfigError as err:
-            raise DriverConfigError(f"{where}.{err}") from err
+            raise within(where, err) from err
 
 
 @dataclass(frozen=True, slots=True)
@@ -121,7 +121,7 @@ def options_from_dict(cls: type[Any], data: Mapping[str, Any], where: str) -> An
     try:
         return cls(**kwargs)
     except DriverConfigError as err:
-        raise DriverConfigError(f"{where}.{err}") from err
+        raise within(where, err) from err
 
 
 class CartTransport(ABC):
