@@ -200,9 +200,9 @@ def boolean(default: Any = MISSING) -> Any:
     return _field(default, FieldSpec("boolean"))
 
 
-def string(default: Any = MISSING, *, non_empty: bool = True) -> Any:
-    """A string field (non-empty unless told otherwise)."""
-    return _field(default, FieldSpec("string", non_empty=non_empty))
+def string(default: Any = MISSING, *, non_empty: bool = True, optional: bool = False) -> Any:
+    """A string field (non-empty unless told otherwise); None if ``optional``."""
+    return _field(default, FieldSpec("string", optional=optional, non_empty=non_empty))
 
 
 def _specs(cls: type[Any]) -> list[tuple[dataclasses.Field[Any], FieldSpec]]:

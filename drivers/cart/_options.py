@@ -14,9 +14,10 @@ from enum import Enum
 from typing import Any, TypeVar
 
 from drivers.errors import DriverConfigError
-from hilbo_core.config_model import FieldSpec, check_integer, check_number, reject_unknown
+from hilbo_core.config_model import FieldSpec, check_fields, check_integer, check_number, reject_unknown
 
 __all__ = [
+    "check_declared",
     "check_keys",
     "check_mapping",
     "enum_value",
@@ -44,6 +45,15 @@ def check_keys(data: Mapping[str, Any], allowed: Iterable[str], where: str) -> N
     closest allowed key, the allowed keys), the same as every other config table's.
     """
     reject_unknown(data, allowed, where, DriverConfigError)
+
+
+def check_declared(obj: Any) -> None:
+    """Check a config dataclass's declared fields (:func:`hilbo_core.config_model.check_fields`).
+
+    For a ``__post_init__``: errors name the bare field (``from_dict`` puts the table's path in
+    front, :func:`within`); numbers become floats, enum values members.
+    """
+    check_fields(obj, "", DriverConfigError)
 
 
 def within(where: str, err: DriverConfigError) -> DriverConfigError:
