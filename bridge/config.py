@@ -152,10 +152,11 @@ class SessionConfig:
             owner only, they hold health data: VO2, heart rate, body mass).
     """
 
+    # subject and file_mode are patterns, out_dir a path: _parse_session reads those.
     subject: str
-    body_mass_kg: float
+    body_mass_kg: float = number(lo=20.0, hi=250.0)
     out_dir: Path = Path("sessions")
-    notes: str = ""
+    notes: str = string("", non_empty=False)
     file_mode: str = "0600"
 
     @property
@@ -174,10 +175,9 @@ def _parse_session(data: object) -> SessionConfig:
         )
     return SessionConfig(
         subject=subject,
-        body_mass_kg=t.number("body_mass_kg", lo=20.0, hi=250.0),
         out_dir=Path(t.string("out_dir", "sessions")),
-        notes=t.string("notes", "", non_empty=False),
         file_mode=_file_mode(t),
+        **read_fields(SessionConfig, t),
     )
 
 
