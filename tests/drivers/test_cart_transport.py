@@ -166,8 +166,8 @@ def test_backoff_delays_and_overflow() -> None:
 @pytest.mark.parametrize(
     ("data", "match"),
     [
-        ({"initial": 1.0}, r"unknown key backoff.initial = 1.0 \(did you mean 'initial_s'\?\); allowed keys in \[backoff\]: "
-         r"factor, initial_s, max_attempts, max_s"),
+        ({"initial": 1.0}, r"unknown key backoff.initial = 1.0 \(did you mean 'initial_s'\?\); "
+         r"allowed keys in \[backoff\]: factor, initial_s, max_attempts, max_s"),
         ({"initial_s": 0}, r"backoff.initial_s = 0: expected a finite number in \(0, inf\]"),
         ({"factor": 0.5}, r"backoff.factor = 0.5"),
         ({"initial_s": 5.0, "max_s": 1.0}, r"backoff.max_s = 1.0"),
