@@ -62,6 +62,17 @@ from drivers.cart.pipeline import describe_record
 from drivers.errors import DriverConfigError
 from drivers.exosuit.endpoint import INTERFACE_OPTIONS, CanBusConfig
 from drivers.exosuit.rating import RATED_FORCE_N
+from hilbo_core.config_model import (
+    MISSING,
+    Table,
+    boolean,
+    choice,
+    integer,
+    number,
+    read_fields,
+    reject_unknown,
+    string,
+)
 from hilbo_core.errors import ConfigError, InfeasibleError
 from hilbo_core.gp import KernelKind
 from hilbo_core.optimizer import OptimizerConfig, PriorObservation, StoppingKind
@@ -104,7 +115,6 @@ __all__ = [
 TABLES = ("session", "space", "protocol", "cart", "can", "limits", "watchdog", "prior", "live")
 _REQUIRED_TABLES = ("session", "space", "cart", "can")
 
-_MISSING: Any = object()
 _SUBJECT = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
 
@@ -113,113 +123,15 @@ _SUBJECT = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 # --------------------------------------------------------------------------------------------
 
 
-def _unknown_key_message(where: str, key: str, value_text: str, allowed: Iterable[str]) -> str:
-    allowed = sorted(allowed)
-    close = difflib.get_close_matches(key, allowed, n=1, cutoff=0.6)
-    if not where:
-        hint = f" (did you mean [{close[0]}]?)" if close else ""
-        return f"unknown table [{key}]{hint}; allowed tables: {', '.join(allowed)}"
-    hint = f" (did you mean {close[0]!r}?)" if close else ""
-    return (f"unknown key {where}.{key} = {value_text}{hint}; "
-            f"allowed keys in [{where}]: {', '.join(allowed) or '(none)'}")
+# The one configuration model (hilbo_core/config_model.py), raising this package's error.
+
+
+def _table(data: object, where: str, allowed: Iterable[str]) -> Table:
+    return Table(data, where, allowed, BridgeConfigError)
 
 
 def _reject_unknown(data: Mapping[str, Any], allowed: Iterable[str], where: str) -> None:
-    allowed = tuple(allowed)
-    for key, value in data.items():
-        if key not in allowed:
-            raise BridgeConfigError(_unknown_key_message(where, key, f"{value!r:.60}", allowed))
-
-
-def _range_text(lo: float | None, hi: float | None, lo_open: bool) -> str:
-    lo_s = "-inf" if lo is None else str(lo) if isinstance(lo, int) else f"{lo:g}"
-    hi_s = "inf" if hi is None else str(hi) if isinstance(hi, int) else f"{hi:g}"
-    return f"{'(' if lo_open else '['}{lo_s}, {hi_s}]"
-
-
-class _Table:
-    """One config table: refuses unknown keys at once, then reads typed, range-checked values."""
-
-    def __init__(self, data: object, where: str, allowed: Iterable[str]) -> None:
-        if not isinstance(data, Mapping):
-            raise BridgeConfigError(f"{where} = {data!r:.60}: expected a table ([{where}])")
-        self.where = where
-        self.data: Mapping[str, Any] = data
-        _reject_unknown(data, allowed, where)
-
-    def name(self, key: str) -> str:
-        return f"{self.where}.{key}"
-
-    def has(self, key: str) -> bool:
-        return key in self.data
-
-    def raw(self, key: str, default: Any, expected: str) -> Any:
-        if key in self.data:
-            return self.data[key]
-        if default is _MISSING:
-            raise BridgeConfigError(f"{self.name(key)} is missing: expected {expected}")
-        return default
-
-    def number(self, key: str, default: Any = _MISSING, *, lo: float | None = None,
-               hi: float | None = None, lo_open: bool = False) -> float:
-        expected = f"a finite number in {_range_text(lo, hi, lo_open)}"
-        value = self.raw(key, default, expected)
-        # bool is an int subclass in Python; `true` for a timeout is a mistake, not 1.
-        ok = not isinstance(value, bool) and isinstance(value, int | float)
-        out = float(value) if ok else math.nan
-        if (not ok or not math.isfinite(out) or (lo is not None and (out <= lo if lo_open else out < lo))
-                or (hi is not None and out > hi)):
-            raise BridgeConfigError(f"{self.name(key)} = {value!r}: expected {expected}")
-        return out
-
-    def integer(self, key: str, default: Any = _MISSING, *, lo: int | None = None,
-                hi: int | None = None) -> int:
-        expected = f"an integer in {_range_text(lo, hi, False)}"
-        value = self.raw(key, default, expected)
-        if (isinstance(value, bool) or not isinstance(value, int) or (lo is not None and value < lo)
-                or (hi is not None and value > hi)):
-            raise BridgeConfigError(f"{self.name(key)} = {value!r}: expected {expected}")
-        return value
-
-    def string(self, key: str, default: Any = _MISSING, *, choices: Iterable[str] | None = None,
-               non_empty: bool = True) -> str:
-        options = sorted(choices) if choices is not None else None
-        expected = (f"one of {', '.join(repr(c) for c in options)}" if options is not None
-                    else "a non-empty string" if non_empty else "a string")
-        value = self.raw(key, default, expected)
-        if not isinstance(value, str) or (non_empty and not value):
-            raise BridgeConfigError(f"{self.name(key)} = {value!r}: expected {expected}")
-        if options is not None and value not in options:
-            close = difflib.get_close_matches(value, options, n=1, cutoff=0.6)
-            hint = f" (did you mean {close[0]!r}?)" if close else ""
-            raise BridgeConfigError(f"{self.name(key)} = {value!r}{hint}: expected {expected}")
-        return value
-
-    def boolean(self, key: str, default: Any = _MISSING) -> bool:
-        value = self.raw(key, default, "true or false")
-        if not isinstance(value, bool):
-            raise BridgeConfigError(f"{self.name(key)} = {value!r}: expected true or false")
-        return value
-
-    def choice(self, key: str, enum_cls: type[enum.Enum], default: Any = _MISSING) -> Any:
-        values = [m.value for m in enum_cls]
-        raw = self.string(key, default.value if isinstance(default, enum.Enum) else default,
-                          choices=values)
-        return enum_cls(raw)
-
-    def strings(self, key: str, default: Any = _MISSING) -> tuple[str, ...]:
-        value = self.raw(key, default, "a list of strings")
-        if not isinstance(value, list | tuple) or not all(isinstance(v, str) for v in value):
-            raise BridgeConfigError(f"{self.name(key)} = {value!r:.80}: expected a list of strings")
-        return tuple(value)
-
-    def table(self, key: str, default: Any = _MISSING) -> Mapping[str, Any]:
-        value = self.raw(key, default, "a table")
-        if not isinstance(value, Mapping):
-            raise BridgeConfigError(
-                f"{self.name(key)} = {value!r:.60}: expected a table ([{self.name(key)}])"
-            )
-        return value
+    reject_unknown(data, allowed, where, BridgeConfigError)
 
 
 # --------------------------------------------------------------------------------------------
@@ -240,10 +152,11 @@ class SessionConfig:
             owner only, they hold health data: VO2, heart rate, body mass).
     """
 
+    # subject and file_mode are patterns, out_dir a path: _parse_session reads those.
     subject: str
-    body_mass_kg: float
+    body_mass_kg: float = number(lo=20.0, hi=250.0)
     out_dir: Path = Path("sessions")
-    notes: str = ""
+    notes: str = string("", non_empty=False)
     file_mode: str = "0600"
 
     @property
@@ -253,7 +166,7 @@ class SessionConfig:
 
 
 def _parse_session(data: object) -> SessionConfig:
-    t = _Table(data, "session", ALLOWED_KEYS["session"])
+    t = _table(data, "session", ALLOWED_KEYS["session"])
     subject = t.string("subject")
     if not _SUBJECT.match(subject):
         raise BridgeConfigError(
@@ -262,14 +175,13 @@ def _parse_session(data: object) -> SessionConfig:
         )
     return SessionConfig(
         subject=subject,
-        body_mass_kg=t.number("body_mass_kg", lo=20.0, hi=250.0),
         out_dir=Path(t.string("out_dir", "sessions")),
-        notes=t.string("notes", "", non_empty=False),
         file_mode=_file_mode(t),
+        **read_fields(SessionConfig, t),
     )
 
 
-def _file_mode(t: _Table) -> str:
+def _file_mode(t: Table) -> str:
     text = t.string("file_mode", "0600")
     if not re.fullmatch(r"0?[0-7]{3}", text):
         raise BridgeConfigError(f"{t.name('file_mode')} = {text!r}: expected octal permission bits such as "
@@ -299,7 +211,7 @@ class SpaceConfig:
         return {"preset": self.preset, "definition": self.space.to_json()}
 
 
-def _parse_constraints(t: _Table, key: str) -> list[LinearConstraint]:
+def _parse_constraints(t: Table, key: str) -> list[LinearConstraint]:
     out = []
     for i, text in enumerate(t.strings(key, [])):
         try:
@@ -309,7 +221,7 @@ def _parse_constraints(t: _Table, key: str) -> list[LinearConstraint]:
     return out
 
 
-def _parse_derived(t: _Table) -> list[DerivedParameter]:
+def _parse_derived(t: Table) -> list[DerivedParameter]:
     out = []
     for i, text in enumerate(t.strings("derived", [])):
         try:
@@ -321,7 +233,7 @@ def _parse_derived(t: _Table) -> list[DerivedParameter]:
 
 def _parse_parameter(entry: object, i: int) -> Parameter:
     where = f"space.parameters[{i}]"
-    p = _Table(entry, where, ("name", "lower", "upper", "unit", "description"))
+    p = _table(entry, where, ("name", "lower", "upper", "unit", "description"))
     name = p.string("name")
     lower, upper = p.number("lower"), p.number("upper")
     try:
@@ -332,7 +244,7 @@ def _parse_parameter(entry: object, i: int) -> Parameter:
 
 
 def _parse_space(data: object) -> SpaceConfig:
-    t = _Table(data, "space", ALLOWED_KEYS["space"])
+    t = _table(data, "space", ALLOWED_KEYS["space"])
     if t.has("preset") == t.has("parameters"):
         raise BridgeConfigError(
             "space: give either preset = \"hip_6d\" (or \"hip_ankle_4d\") or an inline definition "
@@ -349,7 +261,7 @@ def _parse_space(data: object) -> SpaceConfig:
                 )
         base = PRESETS[preset]()
         params = list(base.parameters)
-        bounds = _Table(t.table("bounds", {}), "space.bounds", base.names)
+        bounds = _table(t.table("bounds", {}), "space.bounds", base.names)
         for i, par in enumerate(params):
             if not bounds.has(par.name):
                 continue
@@ -375,7 +287,7 @@ def _parse_space(data: object) -> SpaceConfig:
                 "and upper in each [[space.parameters]] table"
             )
         name = t.string("profile", choices=PROFILE_BUILDERS)
-        entries = t.raw("parameters", _MISSING, "a list of [[space.parameters]] tables")
+        entries = t.raw("parameters", MISSING, "a list of [[space.parameters]] tables")
         if not isinstance(entries, list) or not entries:
             raise BridgeConfigError(
                 f"space.parameters = {entries!r:.60}: expected one or more [[space.parameters]] tables"
@@ -451,24 +363,26 @@ class ProtocolConfig:
 
     # The defaults are declared once: the protocol's in hilbo_core.protocol, the optimizer's in
     # hilbo_core.optimizer (a dataclass field's default is its class attribute).
-    warmup_s: float = SessionProtocolConfig.warmup_s
-    n_explore: int = OptimizerConfig.n_explore
-    max_breaths: int = OptimizerConfig.max_breaths
+    # The ranges are declared here (hilbo_core.config_model); window's upper bound is
+    # max_breaths - 1 and the budgets are either-or, so _parse_protocol reads those three.
+    warmup_s: float = number(SessionProtocolConfig.warmup_s, lo=0.0, hi=1800.0)
+    n_explore: int = integer(OptimizerConfig.n_explore, lo=1, hi=200)
+    max_breaths: int = integer(OptimizerConfig.max_breaths, lo=2, hi=1000)
     window: int = OptimizerConfig.window
     budget_min: float | None = _DEFAULT_BUDGET_MIN
     budget_breaths: int | None = SessionProtocolConfig.budget_breaths
-    stopping: StoppingKind = OptimizerConfig.stopping
-    min_decision_s: float = OptimizerConfig.min_decision_s
-    a_floor: float = OptimizerConfig.a_floor
-    seed: int = OptimizerConfig.seed
-    xi: float = OptimizerConfig.xi
-    kernel: KernelKind = OptimizerConfig.kernel
-    n_candidates: int = OptimizerConfig.n_candidates
-    n_local: int = OptimizerConfig.n_local
-    pause_between_bouts: bool = SessionProtocolConfig.pause_between_bouts
-    refit: RefitMode = RefitMode.AHEAD
-    proposal_worker: WorkerKind = WorkerKind.PROCESS
-    gc: GcMode = GcMode.FREEZE
+    stopping: StoppingKind = choice(StoppingKind, OptimizerConfig.stopping)
+    min_decision_s: float = number(OptimizerConfig.min_decision_s, lo=0.0, hi=600.0)
+    a_floor: float = number(OptimizerConfig.a_floor, lo=0.0, hi=10.0)
+    seed: int = integer(OptimizerConfig.seed, lo=0, hi=2**63 - 1)
+    xi: float = number(OptimizerConfig.xi, lo=-1e6, hi=1e6)
+    kernel: KernelKind = choice(KernelKind, OptimizerConfig.kernel)
+    n_candidates: int = integer(OptimizerConfig.n_candidates, lo=16, hi=1_000_000)
+    n_local: int = integer(OptimizerConfig.n_local, lo=0, hi=100)
+    pause_between_bouts: bool = boolean(SessionProtocolConfig.pause_between_bouts)
+    refit: RefitMode = choice(RefitMode, RefitMode.AHEAD)
+    proposal_worker: WorkerKind = choice(WorkerKind, WorkerKind.PROCESS)
+    gc: GcMode = choice(GcMode, GcMode.FREEZE)
 
     @property
     def budget_s(self) -> float | None:
@@ -512,9 +426,9 @@ class ProtocolConfig:
 
 
 def _parse_protocol(data: object) -> ProtocolConfig:
-    t = _Table(data, "protocol", ALLOWED_KEYS["protocol"])
+    t = _table(data, "protocol", ALLOWED_KEYS["protocol"])
     d = ProtocolConfig  # the defaults
-    max_breaths = t.integer("max_breaths", d.max_breaths, lo=2, hi=1000)
+    declared = read_fields(ProtocolConfig, t, skip=("window", "budget_min", "budget_breaths"))
     if not (t.has("budget_min") or t.has("budget_breaths")):
         budget_min: float | None = d.budget_min  # seed 000 §IV.A.3: a 40-minute optimisation bout
         budget_breaths: int | None = d.budget_breaths
@@ -522,24 +436,10 @@ def _parse_protocol(data: object) -> ProtocolConfig:
         budget_min = t.number("budget_min", lo=0.0, hi=1440.0, lo_open=True) if t.has("budget_min") else None
         budget_breaths = t.integer("budget_breaths", lo=1, hi=100_000) if t.has("budget_breaths") else None
     cfg = ProtocolConfig(
-        warmup_s=t.number("warmup_s", d.warmup_s, lo=0.0, hi=1800.0),
-        n_explore=t.integer("n_explore", d.n_explore, lo=1, hi=200),
-        max_breaths=max_breaths,
-        window=t.integer("window", d.window, lo=0, hi=max_breaths - 1),
+        **declared,
+        window=t.integer("window", d.window, lo=0, hi=declared["max_breaths"] - 1),
         budget_min=budget_min,
         budget_breaths=budget_breaths,
-        stopping=t.choice("stopping", StoppingKind, d.stopping),
-        min_decision_s=t.number("min_decision_s", d.min_decision_s, lo=0.0, hi=600.0),
-        a_floor=t.number("a_floor", d.a_floor, lo=0.0, hi=10.0),
-        seed=t.integer("seed", d.seed, lo=0, hi=2**63 - 1),
-        xi=t.number("xi", d.xi, lo=-1e6, hi=1e6),
-        kernel=t.choice("kernel", KernelKind, d.kernel),
-        n_candidates=t.integer("n_candidates", d.n_candidates, lo=16, hi=1_000_000),
-        n_local=t.integer("n_local", d.n_local, lo=0, hi=100),
-        pause_between_bouts=t.boolean("pause_between_bouts", d.pause_between_bouts),
-        refit=t.choice("refit", RefitMode, d.refit),
-        proposal_worker=t.choice("proposal_worker", WorkerKind, d.proposal_worker),
-        gc=t.choice("gc", GcMode, d.gc),
     )
     try:
         cfg.optimizer_config()  # the optimizer's own validation is the final word
@@ -552,24 +452,13 @@ def _parse_protocol(data: object) -> ProtocolConfig:
 # [cart]
 # --------------------------------------------------------------------------------------------
 
-# The cart driver's message for an unknown key (drivers/cart/_options.py check_keys).
-_DRIVER_UNKNOWN_KEY = re.compile(
-    r"^(?P<where>[\w.\[\]]+): unknown key '(?P<key>[^']*)' = (?P<value>.*); allowed keys: (?P<allowed>.*)$",
-    re.S,
-)
-
-
 def _parse_cart(data: object) -> CartConfig:
     if not isinstance(data, Mapping):
         raise BridgeConfigError(f"cart = {data!r:.60}: expected a table ([cart])")
     try:
         return CartConfig.from_dict(data, "cart")
-    except DriverConfigError as err:
-        msg = str(err)
-        m = _DRIVER_UNKNOWN_KEY.match(msg)
-        if m:  # same message in this module's style, with a did-you-mean suggestion
-            msg = _unknown_key_message(m["where"], m["key"], m["value"], m["allowed"].split(", "))
-        raise BridgeConfigError(msg) from err
+    except DriverConfigError as err:  # the same message: both use hilbo_core.config_model
+        raise BridgeConfigError(str(err)) from err
 
 
 # --------------------------------------------------------------------------------------------
@@ -594,10 +483,10 @@ class CanConfig:
     """
 
     bus: CanBusConfig
-    heartbeat_period_ms: float = 20.0
-    push_timeout_ms: float = 250.0
-    push_retries: int = 3
-    segment_pace_ms: float = 1.0
+    heartbeat_period_ms: float = number(20.0, lo=5.0, hi=50.0)
+    push_timeout_ms: float = number(250.0, lo=10.0, hi=5000.0)
+    push_retries: int = integer(3, lo=0, hi=10)
+    segment_pace_ms: float = number(1.0, lo=0.0, hi=50.0)
 
     @property
     def heartbeat_period_s(self) -> float:
@@ -620,9 +509,9 @@ class CanConfig:
 
 
 def _parse_can(data: object) -> CanConfig:
-    t = _Table(data, "can", ALLOWED_KEYS["can"])
+    t = _table(data, "can", ALLOWED_KEYS["can"])
     interface = t.string("interface", choices=can.VALID_INTERFACES)
-    channel = t.raw("channel", _MISSING, "a non-empty string or an integer (e.g. 'vcan0', 'PCAN_USBBUS1', 0)")
+    channel = t.raw("channel", MISSING, "a non-empty string or an integer (e.g. 'vcan0', 'PCAN_USBBUS1', 0)")
     if isinstance(channel, bool) or not isinstance(channel, str | int) or channel == "":
         raise BridgeConfigError(
             f"can.channel = {channel!r}: expected a non-empty string or an integer "
@@ -637,13 +526,7 @@ def _parse_can(data: object) -> CanConfig:
         bus = CanBusConfig(interface=interface, channel=channel, bitrate=bitrate, options=dict(options))
     except DriverConfigError as err:
         raise BridgeConfigError(str(err)) from err
-    return CanConfig(
-        bus=bus,
-        heartbeat_period_ms=t.number("heartbeat_period_ms", 20.0, lo=5.0, hi=50.0),
-        push_timeout_ms=t.number("push_timeout_ms", 250.0, lo=10.0, hi=5000.0),
-        push_retries=t.integer("push_retries", 3, lo=0, hi=10),
-        segment_pace_ms=t.number("segment_pace_ms", 1.0, lo=0.0, hi=50.0),
-    )
+    return CanConfig(bus=bus, **read_fields(CanConfig, t))
 
 
 # --------------------------------------------------------------------------------------------
@@ -654,7 +537,7 @@ _LIMIT_DEFAULTS = ProfileLimits()
 
 
 def _parse_limits(data: object) -> ProfileLimits:
-    t = _Table(data, "limits", ALLOWED_KEYS["limits"])
+    t = _table(data, "limits", ALLOWED_KEYS["limits"])
     base: dict[str, float] = {}
     for key, (lo, hi, lo_open) in ACTUATOR_LIMIT_RANGES.items():
         base[key] = t.number(key, getattr(_LIMIT_DEFAULTS, key), lo=lo, hi=hi, lo_open=lo_open)
@@ -662,7 +545,7 @@ def _parse_limits(data: object) -> ProfileLimits:
     overrides = {}
     for name, entry in t.table("actuators", {}).items():
         where = f"limits.actuators.{name}"
-        o = _Table(entry, where, ACTUATOR_LIMIT_RANGES)
+        o = _table(entry, where, ACTUATOR_LIMIT_RANGES)
         values = dict(base_limits.to_json())
         for key, (lo, hi, lo_open) in ACTUATOR_LIMIT_RANGES.items():
             if o.has(key):
@@ -709,11 +592,11 @@ class WatchdogConfig:
             pause that would need one stops the session instead of waiting for nobody.
     """
 
-    device_heartbeat_timeout_ms: float = 100.0
-    cart_data_timeout_s: float = 15.0
-    bus_error: BusErrorPolicy = BusErrorPolicy.PAUSE
-    auto_resume_s: float | None = None
-    max_auto_resumes: int = 10
+    device_heartbeat_timeout_ms: float = number(100.0, lo=40.0, hi=1000.0)
+    cart_data_timeout_s: float = number(15.0, lo=2.0, hi=300.0)
+    bus_error: BusErrorPolicy = choice(BusErrorPolicy, BusErrorPolicy.PAUSE)
+    auto_resume_s: float | None = number(None, lo=0.0, hi=3600.0, optional=True)
+    max_auto_resumes: int = integer(10, lo=1, hi=1000)
 
     def to_json(self) -> dict[str, Any]:
         """JSON-able form."""
@@ -721,15 +604,8 @@ class WatchdogConfig:
 
 
 def _parse_watchdog(data: object) -> WatchdogConfig:
-    t = _Table(data, "watchdog", ALLOWED_KEYS["watchdog"])
-    return WatchdogConfig(
-        device_heartbeat_timeout_ms=t.number("device_heartbeat_timeout_ms", 100.0, lo=40.0, hi=1000.0),
-        cart_data_timeout_s=t.number("cart_data_timeout_s", 15.0, lo=2.0, hi=300.0),
-        bus_error=t.choice("bus_error", BusErrorPolicy, BusErrorPolicy.PAUSE),
-        auto_resume_s=(t.number("auto_resume_s", lo=0.0, hi=3600.0)
-                       if t.has("auto_resume_s") else None),
-        max_auto_resumes=t.integer("max_auto_resumes", 10, lo=1, hi=1000),
-    )
+    t = _table(data, "watchdog", ALLOWED_KEYS["watchdog"])
+    return WatchdogConfig(**read_fields(WatchdogConfig, t))
 
 
 # --------------------------------------------------------------------------------------------
@@ -824,12 +700,12 @@ class PriorConfig:
         return f"{n} prior observation{'' if n == 1 else 's'}: " + "; ".join(parts)
 
 
-def _prior_noise(t: _Table) -> dict[str, PriorNoise]:
+def _prior_noise(t: Table) -> dict[str, PriorNoise]:
     noise = {s.value: n for s, n in DEFAULT_PRIOR_NOISE.items()}
-    table = _Table(t.table("inflation", {}), "prior.inflation", noise)
+    table = _table(t.table("inflation", {}), "prior.inflation", noise)
     for source in table.data:
         where = f"prior.inflation.{source}"
-        o = _Table(table.table(source), where, ("factor", "extra_var_w2"))
+        o = _table(table.table(source), where, ("factor", "extra_var_w2"))
         base = noise[source]
         noise[source] = PriorNoise(
             factor=o.number("factor", base.factor, lo=1.0, hi=1e6),
@@ -838,9 +714,9 @@ def _prior_noise(t: _Table) -> dict[str, PriorNoise]:
     return noise
 
 
-def _prior_params(space: ParameterSpace, entry: _Table, where: str) -> dict[str, float]:
+def _prior_params(space: ParameterSpace, entry: Table, where: str) -> dict[str, float]:
     known = (*space.names, *(d.name for d in space.derived))
-    params = _Table(entry.table("params"), f"{where}.params", known)
+    params = _table(entry.table("params"), f"{where}.params", known)
     values = {name: params.number(name) for name in params.data}
     missing = [n for n in space.names if n not in values]
     if missing:
@@ -859,7 +735,7 @@ def _prior_params(space: ParameterSpace, entry: _Table, where: str) -> dict[str,
 def _parse_inline_prior(space: ParameterSpace, entry: object, i: int,
                         noise: Mapping[str, PriorNoise]) -> PriorObservation:
     where = f"prior.observations[{i}]"
-    e = _Table(entry, where, ("params", "mean_w", "var_w2", "sd_w", "source", "note"))
+    e = _table(entry, where, ("params", "mean_w", "var_w2", "sd_w", "source", "note"))
     params = _prior_params(space, e, where)
     mean = e.number("mean_w", lo=0.0, hi=1e5)
     if e.has("var_w2") == e.has("sd_w"):
@@ -919,7 +795,7 @@ def _read_prior_table(space: ParameterSpace, path: Path, baseline_w: float | Non
 
 
 def _parse_prior(data: object, space: ParameterSpace) -> PriorConfig:
-    t = _Table(data, "prior", ALLOWED_KEYS["prior"])
+    t = _table(data, "prior", ALLOWED_KEYS["prior"])
     noise = _prior_noise(t)
     entries = t.raw("observations", [], "a list of tables")
     if not isinstance(entries, list):
@@ -970,15 +846,14 @@ class LiveConfig:
         port: TCP port, 0-65535 (8765 is Foxglove's default; 0 picks a free port).
     """
 
-    enabled: bool = False
-    host: str = "127.0.0.1"
-    port: int = 8765
+    enabled: bool = boolean(False)
+    host: str = string("127.0.0.1")
+    port: int = integer(8765, lo=0, hi=65535)
 
 
 def _parse_live(data: object) -> LiveConfig:
-    t = _Table(data, "live", ALLOWED_KEYS["live"])
-    return LiveConfig(enabled=t.boolean("enabled", False), host=t.string("host", "127.0.0.1"),
-                      port=t.integer("port", 8765, lo=0, hi=65535))
+    t = _table(data, "live", ALLOWED_KEYS["live"])
+    return LiveConfig(**read_fields(LiveConfig, t))
 
 
 # --------------------------------------------------------------------------------------------

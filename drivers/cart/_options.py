@@ -1,20 +1,23 @@
 """Checks shared by the cart's config dataclasses (keys, types, ranges) with naming errors.
 
 The config comes from TOML, so values arrive as ``str``, ``int``, ``float``, ``bool``, lists and
-tables. Every error names the key, the value and what was expected, and derives from
-:class:`drivers.errors.DriverConfigError`.
+tables. The checks are the one configuration model's (:mod:`hilbo_core.config_model`, which the
+bridge's config uses too), raising :class:`drivers.errors.DriverConfigError`: every error names
+the key, the value and what was expected.
 """
 
 from __future__ import annotations
 
-import math
+import re
 from collections.abc import Iterable, Mapping
 from enum import Enum
 from typing import Any, TypeVar
 
 from drivers.errors import DriverConfigError
+from hilbo_core.config_model import FieldSpec, check_fields, check_integer, check_number, reject_unknown
 
 __all__ = [
+    "check_declared",
     "check_keys",
     "check_mapping",
     "enum_value",
@@ -22,6 +25,7 @@ __all__ = [
     "number",
     "optional_number",
     "text",
+    "within",
 ]
 
 E = TypeVar("E", bound=Enum)
@@ -35,14 +39,35 @@ def check_mapping(data: object, where: str) -> Mapping[str, Any]:
 
 
 def check_keys(data: Mapping[str, Any], allowed: Iterable[str], where: str) -> None:
-    """Reject keys of ``data`` that are not in ``allowed``, naming the first unknown key."""
-    allowed_set = set(allowed)
-    for key in data:
-        if key not in allowed_set:
-            raise DriverConfigError(
-                f"{where}: unknown key {key!r} = {data[key]!r}; allowed keys: "
-                + ", ".join(sorted(allowed_set))
-            )
+    """Reject keys of ``data`` that are not in ``allowed``, naming the first unknown key.
+
+    The message is :func:`hilbo_core.config_model.unknown_key_message`'s (full key path, the
+    closest allowed key, the allowed keys), the same as every other config table's.
+    """
+    reject_unknown(data, allowed, where, DriverConfigError)
+
+
+def check_declared(obj: Any) -> None:
+    """Check a config dataclass's declared fields (:func:`hilbo_core.config_model.check_fields`).
+
+    For a ``__post_init__``: errors name the bare field (``from_dict`` puts the table's path in
+    front, :func:`within`); numbers become floats, enum values members.
+    """
+    check_fields(obj, "", DriverConfigError)
+
+
+def within(where: str, err: DriverConfigError) -> DriverConfigError:
+    """``err`` (raised naming a key relative to a table) with the key path under ``where``."""
+    msg = str(err)
+    m = _UNKNOWN.match(msg)
+    if m:  # "unknown key channels.o2 ... allowed keys in [channels]" -> under where
+        return DriverConfigError(msg.replace(f"{m['key']} = ", f"{where}.{m['key']} = ", 1)
+                                 .replace(f"allowed keys in [{m['table']}]",
+                                          f"allowed keys in [{where}.{m['table']}]", 1))
+    return DriverConfigError(f"{where}.{msg}")
+
+
+_UNKNOWN = re.compile(r"^unknown key (?P<key>(?P<table>[\w.\[\]]+)\.[^ ]+) = ")
 
 
 def number(
@@ -54,20 +79,7 @@ def number(
     lo_open: bool = False,
 ) -> float:
     """Return ``value`` as a finite float within ``[lo, hi]`` (``(lo, hi]`` if ``lo_open``)."""
-    lo_s = "-inf" if lo is None else f"{lo:g}"
-    hi_s = "inf" if hi is None else f"{hi:g}"
-    expected = f"a finite number in {'(' if lo_open else '['}{lo_s}, {hi_s}]"
-    # bool is an int subclass; `true` for a port or a speed is a config mistake, not 1.
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise DriverConfigError(f"{name} = {value!r}: expected {expected}")
-    out = float(value)
-    if not math.isfinite(out):
-        raise DriverConfigError(f"{name} = {value!r}: expected {expected}")
-    if lo is not None and (out <= lo if lo_open else out < lo):
-        raise DriverConfigError(f"{name} = {value!r}: expected {expected}")
-    if hi is not None and out > hi:
-        raise DriverConfigError(f"{name} = {value!r}: expected {expected}")
-    return out
+    return check_number(value, name, lo=lo, hi=hi, lo_open=lo_open, error=DriverConfigError)
 
 
 def optional_number(
@@ -86,31 +98,14 @@ def optional_number(
 
 def int_value(value: object, name: str, *, lo: int | None = None, hi: int | None = None) -> int:
     """Return ``value`` if it is an int (not a bool) within ``[lo, hi]``."""
-    lo_s = "-inf" if lo is None else str(lo)
-    hi_s = "inf" if hi is None else str(hi)
-    if (
-        isinstance(value, bool)
-        or not isinstance(value, int)
-        or (lo is not None and value < lo)
-        or (hi is not None and value > hi)
-    ):
-        raise DriverConfigError(f"{name} = {value!r}: expected an integer in [{lo_s}, {hi_s}]")
-    return value
+    return check_integer(value, name, lo=lo, hi=hi, error=DriverConfigError)
 
 
 def text(value: object, name: str, *, non_empty: bool = True) -> str:
     """Return ``value`` if it is a string (non-empty unless told otherwise)."""
-    if not isinstance(value, str) or (non_empty and not value):
-        raise DriverConfigError(f"{name} = {value!r}: expected a {'non-empty ' if non_empty else ''}string")
-    return value
+    return FieldSpec("string", non_empty=non_empty).check(value, name, DriverConfigError)
 
 
 def enum_value(value: object, enum_cls: type[E], name: str) -> E:
     """Return the member of ``enum_cls`` whose value is ``value`` (members pass through)."""
-    if isinstance(value, enum_cls):
-        return value
-    for member in enum_cls:
-        if member.value == value:
-            return member
-    allowed = ", ".join(repr(m.value) for m in enum_cls)
-    raise DriverConfigError(f"{name} = {value!r}: expected one of {allowed}")
+    return FieldSpec("choice", enum_cls=enum_cls).check(value, name, DriverConfigError)

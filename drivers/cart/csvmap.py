@@ -24,11 +24,12 @@ from enum import StrEnum
 from typing import Any
 
 from drivers.cart._numbers import parse_decimal, shorten
-from drivers.cart._options import check_keys, check_mapping, enum_value, int_value, text
+from drivers.cart._options import check_declared, check_keys, check_mapping, text, within
 from drivers.cart.errors import EncodeError
 from drivers.cart.line import ParsedBreath
 from drivers.cart.reasons import RejectReason
 from drivers.errors import DecodeError, DriverConfigError
+from hilbo_core.config_model import choice, integer, string
 from hilbo_core.types import BreathRecord
 
 __all__ = [
@@ -100,33 +101,28 @@ class CsvMapping:
             this many lines (a wrong mapping must fail loudly, not yield nothing forever).
     """
 
-    time_column: str
-    vo2_column: str
-    vco2_column: str
-    ve_column: str | None = None
-    rer_column: str | None = None
-    hr_column: str | None = None
-    time_format: TimeFormat = TimeFormat.SECONDS
-    vo2_unit: GasUnit = GasUnit.ML_MIN
-    vco2_unit: GasUnit = GasUnit.ML_MIN
+    time_column: str = string()
+    vo2_column: str = string()
+    vco2_column: str = string()
+    ve_column: str | None = string(None, optional=True)
+    rer_column: str | None = string(None, optional=True)
+    hr_column: str | None = string(None, optional=True)
+    time_format: TimeFormat = choice(TimeFormat, TimeFormat.SECONDS)
+    vo2_unit: GasUnit = choice(GasUnit, GasUnit.ML_MIN)
+    vco2_unit: GasUnit = choice(GasUnit, GasUnit.ML_MIN)
     delimiter: str = ","
     decimal: str = "."
-    header_row: int | None = None
-    skip_rows: int = 0
+    header_row: int | None = integer(None, lo=0, optional=True)
+    skip_rows: int = integer(0, lo=0)
     columns: tuple[str, ...] | None = None
     missing: tuple[str, ...] = ("", "-", "--", "NA", "N/A")
     encoding: str = "utf-8"
-    max_preamble_lines: int = 200
+    max_preamble_lines: int = integer(200, lo=1)
 
     def __post_init__(self) -> None:
-        for name in ("time_column", "vo2_column", "vco2_column"):
-            text(getattr(self, name), name)
-        for name in ("ve_column", "rer_column", "hr_column"):
-            if getattr(self, name) is not None:
-                text(getattr(self, name), name)
-        _set(self, "time_format", enum_value(self.time_format, TimeFormat, "time_format"))
-        _set(self, "vo2_unit", enum_value(self.vo2_unit, GasUnit, "vo2_unit"))
-        _set(self, "vco2_unit", enum_value(self.vco2_unit, GasUnit, "vco2_unit"))
+        check_declared(self)
+        # delimiter, decimal, columns, missing and encoding: sets of characters, checks between
+        # fields and a codec look-up, checked here.
         if (
             not isinstance(self.delimiter, str)
             or len(self.delimiter) != 1
@@ -141,10 +137,6 @@ class CsvMapping:
             raise DriverConfigError(
                 f"decimal = {self.decimal!r} equals delimiter; use e.g. delimiter ';' with ','"
             )
-        if self.header_row is not None:
-            int_value(self.header_row, "header_row", lo=0)
-        int_value(self.skip_rows, "skip_rows", lo=0)
-        int_value(self.max_preamble_lines, "max_preamble_lines", lo=1)
         if self.columns is not None:
             cols = _str_tuple(self.columns, "columns")
             if self.header_row is not None:
@@ -186,7 +178,7 @@ class CsvMapping:
         try:
             return cls(**kwargs)
         except DriverConfigError as err:
-            raise DriverConfigError(f"{where}.{err}") from err
+            raise within(where, err) from err
 
 
 def _set(obj: object, name: str, value: object) -> None:

@@ -21,12 +21,13 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from drivers.cart._options import check_keys, check_mapping, int_value, number, text
+from drivers.cart._options import check_declared, check_keys, check_mapping, text
 from drivers.cart.line import encode_line
 from drivers.cart.transport import CartTransport, TransportHooks
 from drivers.cart.validate import SEQ_MODULUS
 from drivers.cart.vendors._table import FIELDS, REQUIRED_FIELDS, normalize_name
 from drivers.errors import DriverConfigError
+from hilbo_core.config_model import integer, number
 from hilbo_core.types import BreathRecord
 
 __all__ = ["DEFAULT_LABELS", "LslOptions", "LslTransport"]
@@ -60,10 +61,10 @@ class LslOptions:
 
     stream_name: str | None = None
     stream_type: str | None = None
-    resolve_timeout_s: float = 5.0
+    resolve_timeout_s: float = number(5.0, lo=0.0, hi=600.0, lo_open=True)
     channels: Mapping[str, str] = field(default_factory=dict)
-    poll_interval_s: float = 0.02
-    max_line_bytes: int = 256
+    poll_interval_s: float = number(0.02, lo=0.0, hi=1.0, lo_open=True)
+    max_line_bytes: int = integer(256, lo=64)
 
     def __post_init__(self) -> None:
         if self.stream_name is None and self.stream_type is None:
@@ -71,9 +72,8 @@ class LslOptions:
         for name in ("stream_name", "stream_type"):
             if getattr(self, name) is not None:
                 text(getattr(self, name), name)
-        number(self.resolve_timeout_s, "resolve_timeout_s", lo=0.0, hi=600.0, lo_open=True)
-        number(self.poll_interval_s, "poll_interval_s", lo=0.0, hi=1.0, lo_open=True)
-        int_value(self.max_line_bytes, "max_line_bytes", lo=64)
+        check_declared(self)
+        # stream_name/stream_type (at least one) and the channel table: checked here.
         channels = check_mapping(self.channels, "channels")
         check_keys(channels, FIELDS, "channels")
         for key, label in channels.items():

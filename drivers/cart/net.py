@@ -13,20 +13,17 @@ import asyncio
 import logging
 from dataclasses import dataclass, field
 
-from drivers.cart._options import int_value, number, optional_number, text
+from drivers.cart._options import check_declared
 from drivers.cart.framing import DEFAULT_MAX_LINE_BYTES
 from drivers.cart.reasons import RejectReason
 from drivers.cart.transport import Backoff, CartTransport, TransportHooks
 from drivers.errors import DriverConfigError
+from hilbo_core.config_model import integer, number, string
 
 __all__ = ["TcpOptions", "TcpTransport", "UdpOptions", "UdpTransport"]
 
 _log = logging.getLogger(__name__)
 _READ_BYTES = 1 << 16
-
-
-def _check_port(port: object, name: str = "port", *, allow_zero: bool = False) -> None:
-    int_value(port, name, lo=0 if allow_zero else 1, hi=65535)
 
 
 @dataclass(frozen=True, slots=True)
@@ -43,19 +40,15 @@ class TcpOptions:
         backoff: Reconnection policy.
     """
 
-    host: str
-    port: int
-    connect_timeout_s: float = 5.0
-    idle_timeout_s: float | None = None
-    max_line_bytes: int = DEFAULT_MAX_LINE_BYTES
+    host: str = string()
+    port: int = integer(lo=1, hi=65535)
+    connect_timeout_s: float = number(5.0, lo=0.0, lo_open=True)
+    idle_timeout_s: float | None = number(None, lo=0.0, lo_open=True, optional=True)
+    max_line_bytes: int = integer(DEFAULT_MAX_LINE_BYTES, lo=16)
     backoff: Backoff = field(default_factory=Backoff)
 
     def __post_init__(self) -> None:
-        text(self.host, "host")
-        _check_port(self.port)
-        number(self.connect_timeout_s, "connect_timeout_s", lo=0.0, lo_open=True)
-        optional_number(self.idle_timeout_s, "idle_timeout_s", lo=0.0, lo_open=True)
-        int_value(self.max_line_bytes, "max_line_bytes", lo=16)
+        check_declared(self)
         if not isinstance(self.backoff, Backoff):
             raise DriverConfigError(f"backoff = {self.backoff!r}: expected a Backoff table")
 
@@ -116,16 +109,13 @@ class UdpOptions:
         max_line_bytes: Longest line kept.
     """
 
-    port: int
-    host: str = "127.0.0.1"
-    queue_size: int = 1024
-    max_line_bytes: int = DEFAULT_MAX_LINE_BYTES
+    port: int = integer(lo=0, hi=65535)
+    host: str = string("127.0.0.1")
+    queue_size: int = integer(1024, lo=1)
+    max_line_bytes: int = integer(DEFAULT_MAX_LINE_BYTES, lo=16)
 
     def __post_init__(self) -> None:
-        _check_port(self.port, allow_zero=True)
-        text(self.host, "host")
-        int_value(self.queue_size, "queue_size", lo=1)
-        int_value(self.max_line_bytes, "max_line_bytes", lo=16)
+        check_declared(self)
 
 
 class _DatagramQueue(asyncio.DatagramProtocol):

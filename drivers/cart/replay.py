@@ -22,10 +22,11 @@ from dataclasses import dataclass
 from os import PathLike, fspath
 from typing import BinaryIO
 
-from drivers.cart._options import int_value, number, text
+from drivers.cart._options import check_declared, number, text
 from drivers.cart.framing import DEFAULT_MAX_LINE_BYTES
 from drivers.cart.transport import CartTransport, TransportHooks
 from drivers.errors import DriverConfigError
+from hilbo_core.config_model import integer
 
 __all__ = ["ReplayOptions", "ReplayTransport"]
 
@@ -45,9 +46,10 @@ class ReplayOptions:
 
     path: str
     speed: float = 1.0
-    max_line_bytes: int = DEFAULT_MAX_LINE_BYTES
+    max_line_bytes: int = integer(DEFAULT_MAX_LINE_BYTES, lo=16)
 
     def __post_init__(self) -> None:
+        # path (a str or a PathLike) and speed (a number or "max") are not one type: checked here.
         if isinstance(self.path, PathLike):
             object.__setattr__(self, "path", fspath(self.path))
         text(self.path, "path")
@@ -60,7 +62,7 @@ class ReplayOptions:
             except DriverConfigError as err:
                 raise DriverConfigError(f"speed = {self.speed!r}: expected a number > 0 or 'max'") from err
         object.__setattr__(self, "speed", speed)
-        int_value(self.max_line_bytes, "max_line_bytes", lo=16)
+        check_declared(self)
 
     @property
     def is_max_speed(self) -> bool:

@@ -19,10 +19,11 @@ from dataclasses import dataclass, field
 
 import serial
 
-from drivers.cart._options import int_value, number, optional_number, text
+from drivers.cart._options import check_declared
 from drivers.cart.framing import DEFAULT_MAX_LINE_BYTES
 from drivers.cart.transport import Backoff, CartTransport, TransportHooks
 from drivers.errors import DriverConfigError
+from hilbo_core.config_model import integer, number, string
 
 __all__ = ["SerialOptions", "SerialTransport"]
 
@@ -56,29 +57,25 @@ class SerialOptions:
         backoff: Reconnection policy after an unplug.
     """
 
-    port: str
-    baudrate: int = 9600
-    bytesize: int = 8
+    port: str = string()
+    baudrate: int = integer(9600, lo=50, hi=20_000_000)
+    bytesize: int = integer(8, lo=5, hi=8)
     parity: str = "N"
     stopbits: float = 1
-    read_timeout_s: float = 0.1
-    idle_timeout_s: float | None = None
-    max_line_bytes: int = DEFAULT_MAX_LINE_BYTES
+    read_timeout_s: float = number(0.1, lo=0.0, lo_open=True, hi=10.0)
+    idle_timeout_s: float | None = number(None, lo=0.0, lo_open=True, optional=True)
+    max_line_bytes: int = integer(DEFAULT_MAX_LINE_BYTES, lo=16)
     backoff: Backoff = field(default_factory=Backoff)
 
     def __post_init__(self) -> None:
-        text(self.port, "port")
-        int_value(self.baudrate, "baudrate", lo=50, hi=20_000_000)
-        int_value(self.bytesize, "bytesize", lo=5, hi=8)
+        check_declared(self)
+        # parity and stopbits: a set of letters, a set of numbers (not ranges): checked here.
         if self.parity not in _PARITIES:
             raise DriverConfigError(
                 f"parity = {self.parity!r}: expected one of {', '.join(map(repr, _PARITIES))}"
             )
         if self.stopbits not in (1, 1.5, 2) or isinstance(self.stopbits, bool):
             raise DriverConfigError(f"stopbits = {self.stopbits!r}: expected 1, 1.5 or 2")
-        number(self.read_timeout_s, "read_timeout_s", lo=0.0, lo_open=True, hi=10.0)
-        optional_number(self.idle_timeout_s, "idle_timeout_s", lo=0.0, lo_open=True)
-        int_value(self.max_line_bytes, "max_line_bytes", lo=16)
         if not isinstance(self.backoff, Backoff):
             raise DriverConfigError(f"backoff = {self.backoff!r}: expected a Backoff table")
 

@@ -25,7 +25,7 @@ from enum import StrEnum
 from types import TracebackType
 from typing import Any, Self
 
-from drivers.cart._options import check_keys, check_mapping, enum_value, int_value
+from drivers.cart._options import check_declared, check_keys, check_mapping, enum_value, within
 from drivers.cart.csvmap import CsvBreathParser, CsvMapping
 from drivers.cart.line import HbrLineParser
 from drivers.cart.pipeline import (
@@ -40,6 +40,7 @@ from drivers.cart.transport import CartTransport, TransportHooks
 from drivers.cart.validate import BreathValidator, PhysioLimits
 from drivers.cart.vendors import TableParser, VendorSpec, vendor_spec
 from drivers.errors import DriverConfigError
+from hilbo_core.config_model import choice, integer
 from hilbo_core.types import BreathRecord
 
 __all__ = ["BreathStream", "CartConfig", "CartFormat"]
@@ -106,10 +107,10 @@ class CartConfig:
 
     transport: str
     options: Any
-    format: CartFormat = CartFormat.HILBO_LINE
+    format: CartFormat = choice(CartFormat, CartFormat.HILBO_LINE)
     csv: CsvMapping | None = None
     limits: PhysioLimits = field(default_factory=PhysioLimits)
-    max_leading_rejects: int = DEFAULT_MAX_LEADING_REJECTS
+    max_leading_rejects: int = integer(DEFAULT_MAX_LEADING_REJECTS, lo=1, hi=100_000)
 
     def __post_init__(self) -> None:
         spec = transport_spec(self.transport)
@@ -118,8 +119,9 @@ class CartConfig:
                 f"options = {self.options!r}: transport {self.transport!r} expects "
                 f"{spec.options_type.__name__}"
             )
-        fmt = enum_value(self.format, CartFormat, "format")
-        object.__setattr__(self, "format", fmt)
+        check_declared(self)
+        # transport/options, format/csv and format/transport go together: checked here.
+        fmt = self.format
         if fmt is CartFormat.CSV and self.csv is None:
             raise DriverConfigError("format = 'csv' needs a [cart.csv] column mapping")
         if fmt is not CartFormat.CSV and self.csv is not None:
@@ -128,7 +130,6 @@ class CartConfig:
             )
         if not isinstance(self.limits, PhysioLimits):
             raise DriverConfigError(f"limits = {self.limits!r}: expected PhysioLimits")
-        int_value(self.max_leading_rejects, "max_leading_rejects", lo=1, hi=100_000)
         vendor = fmt.vendor
         if vendor is not None and not vendor.is_live_capable and self.transport != "replay":
             raise DriverConfigError(
@@ -165,7 +166,7 @@ class CartConfig:
         try:
             return cls(transport=name, options=options, format=fmt, csv=csv, limits=limits, **extra)
         except DriverConfigError as err:
-            raise DriverConfigError(f"{where}.{err}") from err
+            raise within(where, err) from err
 
     def make_parser(self) -> BreathParser:
         """A fresh parser for this format (CSV parsers are stateful: one per stream)."""

@@ -26,9 +26,11 @@ from dataclasses import MISSING, dataclass, fields
 from types import TracebackType
 from typing import Any, ClassVar, Self
 
-from drivers.cart._options import check_keys, check_mapping, int_value, number
+from drivers.cart._options import check_declared, check_keys, check_mapping, number, within
 from drivers.cart.framing import DEFAULT_MAX_LINE_BYTES, LineFramer
 from drivers.errors import DriverConfigError, TransportError
+from hilbo_core.config_model import integer
+from hilbo_core.config_model import number as number_field
 
 __all__ = ["Backoff", "CartTransport", "Clock", "Sleep", "TransportHooks", "options_from_dict"]
 
@@ -56,17 +58,15 @@ class Backoff:
             attempts without data; None retries forever (a cart cable can be replugged).
     """
 
-    initial_s: float = 0.5
-    factor: float = 2.0
+    initial_s: float = number_field(0.5, lo=0.0, lo_open=True)
+    factor: float = number_field(2.0, lo=1.0)
     max_s: float = 10.0
-    max_attempts: int | None = None
+    max_attempts: int | None = integer(None, lo=1, optional=True)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "initial_s", number(self.initial_s, "initial_s", lo=0.0, lo_open=True))
-        object.__setattr__(self, "factor", number(self.factor, "factor", lo=1.0))
+        check_declared(self)
+        # max_s >= initial_s involves two fields: checked here, not declared.
         object.__setattr__(self, "max_s", number(self.max_s, "max_s", lo=self.initial_s))
-        if self.max_attempts is not None:
-            int_value(self.max_attempts, "max_attempts", lo=1)
 
     def delay_s(self, attempt: int) -> float:
         """Delay before the ``attempt``-th consecutive attempt (0-based), in seconds."""
@@ -83,7 +83,7 @@ class Backoff:
         try:
             return cls(**data)
         except DriverConfigError as err:
-            raise DriverConfigError(f"{where}.{err}") from err
+            raise within(where, err) from err
 
 
 @dataclass(frozen=True, slots=True)
@@ -121,7 +121,7 @@ def options_from_dict(cls: type[Any], data: Mapping[str, Any], where: str) -> An
     try:
         return cls(**kwargs)
     except DriverConfigError as err:
-        raise DriverConfigError(f"{where}.{err}") from err
+        raise within(where, err) from err
 
 
 class CartTransport(ABC):

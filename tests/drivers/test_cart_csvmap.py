@@ -201,9 +201,12 @@ def test_header_at_row_without_mapped_column_fails_loudly() -> None:
 
 
 def test_from_dict_rejects_unknown_and_bad_keys() -> None:
-    with pytest.raises(DriverConfigError, match=r"cart.csv: unknown key 'vo2_units' = 'l/min'"):
+    with pytest.raises(DriverConfigError, match=(
+            r"unknown key cart\.csv\.vo2_units = 'l/min' \(did you mean 'vo2_unit'\?\)")):
         CsvMapping.from_dict({**COSMED_MAPPING, "vo2_units": "l/min"}, "cart.csv")
-    with pytest.raises(DriverConfigError, match=r"csv.time_format = 'h:m:s': expected one of 's', 'min'"):
+    with pytest.raises(DriverConfigError, match=(
+            r"csv.time_format = 'h:m:s' \(did you mean 'hh:mm:ss'\?\): "
+            r"expected one of 'hh:mm:ss', 'min', 'mm:ss', 's'")):
         CsvMapping.from_dict({**COSMED_MAPPING, "time_format": "h:m:s"})
     with pytest.raises(DriverConfigError, match="missing required key 'vco2_column'"):
         CsvMapping.from_dict({"time_column": "t", "vo2_column": "VO2"})

@@ -275,8 +275,8 @@ def test_config_from_dict_full() -> None:
     [
         (
             {"transport": "tcp", "options": {"host": "h", "port": 1}, "speed": 2},
-            r"cart: unknown key 'speed' = 2; allowed keys: csv, format, limits, max_leading_rejects, "
-            r"options, transport",
+            r"unknown key cart.speed = 2; allowed keys in \[cart\]: csv, format, limits, "
+            r"max_leading_rejects, options, transport",
         ),
         ({"transport": "usb"},
          r"cart.transport = 'usb': expected one of 'lsl', 'replay', 'serial', 'tcp', 'udp'"),
@@ -287,13 +287,13 @@ def test_config_from_dict_full() -> None:
         ),
         (
             {"transport": "tcp", "options": {"host": "h", "port": 1, "baud": 9600}},
-            "cart.options: unknown key 'baud'",
+            "unknown key cart.options.baud = 9600",
         ),
         ({"transport": "tcp", "options": {"host": "h", "port": 99999}}, "cart.options.port = 99999"),
         ({"transport": "replay", "options": {"path": "f", "speed": "fast"}}, "cart.options.speed = 'fast'"),
         (
             {"transport": "udp", "options": {"port": 1}, "format": "json"},
-            "cart.format = 'json': expected one of 'hilbo-line', 'csv'",
+            "cart.format = 'json': expected one of 'cortex', 'cosmed', 'cosmed-csv', 'csv', 'hilbo-line'",
         ),
         ({"transport": "udp", "options": {"port": 1}, "format": "csv"}, "cart.format = 'csv' needs a"),
         (
@@ -302,11 +302,11 @@ def test_config_from_dict_full() -> None:
         ),
         (
             {"transport": "udp", "options": {"port": 1}, "format": "csv", "csv": {**CSV_MAPPING, "sep": ";"}},
-            "cart.csv: unknown key 'sep'",
+            "unknown key cart.csv.sep = ';'",
         ),
         (
             {"transport": "udp", "options": {"port": 1}, "limits": {"vo2": [1, 2]}},
-            "cart.limits: unknown key 'vo2'",
+            "unknown key cart.limits.vo2 = ",
         ),
         ({"transport": "udp", "options": 5}, "cart.options = 5: expected a table"),
     ],

@@ -167,7 +167,7 @@ def test_custom_limits_from_config() -> None:
 @pytest.mark.parametrize(
     ("data", "match"),
     [
-        ({"heart_rate": [30, 200]}, "unknown key 'heart_rate'"),
+        ({"heart_rate": [30, 200]}, "unknown key limits.heart_rate = "),
         ({"hr_bpm": [200, 30]}, r"limits.hr_bpm = \(200, 30\): expected low < high"),
         ({"hr_bpm": 200}, "expected a pair"),
         ({"hr_bpm": [30, "x"]}, r"hr_bpm\[1\] = 'x'"),
