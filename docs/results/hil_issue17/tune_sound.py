@@ -1,13 +1,13 @@
 """Tune the sound rule's min_decision_s and a_floor by BO-RESAMPLE on realistic-wearer trajectories.
 
-usage: tune_sound.py FIRST_SEED N_WEARERS N_SETTINGS OUT.json
+usage: tune_sound.py FIRST_SEED N_WEARERS N_SETTINGS OUT.json [N_REAL]
 (training wearers FIRST_SEED .. FIRST_SEED+N_WEARERS-1; keep them apart from the report subjects)
 """
 import json
 import sys
 
 from bridge.bench.common import blas_threads
-from bridge.bench.tune_sound import realistic_trajectories, tune_sound
+from bridge.bench.tune_sound import TuneSoundConfig, realistic_trajectories, tune_sound
 from hilbo_core.presets import preset
 
 blas_threads(1)
@@ -17,7 +17,8 @@ for seed in range(first, first + n_wearers):
     t, c = realistic_trajectories(preset("hip_6d"), seed, n_settings)
     trajs += t
     truth += c
-res = tune_sound(trajs, truth=truth)
+n_real = int(sys.argv[5]) if len(sys.argv) > 5 else TuneSoundConfig.n_real
+res = tune_sound(trajs, TuneSoundConfig(n_real=n_real), truth=truth)
 res["train_seeds"] = [first, first + n_wearers - 1]
 with open(out, "w") as fh:
     json.dump(res, fh, indent=1)
