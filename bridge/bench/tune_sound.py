@@ -170,6 +170,11 @@ def tune_sound(trajectories: Sequence[Any], config: TuneSoundConfig | None = Non
         truth: True cost of each trajectory's setting (W), or None.
         estimator_factory: The estimator the rule watches (default the optimizer's default).
 
+    An episode's cost applies the penalty to that one trajectory's rates; since max(0, ·) is
+    convex, the mean over episodes overstates the penalty of the pooled rates and pulls
+    BO-RESAMPLE towards conservative constants (docs/results.md §5 measured it), so compare its
+    recommendation with ``grid_best``, the pooled cost's minimum on the grid.
+
     Returns:
         JSON-able: ``recommended`` (BO-RESAMPLE's), its pooled ``recommended_stats``, the
         exhaustive ``grid`` with ``grid_best`` and the BO-RESAMPLE counts.
