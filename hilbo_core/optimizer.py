@@ -75,6 +75,7 @@ from hilbo_core.stopping import (
     SoundRule,
     StopDecision,
     StoppingRule,
+    StopReason,
     threshold_schedule,
 )
 
@@ -140,6 +141,9 @@ class OptimizerConfig:
         min_decision_s: The sound rule's time in a setting before any stop decision (s, >= 0;
             default 60 s ≈ 1.5 × the estimator's median τ of 42 s, see SoundRule).
         a_floor: The sound rule's threshold floor in σ (>= 0; default 1.0).
+        accept_z: The sound rule's accept stop in σ (>= 0), or None (default: off): end an
+            evaluation whose candidate is already ``accept_z`` σ better than the incumbent
+            (reason ``"decided"``; not an early rejection, see SoundRule).
         gp_prior_stopping: With the sound rule, the candidate's estimate for the stop decision
             is the estimator's data-only estimate times the GP's predictive at x_t (the Bayesian
             early decision, issue 17 part 1d); the GP is still told the data-only part.
@@ -186,6 +190,7 @@ class OptimizerConfig:
     stopping: StoppingKind = StoppingKind.SOUND
     min_decision_s: float = 60.0
     a_floor: float = 1.0
+    accept_z: float | None = None
     gp_prior_stopping: bool = True
     recommend: RecommendKind | None = None
     recommend_beta: float = 1.0
@@ -230,6 +235,12 @@ class OptimizerConfig:
                     or not (math.isfinite(v) and v >= 0.0)):
                 raise ConfigError(f"{name}={v!r}; expected a finite number >= 0")
             object.__setattr__(self, name, float(v))
+        z = self.accept_z
+        if z is not None:
+            if (isinstance(z, bool) or not isinstance(z, int | float | np.integer | np.floating)
+                    or not (math.isfinite(z) and z >= 0.0)):
+                raise ConfigError(f"accept_z={z!r}; expected a finite number >= 0 or None")
+            object.__setattr__(self, "accept_z", float(z))
         if not isinstance(self.gp_prior_stopping, bool):
             raise ConfigError(f"gp_prior_stopping={self.gp_prior_stopping!r}; expected true or false")
         r = self.remeasure_best_s
@@ -326,7 +337,8 @@ class Evaluation:
         duration_s: Breath time from the setting's start to its last breath (s).
         phase: ``"exploration"`` or ``"optimization"``.
         stopped_early: True when the σ-scaled rule stopped it before N breaths.
-        reason: ``"threshold"``, ``"max_measurements"``, ``"budget"`` or ``"told"``.
+        reason: ``"threshold"``, ``"max_measurements"``, ``"decided"`` (the sound rule's accept
+            stop), ``"budget"`` or ``"told"``.
         obs_mean: The data-only mean the GP is told (W): the posterior with the estimator's
             prior on c divided out; None means ``mean`` (estimators without ``data_only()``,
             :meth:`HILOptimizer.tell`, states written before issue 16).
@@ -669,7 +681,10 @@ class HILOptimizer:
         else:
             decision = rule.decide(i, float(mean), float(var), *self._incumbent_stats())
         if decision.stop:
-            reason = "threshold" if decision.index < self.config.max_breaths - 1 else "max_measurements"
+            if decision.reason is StopReason.DECIDED:
+                reason = "decided"
+            else:
+                reason = "threshold" if decision.index < self.config.max_breaths - 1 else "max_measurements"
             return self._step(True, reason, decision)
         if self._budget_spent():
             return self._step(True, "budget", decision)
@@ -836,7 +851,7 @@ class HILOptimizer:
         if c.stopping is StoppingKind.SOUND:
             # Without exploration traces (told evaluations), A = 0 and the floor decides.
             a = self._thresholds if self._thresholds is not None else np.zeros(c.max_breaths)
-            return SoundRule(a, min_decision_s=c.min_decision_s, a_floor=c.a_floor)
+            return SoundRule(a, min_decision_s=c.min_decision_s, a_floor=c.a_floor, accept_z=c.accept_z)
         if self._thresholds is None:
             return FixedIntervalRule(c.max_breaths)
         return SigmaScaledRule(self._thresholds)

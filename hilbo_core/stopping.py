@@ -112,6 +112,7 @@ class StopReason(enum.Enum):
     CONTINUE = "continue"
     THRESHOLD = "threshold"
     MAX_MEASUREMENTS = "max_measurements"
+    DECIDED = "decided"  # the sound rule's accept stop: confidently better, not a rejection
 
 
 @dataclass(frozen=True)
@@ -120,7 +121,8 @@ class StopDecision:
 
     Attributes:
         stop: True to stop measuring this setting now.
-        reason: CONTINUE, THRESHOLD (confidently worse than the best) or MAX_MEASUREMENTS.
+        reason: CONTINUE, THRESHOLD (confidently worse than the best), MAX_MEASUREMENTS or
+            DECIDED (confidently better: the sound rule's ``accept_z``).
         index: 0-based measurement index i within the evaluation.
         z: μ/σ, the standardised difference from the best setting (positive = worse).
         threshold: A_i used at this index, or None for a rule without thresholds.
@@ -301,19 +303,30 @@ class SoundRule:
       breath 1), which stops candidates that look *better* than the incumbent. With a floor
       ``a_floor ≥ 0`` a stop always needs ``μ > 0`` (and by a margin of ``a_floor``·σ).
 
+    Optionally (``accept_z``, off by default) the rule also ends an evaluation whose comparison
+    is already decided the other way: after ``min_decision_s``, stop with DECIDED if
+    ``μ < −accept_z·σ`` — the candidate is better than the incumbent by ``accept_z`` standard
+    deviations, so more breaths would rarely change that it beats the incumbent. It is not a
+    rejection: its estimate goes to the GP like any other (with its wider variance).
+
     Args:
         thresholds: A, shape (N,), finite (Algorithm 2's schedule, or a constant).
         min_decision_s: No threshold decision before this many seconds in the setting (≥ 0).
         a_floor: Lower bound of every threshold, in σ (finite, ≥ 0).
+        accept_z: Accept-stop margin in σ (finite, ≥ 0), or None (default) for no accept stop.
 
     Raises:
-        ConfigError: Bad thresholds, a negative or non-finite ``min_decision_s`` or ``a_floor``.
+        ConfigError: Bad thresholds, a negative or non-finite ``min_decision_s``, ``a_floor`` or
+            ``accept_z``.
     """
 
     def __init__(self, thresholds: npt.ArrayLike, *, min_decision_s: float = 60.0,
-                 a_floor: float = 1.0) -> None:
+                 a_floor: float = 1.0, accept_z: float | None = None) -> None:
         base = SigmaScaledRule(thresholds)  # validates the schedule
-        for name, value in (("min_decision_s", min_decision_s), ("a_floor", a_floor)):
+        checks = [("min_decision_s", min_decision_s), ("a_floor", a_floor)]
+        if accept_z is not None:
+            checks.append(("accept_z", accept_z))
+        for name, value in checks:
             if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating) \
                     or not (math.isfinite(value) and value >= 0.0):
                 raise ConfigError(f"{name}={value!r}; expected a finite number >= 0")
@@ -322,6 +335,7 @@ class SoundRule:
         self._thresholds = a
         self._min_decision_s = float(min_decision_s)
         self._a_floor = float(a_floor)
+        self._accept_z = None if accept_z is None else float(accept_z)
 
     @property
     def n_max(self) -> int:
@@ -342,6 +356,11 @@ class SoundRule:
     def a_floor(self) -> float:
         """The threshold floor, in σ."""
         return self._a_floor
+
+    @property
+    def accept_z(self) -> float | None:
+        """The accept-stop margin in σ, or None (no accept stop)."""
+        return self._accept_z
 
     def decide(
         self, i: int, mean: float, var: float, best_mean: float, best_var: float,
@@ -371,4 +390,7 @@ class SoundRule:
             return StopDecision(True, StopReason.MAX_MEASUREMENTS, idx, z, a_i)
         if float(t_s) >= self._min_decision_s and mu > a_i * sigma:
             return StopDecision(True, StopReason.THRESHOLD, idx, z, a_i)
+        if float(t_s) >= self._min_decision_s and self._accept_z is not None \
+                and mu < -self._accept_z * sigma:
+            return StopDecision(True, StopReason.DECIDED, idx, z, a_i)
         return StopDecision(False, StopReason.CONTINUE, idx, z, a_i)

@@ -1,6 +1,6 @@
 """Stop statistics + regret of BO sessions on the realistic wearer (issue 17 part 1 targets).
 
-usage: stats.py NAME STOPPING A_FLOOR MIN_DECISION_S N_SUBJECTS
+usage: stats.py NAME STOPPING A_FLOOR MIN_DECISION_S N_SUBJECTS [DRIFT REMEASURE BETA ACCEPT_Z FIRST_SEED]
 """
 import json
 import sys
@@ -20,12 +20,14 @@ _orig = insim.HILOptimizer
 drift = float(sys.argv[6]) if len(sys.argv) > 6 and sys.argv[6] != "none" else None
 remeasure = float(sys.argv[7]) if len(sys.argv) > 7 and sys.argv[7] != "none" else None
 beta = float(sys.argv[8]) if len(sys.argv) > 8 else 1.0
+accept = {"accept_z": float(sys.argv[9])} if len(sys.argv) > 9 and sys.argv[9] != "none" else {}
+first = int(sys.argv[10]) if len(sys.argv) > 10 else 1
 if stopping == "sound":
     insim.HILOptimizer = lambda space, **kw: _orig(space, a_floor=a_floor, min_decision_s=min_s,
                                                    drift_hours=drift, remeasure_best_s=remeasure,
-                                                   recommend_beta=beta, **kw)
-rows, regrets, r30 = [], [], []
-for seed in range(1, n + 1):
+                                                   recommend_beta=beta, **accept, **kw)
+rows, regrets, r20, r30 = [], [], [], []
+for seed in range(first, first + n):
     judge = make_wearer("realistic", preset("hip_6d"), seed=seed)
     _, opt_cost = judge.true_optimum
     red = judge.baseline_cost_w - opt_cost
@@ -34,23 +36,26 @@ for seed in range(1, n + 1):
     def on_eval(rec, opt, trace=trace, judge=judge, opt_cost=opt_cost):
         ev = rec.evaluation
         if ev.phase == "optimization" and opt.incumbent is not None:
-            rows.append((ev.breaths, ev.duration_s, ev.reason == "threshold",
+            rows.append((ev.breaths, ev.duration_s, ev.reason == "threshold", ev.reason == "decided",
                          judge.true_cost_w(ev.params), judge.true_cost_w(opt.incumbent[0])))
         trace.append((rec.t_end, judge.true_cost_w(opt.best()[0]) - opt_cost))
 
     run_insim(SimConfig(minutes=60, seed=seed, preset="hip_6d", stopping=stopping, refit="at_proposal"),
               on_evaluation=on_eval)
     regrets.append(100 * trace[-1][1] / red)
-    before = [r for t, r in trace if t <= 1800.0]
-    r30.append(100 * before[-1] / red if before else np.nan)
+    for lst, t_min in ((r20, 20), (r30, 30)):
+        before = [r for t, r in trace if t <= 60.0 * t_min]
+        lst.append(100 * before[-1] / red if before else np.nan)
 a = np.array(rows, dtype=float)
-better = a[:, 3] < a[:, 4]
+better = a[:, 4] < a[:, 5]
 res = {"name": name, "subjects": n, "opt_evaluations": len(a),
        "mean_breaths": round(float(a[:, 0].mean()), 1),
        "pct_end_within_30s": round(100 * float((a[:, 1] < 30).mean()), 1),
        "pct_early": round(100 * float(a[:, 2].mean()), 1),
+       "pct_decided": round(100 * float(a[:, 3].mean()), 1),
        "truly_better": int(better.sum()),
        "pct_truly_better_rejected": round(100 * float(a[better, 2].mean()), 1) if better.any() else None,
+       "median_regret_pct_20min": round(float(np.nanmedian(r20)), 1),
        "median_regret_pct_30min": round(float(np.nanmedian(r30)), 1),
        "median_regret_pct_final": round(float(np.median(regrets)), 1)}
 sys.stdout.write(json.dumps(res) + "\n")
