@@ -57,7 +57,7 @@ __all__ = [
     "json_schema",
 ]
 
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 """Version of the log format (channels, their records and schemas).
 
 Stored in ``/config`` and the ``hilbo.session`` metadata. Bump it whenever the writer's output
@@ -68,9 +68,12 @@ otherwise, and a golden file of the new version goes to ``tests/data/logs/v<N>/`
 * 2: records and schemas generated from the msgspec types of this module; ``/events`` levels by
   kind (:data:`EVENT_LEVELS`); a device's latched fault and its clearing are ``/events``.
   The record fields are those of version 1, so version-1 logs decode into these types.
+* 3: the optimizer state in ``/optimizer_state`` gains the sound rule's ``accept_z`` (None: off)
+  and evaluations may end with reason ``"decided"``; ``/events`` has ``loop_stall`` (a warning).
+  Older states read with ``accept_z`` None.
 """
 
-READABLE_VERSIONS = frozenset({1, 2})
+READABLE_VERSIONS = frozenset({1, 2, 3})
 """Format versions the readers open."""
 
 METADATA_NAME = "hilbo.session"

@@ -139,14 +139,17 @@ def test_fixed_seed_trials_reproduce_the_recorded_proposals_exactly(key: tuple[s
     r = stopping_trial(fn, noise, StoppingMethod(method, "", {"stopping": method, "refit_growth": 1.25}),
                        7, _PROTO)
     # Same decisions (evaluation count, the measurement counts where the recommendation changed);
-    # values equal up to round-off: the last digits of BLAS and numpy SIMD reductions depend on
-    # the arrays' memory alignment, i.e. on the process's heap, so even the old code reproduces
-    # them only to ~1e-14 from one process to the next.
+    # values equal up to the local refinement's tolerance: the last digits of BLAS and numpy SIMD
+    # reductions depend on the CPU's kernels and the arrays' memory alignment, and L-BFGS-B, which
+    # refines EI's maximum, stops on a gradient tolerance, so round-off moves the point it returns
+    # along a flat direction. branin's recommendation sits on the x1 = 10 bound: x2 was 3.9758289
+    # where these were recorded, 3.9758288 in one CI run and 3.9758627 (y_37 2.7e-5 higher) on
+    # another machine, each the same from run to run. 1e-4 still fails on any change of method.
     assert r["evaluations"] == evaluations
     assert sorted(r["x_final"]) == sorted(x_final)
     for name, value in x_final.items():
-        assert r["x_final"][name] == pytest.approx(value, rel=1e-9, abs=1e-12)
+        assert r["x_final"][name] == pytest.approx(value, rel=1e-4, abs=1e-9)
     y = r["y"]
     got = [(i, v) for i, v in enumerate(y) if i == 0 or v != pytest.approx(y[i - 1], rel=1e-9)]
     assert [i for i, _ in got] == [i for i, _ in changes]
-    assert [v for _, v in got] == pytest.approx([v for _, v in changes], rel=1e-9)
+    assert [v for _, v in got] == pytest.approx([v for _, v in changes], rel=1e-4)
