@@ -26,7 +26,7 @@ from typing import Any
 
 from bridge.errors import BridgeConfigError
 
-__all__ = ["LoopMonitor", "LoopStats"]
+__all__ = ["DEFAULT_PERIOD_S", "LoopMonitor", "LoopStats"]
 
 #: How often the monitor wakes (s): the measurement's resolution.
 DEFAULT_PERIOD_S = 0.005

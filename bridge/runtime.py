@@ -36,6 +36,7 @@ import numpy as np
 from bridge.collector import Collector, GcMode
 from bridge.errors import UnsafeProfileError
 from bridge.log import EventLevel, LogError, SessionLog
+from bridge.loop_monitor import DEFAULT_PERIOD_S as DEFAULT_LOOP_MONITOR_PERIOD_S
 from bridge.loop_monitor import LoopMonitor
 from bridge.proposals import ProposalWorker, WorkerKind
 from bridge.safety import AdmittedProfile
@@ -117,6 +118,8 @@ class RuntimeSettings:
         n_actuators: Actuators whose status must be alive.
         proposal_worker: Where proposals and hyperparameter fits run (bridge/proposals.py).
         gc: When full garbage collections may stop the event loop (bridge/collector.py).
+        loop_monitor_period_s: How often the event-loop stall monitor wakes (real s; its
+            resolution, below half the device's heartbeat watchdog; bridge/loop_monitor.py).
     """
 
     auto_resume_s: float | None = None
@@ -134,6 +137,7 @@ class RuntimeSettings:
     n_actuators: int = 2
     proposal_worker: WorkerKind = WorkerKind.PROCESS
     gc: GcMode = GcMode.FREEZE
+    loop_monitor_period_s: float = DEFAULT_LOOP_MONITOR_PERIOD_S
 
 
 @dataclass
@@ -316,7 +320,8 @@ class BridgeSession:
         #: Every stall of the event loop (it sends the heartbeat), counted once a device has
         #: reported: none may exceed half the device's heartbeat watchdog (issue 15).
         self.loop_monitor = LoopMonitor(HEARTBEAT_WATCHDOG_S / 2, self._on_loop_stall,
-                                        connected=lambda: bool(self.device.status))
+                                        connected=lambda: bool(self.device.status),
+                                        period_s=self.settings.loop_monitor_period_s)
         self._worker_lost_logged = False
         # A hyperparameter fit running ahead of the next proposal (refit_lag >= 1).
         self._fit_ahead: tuple[HyperparameterFit, asyncio.Task[Any]] | None = None

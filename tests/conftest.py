@@ -3,10 +3,11 @@
 * Natively, when this kernel has SocketCAN and a ``vcan0`` interface that a raw CAN socket can
   bind (a lab Linux PC after ``scripts/vcan-setup.sh``; inside user-mode Linux).
 * Otherwise inside user-mode Linux (Debian's ``user-mode-linux``; ``scripts/ensure-uml.sh``
-  installs it): after collection the ``vcan`` items are replaced by proxies; the first proxy that
-  runs boots UML once (``scripts/uml_run.py``), which runs *all* selected ``vcan`` tests in one
+  installs it): after collection the ``vcan`` items are replaced by proxies and UML is booted once
+  in the background (``scripts/uml_run.py``); it runs *all* selected ``vcan`` tests in one
   inner pytest with ``vcan0`` up and writes one JSON line per test phase to a host file; each
-  proxy then reports its own test's outcome (with the inner failure text and captured output).
+  proxy waits for it, then reports its own test's outcome (with the inner failure text and
+  captured output).
   ``HILBO_IN_UML=1`` is set inside the guest, so the inner run never boots UML again.
 * Skipped with the reason when neither is possible.
 
@@ -23,8 +24,9 @@ with its reason) may outlive a test.
 Also the fixture ``optimize_calls``: the training-set size of every GP hyperparameter optimisation
 (a spy on ``GaussianProcess._optimize``), for the tests of when fits happen.
 
-Knobs (environment): ``HILBO_UML_TIMEOUT_S`` (whole boot, default 240 s), ``HILBO_UML_MEM``
-(default 1G), ``HILBO_UML_KEEP=1`` (keep the work directory with the console log),
+Knobs (environment): ``HILBO_UML_TIMEOUT_S`` (whole boot, default 480 s: it shares the CPU with
+the host's tests), ``HILBO_UML_MEM`` (default 1G), ``HILBO_UML_KEEP=1`` (keep the work directory
+with the console log),
 ``HILBO_LEAK_GRACE_S`` (how long a test's threads and processes get to end, default 5 s).
 """
 
@@ -36,6 +38,7 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
+import contextlib
 import importlib.util
 import json
 import re
@@ -126,24 +129,35 @@ class _Outcome:
 
 
 class UmlBatch:
-    """Runs all the selected vcan tests in one UML boot, on first demand."""
+    """Runs all the selected vcan tests in one UML boot, started in the background.
+
+    :meth:`start` launches the boot right after collection, so the guest's tests run beside the
+    host's (on 2 cores that takes its 2-3 minutes off the suite's wall time); the first vcan
+    proxy waits for it in :meth:`outcomes`; :meth:`close` ends a boot nobody waited for (``-x``,
+    Ctrl-C). Its output goes to files, not pipes, so nothing has to read while it runs.
+    """
 
     def __init__(self, config: pytest.Config, nodeids: list[str]) -> None:
         self.config = config
         self.nodeids = nodeids
         self._outcomes: dict[str, _Outcome] | None = None
+        self._proc: subprocess.Popen[bytes] | None = None
+        self._work: Path | None = None
+        self._deadline = 0.0
         self.summary = ""
         self.failure = ""
 
-    def outcomes(self) -> dict[str, _Outcome]:
-        if self._outcomes is None:
-            self._outcomes = self._run()
-        return self._outcomes
+    @property
+    def pid(self) -> int | None:
+        """The boot's process id while it runs (its descendants are not a test's leak)."""
+        return self._proc.pid if self._proc is not None and self._proc.poll() is None else None
 
-    def _run(self) -> dict[str, _Outcome]:
-        timeout_s = float(os.environ.get("HILBO_UML_TIMEOUT_S", "240"))
-        work = Path(tempfile.mkdtemp(prefix="hilbo-vcan-"))
-        report = work / "report.jsonl"
+    def start(self) -> None:
+        """Boot UML and start the inner pytest; returns at once."""
+        if self._proc is not None or self._outcomes is not None:
+            return
+        timeout_s = float(os.environ.get("HILBO_UML_TIMEOUT_S", "480"))
+        self._work = work = Path(tempfile.mkdtemp(prefix="hilbo-vcan-"))
         inner = [
             sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
             "--rootdir", str(self.config.rootpath),
@@ -156,19 +170,33 @@ class UmlBatch:
         cmd = [
             sys.executable, str(_ROOT / "scripts" / "uml_run.py"),
             "--timeout", str(timeout_s), "--mem", os.environ.get("HILBO_UML_MEM", "1G"),
-            "--env", f"{_REPORT_ENV}={report}",
+            "--env", f"{_REPORT_ENV}={work / 'report.jsonl'}",
             *(["--keep"] if os.environ.get("HILBO_UML_KEEP") == "1" else []),
             "--", *inner,
         ]
+        with open(work / "stdout.txt", "wb") as out, open(work / "stderr.txt", "wb") as err:
+            self._proc = subprocess.Popen(cmd, cwd=self.config.rootpath, stdin=subprocess.DEVNULL,
+                                          stdout=out, stderr=err)
+        self._deadline = time.monotonic() + timeout_s + 30.0
+
+    def outcomes(self) -> dict[str, _Outcome]:
+        if self._outcomes is None:
+            self.start()
+            self._outcomes = self._collect()
+        return self._outcomes
+
+    def _collect(self) -> dict[str, _Outcome]:
+        proc, work = self._proc, self._work
+        if proc is None or work is None:
+            raise RuntimeError("UmlBatch._collect() before start()")
         try:
-            proc = subprocess.run(
-                cmd, cwd=self.config.rootpath, capture_output=True, text=True,
-                timeout=timeout_s + 30, check=False,
-            )
-            output, log, status = proc.stdout, proc.stderr, proc.returncode
-        except subprocess.TimeoutExpired as err:
-            output, log, status = str(err.stdout or ""), str(err.stderr or ""), None
-        outcomes = _read_report(report)
+            status: int | None = proc.wait(timeout=max(0.0, self._deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            self.close()
+            status = None
+        output = (work / "stdout.txt").read_text(errors="replace")
+        log = (work / "stderr.txt").read_text(errors="replace")
+        outcomes = _read_report(work / "report.jsonl")
         self.summary = (
             f"{len(self.nodeids)} vcan test(s) ran inside user-mode Linux "
             f"(inner pytest status {status}); {log.strip().splitlines()[-1] if log.strip() else ''}"
@@ -183,6 +211,43 @@ class UmlBatch:
         if not missing and os.environ.get("HILBO_UML_KEEP") != "1":
             shutil.rmtree(work, ignore_errors=True)
         return outcomes
+
+    def close(self) -> None:
+        """End a boot that is still running: SIGINT lets uml_run kill the guest's process group
+        (its ``finally``); SIGKILL of what is left after 10 s."""
+        proc = self._proc
+        if proc is None or proc.poll() is not None:
+            return
+        try:
+            import psutil
+            tree = psutil.Process(proc.pid).children(recursive=True)
+        except Exception:  # psutil missing or the process just ended: SIGINT + wait still apply
+            tree = []
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=10.0)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        for child in tree:
+            with contextlib.suppress(Exception):
+                child.kill()
+
+
+def uml_descendants() -> set[int]:
+    """The processes of a running background UML batch (not any test's leak)."""
+    batch = _CURRENT_BATCH[0] if _CURRENT_BATCH else None
+    pid = batch.pid if batch is not None else None
+    if pid is None:
+        return set()
+    try:
+        import psutil
+        return {pid, *(c.pid for c in psutil.Process(pid).children(recursive=True))}
+    except Exception:  # psutil missing (then only direct children are checked) or it ended
+        return {pid}
+
+
+_CURRENT_BATCH: list[UmlBatch] = []
 
 
 def _read_report(path: Path) -> dict[str, _Outcome]:
@@ -268,11 +333,21 @@ def pytest_collection_modifyitems(
         return
     batch = UmlBatch(config, [i.nodeid for i in vcan])
     config.stash[_BATCH_KEY] = batch
+    _CURRENT_BATCH[:] = [batch]
     for k, item in enumerate(items):
         if item.get_closest_marker("vcan") is not None and item.parent is not None:
             items[k] = UmlProxyItem.from_parent(
                 item.parent, name=item.name, original=item, batch=batch
             )
+    if not config.option.collectonly:
+        batch.start()
+
+
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    """End a background UML boot whose results nobody waited for (``-x``, an interrupt)."""
+    batch = session.config.stash.get(_BATCH_KEY, None)
+    if batch is not None:
+        batch.close()
 
 
 def pytest_terminal_summary(terminalreporter: Any, exitstatus: int, config: pytest.Config) -> None:
@@ -411,7 +486,7 @@ def leaked_after(
     ]
     for t in threads:
         t.join(timeout=max(0.0, deadline - time.monotonic()))
-    pids = {p for p in _child_pids() - pids_before - _broad_pids
+    pids = {p for p in _child_pids() - pids_before - _broad_pids - uml_descendants()
             if not any(r.fullmatch(_cmdline(p)) for r in _BENIGN_PROC_RE)}
     while pids and time.monotonic() < deadline:
         # Waiting for other code's children to end: they are reaped by their owner, so poll.

@@ -333,7 +333,10 @@ def run_session(tmp: Path, *, at: int | None = None, at_time_s: float | None = N
     pause_between_bouts = bool(settings_kw.pop("pause_between_bouts", False))
     settings = RuntimeSettings(**{
         "device_timeout_s": 0.35, "watchdog_period_s": 0.05, "cart_timeout_s": 60.0,
-        "apply_timeout_s": 2.0, "pace_s": SEGMENT_PACE_S, **settings_kw})
+        "apply_timeout_s": 2.0, "pace_s": SEGMENT_PACE_S,
+        # The stall monitor measures real time, which a loop-time session does not have; at its
+        # default 5 ms it was a third of each run's loop iterations.
+        "loop_monitor_period_s": 0.04, **settings_kw})
     protocol = SessionProtocol(SessionProtocolConfig(
         warmup_s=0.0, n_explore=2, max_breaths=3, budget_s=None,
         budget_breaths=3 * max(n_evaluations - 2, 1), pause_between_bouts=pause_between_bouts))
