@@ -176,11 +176,15 @@ async def run_session(
                 session.status.event(f"live view: {live.url or 'off, ' + str(live.start_error)}")
             if on_session is not None:
                 on_session(session)
-            installed = []
+            # The handlers found are put back afterwards: the loop's remove_signal_handler sets
+            # Python's defaults, which would undo a SIGINT that the caller ignores (a job started
+            # in the background by a non-interactive shell, nohup).
+            installed: dict[signal.Signals, Any] = {}
             for sig in (signal.SIGINT, signal.SIGTERM):
                 with contextlib.suppress(NotImplementedError, RuntimeError):
+                    previous = signal.getsignal(sig)
                     loop.add_signal_handler(sig, session.command, Command.STOP)
-                    installed.append(sig)
+                    installed[sig] = previous
             view = asyncio.create_task(run_operator_view(session), name="operator-view") \
                 if operator_view else None
             if not operator_view:
@@ -189,8 +193,10 @@ async def run_session(
             try:
                 summary = await session.run()
             finally:
-                for sig in installed:
+                for sig, previous in installed.items():
                     loop.remove_signal_handler(sig)
+                    if previous is not None:
+                        signal.signal(sig, previous)
                 if view is not None:
                     view.cancel()
                     with contextlib.suppress(asyncio.CancelledError):

@@ -364,6 +364,9 @@ class BridgeSession:
                                mode=self.collector.mode.value, **self.collector.stats.to_json())
             with contextlib.suppress(DriverError):
                 await self.endpoint.stop_heartbeat()
+        # The state the summary's recommendation comes from (a fit made ahead may have been
+        # applied since the last evaluation's snapshot): `hilbo review` recommends from it too.
+        self.log.log_optimizer_state(self.opt, reason="end")
         loop = self.loop_monitor.stats
         self._event("session_end", f"session ended after {len(self.records)} evaluations; worst "
                     f"event-loop stall {loop.worst_stall_ms:.1f} ms", loop=loop.to_json())

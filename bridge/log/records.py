@@ -69,7 +69,8 @@ otherwise, and a golden file of the new version goes to ``tests/data/logs/v<N>/`
   kind (:data:`EVENT_LEVELS`); a device's latched fault and its clearing are ``/events``.
   The record fields are those of version 1, so version-1 logs decode into these types.
 * 3: the optimizer state in ``/optimizer_state`` gains the sound rule's ``accept_z`` (None: off)
-  and evaluations may end with reason ``"decided"``; ``/events`` has ``loop_stall`` (a warning).
+  and evaluations may end with reason ``"decided"``; ``/events`` has ``loop_stall`` (a warning);
+  a session's last ``/optimizer_state`` has reason ``"end"`` (what its summary recommends from).
   Older states read with ``accept_z`` None.
 """
 
@@ -306,7 +307,7 @@ class OptimizerState(_Record, kw_only=True):
     state: Annotated[dict[str, Any], _d("HILOptimizer.to_json(): space, config, RNG state, evaluations, "
                                         "traces, ...")]
     reason: Annotated[str | None, _d("Why the snapshot was taken: start, evaluation, cancel, budget, "
-                                     "resume")] = None
+                                     "resume, end")] = None
     n_evaluations: Annotated[int, _d("Completed evaluations in the snapshot", ge=0)] | None = None
     thresholds: Annotated[list[float] | None, _d("Algorithm 2's threshold vector A over breath index "
                                                  "(after exploration)")] = None

@@ -562,8 +562,8 @@ class SessionLog:
 
         Log one at the start of a session (``reason="start"``; a resumed session logs its
         rebuilt optimizer with ``"resume"``), after every completed evaluation
-        (``"evaluation"``), and after ``cancel_current``/``set_budget`` (``"cancel"``,
-        ``"budget"``).
+        (``"evaluation"``), after ``cancel_current``/``set_budget`` (``"cancel"``,
+        ``"budget"``), and at the session's end (``"end"``: the state its summary recommends from).
         """
         thresholds = optimizer.thresholds
         self.log_record(Topic.OPTIMIZER_STATE, OptimizerState(
