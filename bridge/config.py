@@ -87,7 +87,7 @@ from hilbo_core.priors import (
 )
 from hilbo_core.profiles import PROFILE_BUILDERS, build_profile
 from hilbo_core.protocol import DEFAULT_BREATH_INTERVAL_S, SessionProtocolConfig, expected_end_s
-from hilbo_core.space import DerivedParameter, LinearConstraint, Parameter, ParameterSpace
+from hilbo_core.space import DerivedParameter, DesignKind, LinearConstraint, Parameter, ParameterSpace
 
 __all__ = [
     "ALLOWED_KEYS",
@@ -343,6 +343,10 @@ class ProtocolConfig:
             σ-scaled rule) or ``fixed`` (always N breaths).
         min_decision_s: The sound rule's seconds in a setting before any stop decision, 0–600.
         a_floor: The sound rule's threshold floor in σ, 0–10.
+        design: The exploration bout's settings: ``sobol`` (the centre, then scrambled Sobol
+            points) or ``maximin`` (the centre, then points at the boundary); absent:
+            ``sobol`` with the sound rule, ``maximin`` with the seed's rules
+            (:class:`hilbo_core.space.DesignKind`).
         seed: The optimizer's random seed (>= 0).
         xi: Expected Improvement's ξ (seed 000 §II.B sign convention).
         kernel: ``matern52`` or ``se``.
@@ -374,6 +378,7 @@ class ProtocolConfig:
     stopping: StoppingKind = choice(StoppingKind, OptimizerConfig.stopping)
     min_decision_s: float = number(OptimizerConfig.min_decision_s, lo=0.0, hi=600.0)
     a_floor: float = number(OptimizerConfig.a_floor, lo=0.0, hi=10.0)
+    design: DesignKind | None = choice(DesignKind, OptimizerConfig.design)
     seed: int = integer(OptimizerConfig.seed, lo=0, hi=2**63 - 1)
     xi: float = number(OptimizerConfig.xi, lo=-1e6, hi=1e6)
     kernel: KernelKind = choice(KernelKind, OptimizerConfig.kernel)
@@ -415,7 +420,7 @@ class ProtocolConfig:
             n_explore=self.n_explore, max_breaths=self.max_breaths, window=self.window,
             budget_s=self.budget_s if with_budget else None,
             budget_breaths=self.budget_breaths if with_budget else None, stopping=self.stopping,
-            min_decision_s=self.min_decision_s, a_floor=self.a_floor,
+            min_decision_s=self.min_decision_s, a_floor=self.a_floor, design=self.design,
             seed=self.seed, xi=self.xi, kernel=self.kernel, n_candidates=self.n_candidates,
             n_local=self.n_local, refit_lag=1 if self.refit is RefitMode.AHEAD else 0,
         )
@@ -1118,7 +1123,8 @@ def summarize(cfg: HilboConfig) -> str:
         f"          constraints: {'; '.join(k.describe() for k in sp.constraints) or 'none'}"
         + (f"; derived: {'; '.join(d.text or d.name for d in sp.derived)}" if sp.derived else ""),
         f"protocol  warm-up {pr.warmup_s:g} s per bout; exploration {pr.n_explore} settings x "
-        f"{pr.max_breaths} breaths; optimisation budget {budget}; {pr.stopping.value} stopping "
+        f"{pr.max_breaths} breaths ({DesignKind(pr.optimizer_config().design).value} design); "
+        f"optimisation budget {budget}; {pr.stopping.value} stopping "
         f"(W = {pr.window}); {pr.kernel.value} kernel, xi = {pr.xi:g}, seed {pr.seed}; "
         f"{'pause' if pr.pause_between_bouts else 'no pause'} between bouts",
         f"          expected end {_expected_end_text(pr)}",

@@ -68,7 +68,7 @@ from hilbo_core.errors import ConfigError, MeasurementError, OptimizerStateError
 from hilbo_core.estimation import EstimatorKind, StartState, TransitionEstimator
 from hilbo_core.gp import GaussianProcess, GPHyperparameters, KernelKind
 from hilbo_core.metabolic import DataOnlyEstimator, Estimator, MetabolicUKF
-from hilbo_core.space import ParameterSpace
+from hilbo_core.space import DesignKind, ParameterSpace
 from hilbo_core.stopping import (
     FixedIntervalRule,
     SigmaScaledRule,
@@ -180,6 +180,12 @@ class OptimizerConfig:
         estimator: ``"transition"`` (the default, :class:`~hilbo_core.estimation.TransitionEstimator`)
             or ``"seed_ukf"`` (seed 000's :class:`~hilbo_core.metabolic.MetabolicUKF`). Ignored
             when the optimizer is given an ``estimator_factory``.
+        design: The exploration bout's settings (:class:`~hilbo_core.space.DesignKind`):
+            ``"sobol"`` (the centre, then scrambled Sobol points) or ``"maximin"`` (the centre,
+            then greedy maximin: the design before issue 17, which pushes the other points to
+            the boundary of the feasible set). None (default): ``sobol`` with the sound rule,
+            ``maximin`` with the seed's rules, so ``adaptive`` and ``fixed`` stay the methods
+            they were (like ``recommend``).
     """
 
     n_explore: int = 6
@@ -204,6 +210,7 @@ class OptimizerConfig:
     refit_growth: float = 1.0
     refit_lag: int = 0
     estimator: EstimatorKind = EstimatorKind.TRANSITION
+    design: DesignKind | None = None
 
     def __post_init__(self) -> None:
         try:
@@ -223,6 +230,15 @@ class OptimizerConfig:
             # seed's recommendation, so "adaptive" and "fixed" stay the methods they were.
             object.__setattr__(self, "recommend", RecommendKind.POSTERIOR
                                if self.stopping is StoppingKind.SOUND else RecommendKind.SEED)
+        if self.design is None:
+            object.__setattr__(self, "design", DesignKind.SOBOL
+                               if self.stopping is StoppingKind.SOUND else DesignKind.MAXIMIN)
+        try:
+            object.__setattr__(self, "design", DesignKind(self.design))
+        except ValueError as err:
+            raise ConfigError(
+                f"design={self.design!r}; expected one of {[k.value for k in DesignKind]}"
+            ) from err
         try:
             object.__setattr__(self, "recommend", RecommendKind(self.recommend))
         except ValueError as err:
@@ -290,6 +306,7 @@ class OptimizerConfig:
         d["recommend"] = RecommendKind(self.recommend).value
         d["kernel"] = self.kernel.value
         d["estimator"] = self.estimator.value
+        d["design"] = DesignKind(self.design).value
         return d
 
     @classmethod
@@ -496,7 +513,7 @@ class HILOptimizer:
         for p in prior_observations:
             self.add_prior(p)
         self._rng = np.random.default_rng(config.seed)
-        self._design = space.design(config.n_explore, self._rng)
+        self._design = space.design(config.n_explore, self._rng, kind=DesignKind(config.design))
         self._evaluations: list[Evaluation] = []
         self._traces_m: list[list[float]] = []
         self._traces_s: list[list[float]] = []

@@ -102,16 +102,45 @@ def test_from_dict_rejects_typos_and_missing() -> None:
         s.from_dict(missing)
 
 
+@pytest.mark.parametrize("kind", ["sobol", "maximin"])
 @pytest.mark.parametrize("make", [hip_6d, hip_ankle_4d])
-def test_designs_are_feasible_spread_and_reproducible(make) -> None:
+def test_designs_are_feasible_spread_and_reproducible(make, kind: str) -> None:
     s = make()
-    a = s.design(8, np.random.default_rng(3))
-    b = s.design(8, np.random.default_rng(3))
+    a = s.design(8, np.random.default_rng(3), kind=kind)
+    b = s.design(8, np.random.default_rng(3), kind=kind)
     np.testing.assert_array_equal(a, b)
     assert s.feasible_mask(a).all()
     u = s.to_unit(a)
     dists = np.linalg.norm(u[:, None] - u[None], axis=-1)[np.triu_indices(8, 1)]
     assert dists.min() > 0.1  # space-filling, not clustered
+
+
+def _boundary_margin(s, points: np.ndarray) -> np.ndarray:
+    """Each point's distance (unit cube) to the nearest bound or linear constraint."""
+    u = s.to_unit(points)
+    A, b = s.unit_constraints()
+    m = np.minimum(u, 1.0 - u).min(axis=1)
+    return np.minimum(m, ((b - u @ A.T) / np.linalg.norm(A, axis=1)).min(axis=1))
+
+
+def test_both_designs_start_at_the_centre_and_maximin_goes_to_the_boundary() -> None:
+    # Why "sobol" is the sound rule's design (issue 17): measured over 20 seeds of hip_6d, 85 %
+    # of maximin's points after the first lie within 0.02 of the feasible set's boundary (36 %
+    # of Sobol's, about what uniform points in 6-D give).
+    s = hip_6d()
+    near = {"sobol": [], "maximin": []}
+    for seed in range(20):
+        designs = {k: s.design(6, np.random.default_rng(seed), kind=k) for k in near}
+        np.testing.assert_array_equal(designs["sobol"][0], designs["maximin"][0])
+        for k, d in designs.items():
+            near[k].extend(_boundary_margin(s, d[1:]) < 0.02)
+    assert np.mean(near["maximin"]) > 0.7
+    assert np.mean(near["sobol"]) < 0.5
+
+
+def test_an_unknown_design_is_refused_with_the_choices() -> None:
+    with pytest.raises(ConfigError, match=r"design='lhs'; expected one of \['sobol', 'maximin'\]"):
+        hip_6d().design(6, np.random.default_rng(0), kind="lhs")
 
 
 @settings(max_examples=50, deadline=None)

@@ -176,7 +176,7 @@ def _told(recommend: str | None = None, beta: float = 1.0) -> HILOptimizer:
         x = SPACE.from_unit(np.clip(OPT_U + rng.normal(0, 0.05, 6), 0, 1))
         if SPACE.is_feasible(x):
             opt.tell(SPACE.to_dict(x), 360.0 + 10.0 * k, 15.0**2, breaths=45)
-    lucky = SPACE.design(8, np.random.default_rng(9))[7]
+    lucky = SPACE.design(8, np.random.default_rng(9), kind="maximin")[7]  # a corner
     opt.tell(SPACE.to_dict(lucky), 250.0, 150.0**2, breaths=1)
     return opt
 
@@ -260,7 +260,7 @@ def test_drift_time_input_predicts_now_and_follows_a_falling_cost() -> None:
     opt = HILOptimizer(SPACE, estimator_factory=product_estimator, n_explore=2, seed=0,
                        n_candidates=64, drift_hours=2.0)
     x = SPACE.to_dict(SPACE.from_unit(OPT_U))
-    far = SPACE.to_dict(SPACE.design(8, np.random.default_rng(9))[7])
+    far = SPACE.to_dict(SPACE.design(8, np.random.default_rng(9), kind="maximin")[7])
     for k in range(8):  # the same setting, 10 min apart, its cost falling 2 W per measurement
         opt.tell(x, 400.0 - 2.0 * k, 3.0**2, duration_s=600.0)
         opt.tell(far, 500.0, 3.0**2, duration_s=1.0)
