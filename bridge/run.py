@@ -176,15 +176,16 @@ async def run_session(
                 session.status.event(f"live view: {live.url or 'off, ' + str(live.start_error)}")
             if on_session is not None:
                 on_session(session)
-            # The handlers found are put back afterwards: the loop's remove_signal_handler sets
-            # Python's defaults, which would undo a SIGINT that the caller ignores (a job started
-            # in the background by a non-interactive shell, nohup).
-            installed: dict[signal.Signals, Any] = {}
+            # A signal the caller ignores (SIGINT of a job a non-interactive shell started in the
+            # background, nohup) is ignored again afterwards: the loop's remove_signal_handler
+            # sets Python's default instead. Other handlers (the loop's own, which
+            # bridge/sim/processes.py re-arms) are left to their owners.
+            installed: dict[signal.Signals, bool] = {}
             for sig in (signal.SIGINT, signal.SIGTERM):
                 with contextlib.suppress(NotImplementedError, RuntimeError):
-                    previous = signal.getsignal(sig)
+                    was_ignored = signal.getsignal(sig) is signal.SIG_IGN
                     loop.add_signal_handler(sig, session.command, Command.STOP)
-                    installed[sig] = previous
+                    installed[sig] = was_ignored
             view = asyncio.create_task(run_operator_view(session), name="operator-view") \
                 if operator_view else None
             if not operator_view:
@@ -193,10 +194,10 @@ async def run_session(
             try:
                 summary = await session.run()
             finally:
-                for sig, previous in installed.items():
+                for sig, was_ignored in installed.items():
                     loop.remove_signal_handler(sig)
-                    if previous is not None:
-                        signal.signal(sig, previous)
+                    if was_ignored:
+                        signal.signal(sig, signal.SIG_IGN)
                 if view is not None:
                     view.cancel()
                     with contextlib.suppress(asyncio.CancelledError):

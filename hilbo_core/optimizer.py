@@ -1102,6 +1102,8 @@ class HILOptimizer:
             config_data.setdefault("estimator", EstimatorKind.SEED_UKF.value)
             # ... and states written before issue 17 recommended the seed's way.
             config_data.setdefault("recommend", RecommendKind.SEED.value)
+            # States written before the exploration design became a choice used maximin.
+            config_data.setdefault("design", DesignKind.MAXIMIN.value)
             opt = cls(space, config=OptimizerConfig.from_json(config_data),
                       estimator_factory=estimator_factory,
                       prior_observations=[PriorObservation(**p) for p in data["priors"]])

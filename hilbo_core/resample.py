@@ -50,7 +50,7 @@ import numpy as np
 from hilbo_core.acquisition import maximize_ei
 from hilbo_core.errors import ConfigError, MeasurementError
 from hilbo_core.gp import GaussianProcess, GPHyperparameters, KernelKind
-from hilbo_core.space import ParameterSpace
+from hilbo_core.space import DesignKind, ParameterSpace
 
 __all__ = [
     "ExecuteFn",
@@ -388,7 +388,8 @@ def bo_resample(
     for traj in prior_trajectories:
         store.add(traj)
     model = _Surrogate(space, cfg)
-    design = space.design(min(cfg.n_init, n_real), rng)
+    # The design BO-RESAMPLE was measured with (the seed-003 method stays what it was).
+    design = space.design(min(cfg.n_init, n_real), rng, kind=DesignKind.MAXIMIN)
     evaluations: list[PolicyEvaluation] = []
     recommendations: list[dict[str, float]] = []
     pending: np.ndarray | None = None

@@ -423,9 +423,10 @@ class ParameterSpace:
         """A feasible design of n raw points (n, d) for the exploration phase.
 
         The first point is the feasible pool's point nearest the centre of the feasible set;
-        the others follow ``kind`` (:class:`DesignKind`): ``sobol``, the next n − 1 points of a
-        scrambled Sobol sequence (seed 000 §IV.A.3: "an evenly distributed pseudo-random set of
-        parameters"), or ``maximin``, greedy maximin selection from the pool.
+        the others follow ``kind`` (:class:`DesignKind`): ``sobol``, the first n − 1 feasible
+        points of a second, independently scrambled Sobol sequence (seed 000 §IV.A.3: "an evenly
+        distributed pseudo-random set of parameters"), or ``maximin``, greedy maximin selection
+        from the pool.
 
         Args:
             n: Number of points (>= 1).
@@ -436,6 +437,8 @@ class ParameterSpace:
         Raises:
             ConfigError: n < 1 or an unknown kind.
         """
+        if isinstance(n, bool) or not isinstance(n, int | np.integer) or n < 1:
+            raise ConfigError(f"number of design points n={n!r}; expected an integer >= 1")
         try:
             kind = DesignKind(kind)
         except ValueError as err:

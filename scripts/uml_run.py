@@ -534,6 +534,10 @@ def run_in_uml(
     return result
 
 
+def _exit_on_sigterm(signum: int, frame: object) -> None:
+    raise SystemExit(128 + signum)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point; see the module docstring."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -553,6 +557,10 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"--env expects K=V, got {item!r}")
         env[key] = value
     logging.basicConfig(level=logging.INFO, format="uml_run: %(message)s")
+    # SIGTERM (a cancelled CI job, `timeout`, the death of a parent that asked for it) ends the
+    # boot like Ctrl-C: the exception unwinds run_in_uml, whose `finally` kills the guest's own
+    # process group (it runs in a session of its own, so the signal does not reach it).
+    signal.signal(signal.SIGTERM, _exit_on_sigterm)
     try:
         result = run_in_uml(command, timeout_s=args.timeout, mem=args.mem, env=env,
                             keep=args.keep)

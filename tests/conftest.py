@@ -144,6 +144,7 @@ class UmlBatch:
         self._proc: subprocess.Popen[bytes] | None = None
         self._work: Path | None = None
         self._deadline = 0.0
+        self.timeout_s = float(os.environ.get("HILBO_UML_TIMEOUT_S", "480"))
         self.summary = ""
         self.failure = ""
 
@@ -156,7 +157,7 @@ class UmlBatch:
         """Boot UML and start the inner pytest; returns at once."""
         if self._proc is not None or self._outcomes is not None:
             return
-        timeout_s = float(os.environ.get("HILBO_UML_TIMEOUT_S", "480"))
+        timeout_s = self.timeout_s
         self._work = work = Path(tempfile.mkdtemp(prefix="hilbo-vcan-"))
         inner = [
             sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
@@ -176,7 +177,7 @@ class UmlBatch:
         ]
         with open(work / "stdout.txt", "wb") as out, open(work / "stderr.txt", "wb") as err:
             self._proc = subprocess.Popen(cmd, cwd=self.config.rootpath, stdin=subprocess.DEVNULL,
-                                          stdout=out, stderr=err)
+                                          stdout=out, stderr=err, preexec_fn=_die_with_parent)
         self._deadline = time.monotonic() + timeout_s + 30.0
 
     def outcomes(self) -> dict[str, _Outcome]:
@@ -232,6 +233,14 @@ class UmlBatch:
         for child in tree:
             with contextlib.suppress(Exception):
                 child.kill()
+
+
+def _die_with_parent() -> None:
+    """In the UML batch's child: SIGTERM when pytest dies however it dies (SIGKILL too), which
+    uml_run turns into killing the guest's process group (Linux prctl PR_SET_PDEATHSIG)."""
+    with contextlib.suppress(Exception):  # not Linux, or no libc: close() still ends the boot
+        import ctypes
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG = 1
 
 
 def uml_descendants() -> set[int]:
@@ -334,12 +343,29 @@ def pytest_collection_modifyitems(
     batch = UmlBatch(config, [i.nodeid for i in vcan])
     config.stash[_BATCH_KEY] = batch
     _CURRENT_BATCH[:] = [batch]
-    for k, item in enumerate(items):
-        if item.get_closest_marker("vcan") is not None and item.parent is not None:
-            items[k] = UmlProxyItem.from_parent(
-                item.parent, name=item.name, original=item, batch=batch
-            )
-    if not config.option.collectonly:
+    # The proxies go last, so the host's tests run while the guest does; each may wait for the
+    # whole boot, which pytest-timeout's per-test limit must allow.
+    wait = pytest.mark.timeout(batch.timeout_s + 60.0)
+    proxies = []
+    for item in vcan:
+        if item.parent is not None:
+            proxy = UmlProxyItem.from_parent(item.parent, name=item.name, original=item, batch=batch)
+            proxy.add_marker(wait)
+            proxies.append(proxy)
+    items[:] = [i for i in items if i.get_closest_marker("vcan") is None] + proxies
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtestloop(session: pytest.Session) -> None:
+    """Boot UML in the background once the selection is final (after ``--lf``/``-k``
+    deselection), unless no test will run."""
+    batch = session.config.stash.get(_BATCH_KEY, None)
+    opt = session.config.option
+    if batch is None or opt.collectonly or getattr(opt, "setuponly", False) \
+            or getattr(opt, "setupplan", False):
+        return
+    batch.nodeids = [i.nodeid for i in session.items if isinstance(i, UmlProxyItem)]
+    if batch.nodeids:
         batch.start()
 
 
@@ -411,7 +437,7 @@ def pytest_fixture_setup(fixturedef: pytest.FixtureDef[Any], request: pytest.Fix
         return (yield)
     finally:
         _broad_threads.update(set(threading.enumerate()) - threads)
-        _broad_pids.update(_child_pids() - pids)
+        _broad_pids.update(_child_pids() - pids - uml_descendants())
 
 
 def _child_pids() -> set[int]:

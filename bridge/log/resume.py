@@ -179,13 +179,22 @@ def rebuild_optimizer(
 
 
 # ---------------------------------------------------------------------------------- internals
+def _mid_evaluation_end(record: object) -> bool:
+    return (isinstance(record, rec.OptimizerState) and record.reason == "end"
+            and record.state.get("current") is not None)
+
+
 def _starting_point(
     contents: LogContents, estimator_factory: Callable[[], Estimator] | None, warnings: list[str],
     depth: int,
 ) -> tuple[HILOptimizer, Sequence[LogMessage], int, str]:
     """The optimizer at the last snapshot and the messages after it."""
     messages = contents.messages
-    last = max((i for i, m in enumerate(messages) if m.topic == Topic.OPTIMIZER_STATE), default=None)
+    # A session's "end" snapshot taken in the middle of an evaluation is skipped: resuming from
+    # the snapshot before it and replaying the breaths after it restores the state before that
+    # evaluation's ask (its proposal is made again, as after a crash).
+    last = max((i for i, m in enumerate(messages) if m.topic == Topic.OPTIMIZER_STATE
+                and not _mid_evaluation_end(m.record)), default=None)
     if last is not None:
         snap = messages[last].record
         if not isinstance(snap, rec.OptimizerState):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import signal
 
 import numpy as np
 import pytest
@@ -12,6 +13,7 @@ from bridge.log.reader import read_log
 from bridge.runtime import BridgeSession, Command
 from bridge.safety import ProfileLimits, check_profile
 from bridge.sim.virtual import VirtualSimConfig, run_virtual_sim
+from hilbo_core.optimizer import HILOptimizer
 from hilbo_core.presets import hip_6d
 from hilbo_core.profiles import ForceProfile
 
@@ -89,3 +91,20 @@ def test_nacked_profiles_are_retried(tmp_path) -> None:
     acks = read_log(tmp_path / "session.mcap").data("/acks")
     assert acks[0]["accepted"] and acks[0]["attempts"] == 3
     assert s["n_evaluations"] > 3
+
+
+def test_the_log_ends_with_the_state_the_summary_recommends_from_and_an_ignored_sigint_stays(
+        tmp_path) -> None:
+    # A job started in the background by a non-interactive shell ignores SIGINT; the session's
+    # own Ctrl-C handler must not leave Python's default behind.
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        s = asyncio.run(run_virtual_sim(small(), tmp_path))
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, old)
+    snaps = read_log(tmp_path / "session.mcap").data("/optimizer_state")
+    assert snaps[0]["reason"] == "start" and snaps[-1]["reason"] == "end"
+    params, mean, var = HILOptimizer.from_json(snaps[-1]["state"]).best()
+    assert params == s["best_params"]
+    assert mean == pytest.approx(s["best_mean"], rel=1e-12) and var == pytest.approx(s["best_var"], rel=1e-12)

@@ -11,8 +11,9 @@ from hypothesis import strategies as st
 
 from hilbo_core.errors import ConfigError, MeasurementError, OptimizerStateError
 from hilbo_core.metabolic import GaussianProductEstimator
-from hilbo_core.optimizer import HILOptimizer, Phase
+from hilbo_core.optimizer import HILOptimizer, OptimizerConfig, Phase
 from hilbo_core.presets import hip_6d
+from hilbo_core.space import DesignKind
 
 SPACE = hip_6d()
 OPT_U = np.array([0.2, 0.5, 0.7, 0.6, 0.5, 0.5])  # a feasible optimum in the unit cube
@@ -216,3 +217,14 @@ def test_every_proposal_feasible_for_any_seed(seed: int) -> None:
     opt = make(seed=seed, budget_breaths=16)
     asked = run(opt, np.random.default_rng(seed))
     assert asked and all(SPACE.is_feasible(p) for p in asked)
+
+
+def test_a_state_from_before_the_design_choice_loads_as_maximin() -> None:
+    # Sessions before issue 17's design choice explored maximin points; the state says so.
+    opt = HILOptimizer(hip_6d(), config=OptimizerConfig(seed=1))
+    assert opt.config.design is DesignKind.SOBOL
+    state = opt.to_json()
+    del state["config"]["design"]
+    old = HILOptimizer.from_json(state)
+    assert old.config.design is DesignKind.MAXIMIN
+    np.testing.assert_array_equal(old.to_json()["design"], state["design"])
