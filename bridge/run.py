@@ -14,7 +14,6 @@ import datetime as dt
 import json
 import logging
 import os
-import signal
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +29,7 @@ from bridge.operator_view import run_operator_view
 from bridge.runtime import BridgeSession, Command, RuntimeSettings
 from drivers.cart import BreathStream
 from drivers.exosuit import CanEndpoint
+from drivers.signals import stop_signal_handlers
 from hilbo_core import HILOptimizer
 from hilbo_core.protocol import SessionProtocol
 
@@ -176,28 +176,15 @@ async def run_session(
                 session.status.event(f"live view: {live.url or 'off, ' + str(live.start_error)}")
             if on_session is not None:
                 on_session(session)
-            # A signal the caller ignores (SIGINT of a job a non-interactive shell started in the
-            # background, nohup) is ignored again afterwards: the loop's remove_signal_handler
-            # sets Python's default instead. Other handlers (the loop's own, which
-            # bridge/sim/processes.py re-arms) are left to their owners.
-            installed: dict[signal.Signals, bool] = {}
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                with contextlib.suppress(NotImplementedError, RuntimeError):
-                    was_ignored = signal.getsignal(sig) is signal.SIG_IGN
-                    loop.add_signal_handler(sig, session.command, Command.STOP)
-                    installed[sig] = was_ignored
             view = asyncio.create_task(run_operator_view(session), name="operator-view") \
                 if operator_view else None
             if not operator_view:
                 # Headless (issue 15): one line per evaluation and per pause, resume or refusal.
                 session.status.listeners.append(_headless_line(session))
             try:
-                summary = await session.run()
+                with stop_signal_handlers(loop, session.command, Command.STOP):
+                    summary = await session.run()
             finally:
-                for sig, was_ignored in installed.items():
-                    loop.remove_signal_handler(sig)
-                    if was_ignored:
-                        signal.signal(sig, signal.SIG_IGN)
                 if view is not None:
                     view.cancel()
                     with contextlib.suppress(asyncio.CancelledError):

@@ -34,13 +34,13 @@ import argparse
 import asyncio
 import logging
 import math
-import signal
 import sys
 from collections.abc import Callable, Coroutine, Sequence
 from typing import Any, TextIO
 
 from drivers.cart import CartFormat
 from drivers.errors import DriverError
+from drivers.signals import stop_signal_handlers
 from hilbo_core.errors import ConfigError, HilboError
 from hilbo_core.presets import PRESETS, preset
 from virtual_hw.cart import CART_FAULTS, CartLink, LinkKind, VirtualCart
@@ -228,12 +228,9 @@ async def _run(args: argparse.Namespace, out: TextIO) -> None:
     )
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        try:
-            loop.add_signal_handler(sig, stop.set)
-        except NotImplementedError:  # Windows: Ctrl-C arrives as KeyboardInterrupt instead
-            _log.debug("no asyncio signal handler for %s on this platform", sig.name)
-    await serve(cart, stop, out=out, profile_feed=feed)
+    # Windows has no asyncio signal handlers: Ctrl-C arrives as KeyboardInterrupt instead.
+    with stop_signal_handlers(loop, stop.set):
+        await serve(cart, stop, out=out, profile_feed=feed)
 
 
 def run_from_args(args: argparse.Namespace) -> int:

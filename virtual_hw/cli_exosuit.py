@@ -23,17 +23,18 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
 import logging
 import math
 import os
-import signal
 import sys
 from collections.abc import Sequence
 from typing import Any
 
 from drivers.errors import DriverConfigError, DriverError
 from drivers.exosuit.endpoint import CanBusConfig
+from drivers.signals import STOP_SIGNALS, stop_signal_handlers
 from virtual_hw.clock import ScaledClock, parse_speed
 from virtual_hw.errors import VirtualConfigError, VirtualHwError
 from virtual_hw.exosuit import (
@@ -158,8 +159,9 @@ async def _serve(args: argparse.Namespace) -> int:
         reason[0] = name
         stop.set()
 
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, on_signal, sig.name)
+    handlers = contextlib.ExitStack()
+    for sig in STOP_SIGNALS:  # the callback is told which signal came
+        handlers.enter_context(stop_signal_handlers(loop, on_signal, sig.name, signals=(sig,)))
     status = 0
     try:
         await device.open()
@@ -185,8 +187,7 @@ async def _serve(args: argparse.Namespace) -> int:
                 error = await device.close()
         except TimeoutError:
             error = TimeoutError(f"the device did not close within {STOP_TIMEOUT_S} s")
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.remove_signal_handler(sig)
+        handlers.close()
     if error is not None:
         sys.stderr.write(f"hilbo virtual-exosuit: {error!r}\n")
         status = 1

@@ -47,6 +47,7 @@ from bridge.bench.executors import keep_freed_memory
 from hilbo_core.errors import ConfigError, OptimizerStateError
 from hilbo_core.metabolic import GaussianProductEstimator
 from hilbo_core.optimizer import HILOptimizer, OptimizerConfig, Phase
+from hilbo_core.space import DesignKind
 from hilbo_core.studies.benchmarks import (
     _NOISE_STREAM,  # the trial's measurement stream: peers must measure what the BO methods measure
     FUNCTIONS,
@@ -149,11 +150,13 @@ def peer_trial(function: str, noise: float, method: str, seed: int,
     rng = np.random.default_rng([int(seed), _NOISE_STREAM])
 
     # Exploration exactly as stopping_trial runs it (same optimizer seed, design, noise stream):
-    # the same points, the same measurements, the same x_0.
+    # the same points, the same measurements, the same x_0. The study's BO methods are the
+    # seed's rules, whose design is maximin (OptimizerConfig.design).
     explorer = HILOptimizer(fn.space(), estimator_factory=estimator, n_explore=proto.n_explore,
                             max_breaths=proto.max_breaths, window=proto.window,
                             budget_breaths=proto.budget, seed=int(seed),
-                            n_candidates=proto.n_candidates, n_local=proto.n_local)
+                            n_candidates=proto.n_candidates, n_local=proto.n_local,
+                            design=DesignKind.MAXIMIN)
     explored: list[tuple[dict[str, float], float, list[float]]] = []
     while len(explorer.evaluations) < proto.n_explore:
         params = explorer.ask()
