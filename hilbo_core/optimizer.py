@@ -212,39 +212,28 @@ class OptimizerConfig:
     estimator: EstimatorKind = EstimatorKind.TRANSITION
     design: DesignKind | None = None
 
+    def _enum(self, name: str, enum_cls: type[enum.Enum]) -> None:
+        """Convert field ``name`` to ``enum_cls`` (from a member or its value), else ConfigError."""
+        value = getattr(self, name)
+        try:
+            object.__setattr__(self, name, enum_cls(value))
+        except ValueError as err:
+            raise ConfigError(
+                f"{name}={value!r}; expected one of {[k.value for k in enum_cls]}") from err
+
     def __post_init__(self) -> None:
-        try:
-            object.__setattr__(self, "estimator", EstimatorKind(self.estimator))
-        except ValueError as err:
-            raise ConfigError(
-                f"estimator={self.estimator!r}; expected one of {[k.value for k in EstimatorKind]}"
-            ) from err
-        try:
-            object.__setattr__(self, "stopping", StoppingKind(self.stopping))
-        except ValueError as err:
-            raise ConfigError(
-                f"stopping={self.stopping!r}; expected one of {[k.value for k in StoppingKind]}"
-            ) from err
+        self._enum("estimator", EstimatorKind)
+        self._enum("stopping", StoppingKind)
+        # The sound rule comes with the posterior recommendation and the Sobol design; the
+        # seed's rules keep the seed's recommendation and the maximin design, so "adaptive" and
+        # "fixed" stay the methods they were.
+        sound = self.stopping is StoppingKind.SOUND
         if self.recommend is None:
-            # The sound rule comes with the posterior recommendation; the seed's rules keep the
-            # seed's recommendation, so "adaptive" and "fixed" stay the methods they were.
-            object.__setattr__(self, "recommend", RecommendKind.POSTERIOR
-                               if self.stopping is StoppingKind.SOUND else RecommendKind.SEED)
+            object.__setattr__(self, "recommend", RecommendKind.POSTERIOR if sound else RecommendKind.SEED)
         if self.design is None:
-            object.__setattr__(self, "design", DesignKind.SOBOL
-                               if self.stopping is StoppingKind.SOUND else DesignKind.MAXIMIN)
-        try:
-            object.__setattr__(self, "design", DesignKind(self.design))
-        except ValueError as err:
-            raise ConfigError(
-                f"design={self.design!r}; expected one of {[k.value for k in DesignKind]}"
-            ) from err
-        try:
-            object.__setattr__(self, "recommend", RecommendKind(self.recommend))
-        except ValueError as err:
-            raise ConfigError(
-                f"recommend={self.recommend!r}; expected one of {[k.value for k in RecommendKind]}"
-            ) from err
+            object.__setattr__(self, "design", DesignKind.SOBOL if sound else DesignKind.MAXIMIN)
+        self._enum("design", DesignKind)
+        self._enum("recommend", RecommendKind)
         for name in ("min_decision_s", "a_floor", "recommend_beta"):
             v = getattr(self, name)
             if (isinstance(v, bool) or not isinstance(v, int | float | np.integer | np.floating)
