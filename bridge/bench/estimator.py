@@ -25,7 +25,7 @@ Data:
 
 * synthetic (default): :func:`synthetic_people` — a small pure generator of breath trajectories
   (documented there). ``--wearer NAME`` picks a registered wearer (:data:`WEARERS`):
-  ``synthetic`` or ``realistic`` (the simulated wearer of ``virtual_hw``, issue 16 part 3).
+  ``synthetic`` or ``realistic`` (the simulated wearer of the virtual devices, issue 16 part 3).
 * ``--replay FILE --transitions t1,t2,...``: a recorded breath file (hilbo-line, or a vendor CSV
   with ``--csv-columns TIME,VO2,VCO2``) read with the cart driver's parsers and validator;
   the bouts are [t_k, t_{k+1}) (the last to the end of the file), the truth of each is the mean
@@ -149,7 +149,7 @@ def synthetic_people(n: int, seed: int, *, bouts: int = 5) -> list[list[Bout]]:
 
 
 def realistic_people(n: int, seed: int, *, bouts: int = 6) -> list[list[Bout]]:
-    """The realistic simulated wearer (virtual_hw, issue 16 part 3) walked through settings.
+    """The realistic simulated wearer (bridge.sim.devices, issue 16 part 3) walked through settings.
 
     Person k is the wearer of seed ``1000·seed + k`` in the ``hip_6d`` space; each bout applies a
     random feasible setting at the breath clock's current time and lasts as the synthetic

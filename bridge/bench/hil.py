@@ -1,8 +1,8 @@
 """``hilbo bench hil``: whole simulated HIL sessions on simulated wearers, four methods.
 
 Every session is one subject (a simulated wearer's seed: the realistic wearer of
-:mod:`virtual_hw.wearer_realistic` by default, the legacy :class:`~virtual_hw.wearer.SimulatedWearer`
-with ``wearer="legacy"``, :attr:`HilProtocol.wearer`) walking a
+:class:`~bridge.sim.devices.RealisticWearerConfig` by default, the legacy
+:class:`~bridge.sim.devices.SimulatedWearer` with ``wearer="legacy"``, :attr:`HilProtocol.wearer`) walking a
 session of ``minutes`` on the wearer's breath clock (default 60, like the seed's protocol,
 §IV.A.3): a 3-minute unassisted warm-up, a first bout, a second 3-minute warm-up and a second
 bout until the session ends. The methods:
@@ -132,9 +132,9 @@ class HilProtocol:
         penalty_w: CMA-ES constraint penalty in W per squared unit-cube distance.
         bout1_conditions: CMA-ES / random-search conditions before the second warm-up.
         grid_min: Spacing of the minutes grid of the summary.
-        wearer: The simulated wearer (:class:`virtual_hw.wearer.WearerKind` value): ``realistic``
+        wearer: The simulated wearer (:class:`bridge.sim.devices.WearerKind` value): ``realistic``
             (default) or ``legacy``. Regret is scored on the same kind's unadapted landscape
-            (:mod:`virtual_hw.wearer_realistic`, "Truth and regret").
+            (:class:`bridge.sim.devices.RealisticWearerConfig`, "Truth and regret").
     """
 
     minutes: float = 60.0

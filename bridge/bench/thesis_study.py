@@ -1,7 +1,7 @@
 """Simulated-wearer study of the seed-003 methods in whole HIL sessions (docs/results_thesis.md).
 
 Three questions, each answered with paired sessions on the same simulated wearers
-(:class:`virtual_hw.wearer.SimulatedWearer`) under the protocol of :func:`bridge.sim.core.run_insim`
+(:class:`bridge.sim.devices.SimulatedWearer`) under the protocol of :func:`bridge.sim.core.run_insim`
 (3-min warm-up, exploration bout of E × N breaths, 3-min warm-up, optimisation until the session
 ends), measuring the true regret of the recommendation (:meth:`HILOptimizer.best`) at fixed
 minutes of walking:

@@ -21,8 +21,8 @@ estimator's data-only estimates. The tuned constants are therefore checked in wh
 held-out subjects (docs/results.md §5).
 
 :func:`realistic_trajectories` draws the training trajectories from the realistic wearer
-(:mod:`virtual_hw.wearer_realistic`): random feasible settings, one after another, N breaths each,
-so every trajectory starts from the previous setting's level as a session's would.
+(:class:`bridge.sim.devices.RealisticWearerConfig`): random feasible settings, one after another,
+N breaths each, so every trajectory starts from the previous setting's level as a session's would.
 """
 
 from __future__ import annotations
