@@ -111,7 +111,7 @@ def test_toy_real_time_session_reports_latency_frames_and_cpu(tmp_path) -> None:
 def test_perf_cli_with_bridge_minutes_writes_perf_and_perf_bridge_json(tmp_path) -> None:
     out = tmp_path / "perf"
     code = bench_main(["perf", "--breaths", "10", "--sizes", "3", "--reps", "1", "--sessions", "0",
-                       "--bridge-minutes", "2.7", "--bridge-speed", "20", "--bridge-feedback-hz", "500",
+                       "--bridge-minutes", "4", "--bridge-speed", "20", "--bridge-feedback-hz", "500",
                        "--bridge-baseline-s", "0", "--bridge-gc", "automatic", "--bridge-protocol", "quick",
                        "--out", str(out)])
     assert code == 0
@@ -120,11 +120,12 @@ def test_perf_cli_with_bridge_minutes_writes_perf_and_perf_bridge_json(tmp_path)
                 "proposal_profile", "session_60min_wall_s", "sessions", "targets", "wall_s", "command",
                 "machine", "bridge_realtime"):
         assert key in perf, key
-    assert ("--bridge-minutes 2.7 --bridge-speed 20 --bridge-feedback-hz 500 --bridge-baseline-s 0 "
+    assert ("--bridge-minutes 4 --bridge-speed 20 --bridge-feedback-hz 500 --bridge-baseline-s 0 "
             "--bridge-gc automatic --bridge-protocol quick") in perf["command"]
     small = json.loads((out / "perf_bridge.json").read_text())
     assert small["benchmark"] == "perf-bridge" and small["command"] == perf["command"]
-    cfg = BridgeRtConfig(minutes=2.7, speed=20.0, feedback_hz=500.0, baseline_s=0.0, gc="automatic")
+    # 4 walked minutes: at 2.7 a loaded machine (4 busy processes on 2 cores) left 1 evaluation.
+    cfg = BridgeRtConfig(minutes=4.0, speed=20.0, feedback_hz=500.0, baseline_s=0.0, gc="automatic")
     _check(small, cfg)
     assert small["protocol"] == "quick"
     assert small["cpu"]["device_alone"] is None and small["cpu"]["bridge_estimate_cores"] is None

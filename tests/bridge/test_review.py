@@ -35,12 +35,17 @@ def png_size(path: Path) -> tuple[int, int]:
 
 @pytest.fixture(scope="module")
 def sims(tmp_path_factory: pytest.TempPathFactory) -> dict[int, Path]:
-    """Two small simulated sessions (seeds 2 and 3): {seed: directory with session.mcap, summary.json}."""
+    """Two small simulated sessions (seeds 2 and 3): {seed: directory with session.mcap, summary.json}.
+
+    8 walked minutes, proposals in a thread: start-up and pushes count as walking time, and at
+    --speed max the worker process's start beside CPU burners ate a 5-minute session's exploration
+    bout (no threshold plot).
+    """
     out = {}
     for seed in (2, 3):
         d = tmp_path_factory.mktemp(f"sim{seed}")
-        asyncio.run(run_virtual_sim(VirtualSimConfig(minutes=5.0, seed=seed, n_explore=3, max_breaths=10,
-                                                     warmup_s=20.0), d))
+        asyncio.run(run_virtual_sim(VirtualSimConfig(minutes=8.0, seed=seed, n_explore=3, max_breaths=10,
+                                                     warmup_s=20.0, proposal_worker="thread"), d))
         out[seed] = d
     return out
 
