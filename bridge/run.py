@@ -160,35 +160,50 @@ async def run_session(
     loop = asyncio.get_running_loop()
     stream = BreathStream.from_config(cfg.cart)
     live = LiveServer(host=cfg.live.host, port=cfg.live.port) if cfg.live.enabled else None
-    async with CanEndpoint(cfg.can.bus) as endpoint, stream:
-        with live or contextlib.nullcontext(), \
-                SessionLog(path, session_id=session_id, config_json=cfg.to_json(),
-                           previous_log=previous, param_names=space.names,
-                           file_mode=cfg.session.file_mode_bits, live=live) as log:
-            if resume is not None:
-                log.log_optimizer_state(opt, reason="resume")
-            elif cfg.prior.priors:
-                log.log_event("prior", cfg.prior.describe(), **cfg.prior.event_details())
-            session = BridgeSession(opt, cfg.make_gate(), endpoint, stream, log, settings,
-                                    protocol=protocol)
-            session.status.budget_s = protocol.config.budget_s
-            if live is not None:
-                session.status.event(f"live view: {live.url or 'off, ' + str(live.start_error)}")
-            if on_session is not None:
-                on_session(session)
-            view = asyncio.create_task(run_operator_view(session), name="operator-view") \
-                if operator_view else None
-            if not operator_view:
-                # Headless (issue 15): one line per evaluation and per pause, resume or refusal.
-                session.status.listeners.append(_headless_line(session))
-            try:
-                with stop_signal_handlers(loop, session.command, Command.STOP):
+    # Ctrl-C and SIGTERM stop the session from before its log exists: a stop that comes before
+    # the session is made is handed to it then, so no signal falls in a window where it is lost
+    # (or ignored, when the caller ignores SIGINT).
+    sessions: list[BridgeSession] = []
+    stop_early = [False]
+
+    def stop() -> None:
+        if sessions:
+            sessions[0].command(Command.STOP)
+        else:
+            stop_early[0] = True
+
+    with stop_signal_handlers(loop, stop):
+        async with CanEndpoint(cfg.can.bus) as endpoint, stream:
+            with live or contextlib.nullcontext(), \
+                    SessionLog(path, session_id=session_id, config_json=cfg.to_json(),
+                               previous_log=previous, param_names=space.names,
+                               file_mode=cfg.session.file_mode_bits, live=live) as log:
+                if resume is not None:
+                    log.log_optimizer_state(opt, reason="resume")
+                elif cfg.prior.priors:
+                    log.log_event("prior", cfg.prior.describe(), **cfg.prior.event_details())
+                session = BridgeSession(opt, cfg.make_gate(), endpoint, stream, log, settings,
+                                        protocol=protocol)
+                session.status.budget_s = protocol.config.budget_s
+                sessions.append(session)
+                if stop_early[0]:
+                    session.command(Command.STOP)
+                if live is not None:
+                    session.status.event(f"live view: {live.url or 'off, ' + str(live.start_error)}")
+                if on_session is not None:
+                    on_session(session)
+                view = asyncio.create_task(run_operator_view(session), name="operator-view") \
+                    if operator_view else None
+                if not operator_view:
+                    # Headless (issue 15): one line per evaluation and per pause, resume or refusal.
+                    session.status.listeners.append(_headless_line(session))
+                try:
                     summary = await session.run()
-            finally:
-                if view is not None:
-                    view.cancel()
-                    with contextlib.suppress(asyncio.CancelledError):
-                        await view
+                finally:
+                    if view is not None:
+                        view.cancel()
+                        with contextlib.suppress(asyncio.CancelledError):
+                            await view
     summary.update(session_id=session_id, log=str(path), previous_log=previous,
                    config_source=str(cfg.source))
     write_json_atomic(summary_path, summary, mode=cfg.session.file_mode_bits)
