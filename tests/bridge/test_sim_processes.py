@@ -231,7 +231,7 @@ def example_for_a_test(tmp_path: Path, *, cart_port: int, can_url: str | None) -
     """The example config with a short protocol (and, for python-can-remote, that [can])."""
     text = example_config_text()
     changes = {"out_dir": f'"{tmp_path / "sessions"}"', "warmup_s": "20.0", "n_explore": "2",
-               "max_breaths": "8", "budget_min": "1.0", "port": str(cart_port),
+               "max_breaths": "8", "budget_min": "2.0", "port": str(cart_port),
                # watchdog and heartbeats cross processes on a loaded 2-core host (or inside UML)
                "device_heartbeat_timeout_ms": "1000.0"}
     if can_url is not None:
