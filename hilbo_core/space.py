@@ -37,7 +37,7 @@ class DesignKind(enum.Enum):
     """How the exploration bout's settings are chosen (:meth:`ParameterSpace.design`)."""
 
     # The default: the setting nearest the feasible set's centre (where a lab starts, and where
-    # CMA-ES starts too), then the next points of a scrambled Sobol sequence, i.e. seed 000
+    # CMA-ES starts too), then the first feasible points of a second scrambled Sobol sequence: seed 000
     # §IV.A.3's "evenly distributed pseudo-random set of parameters".
     SOBOL = "sobol"
     # The centre, then greedy maximin from a Sobol pool (the design before issue 17). With few
