@@ -6,6 +6,9 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 OUT ?= runs/sim
 PYTEST_ARGS ?=
+# pytest-xdist workers: the suite is mostly single-threaded Python, so two halve it on 2 cores
+# (0 runs it in one process).
+PYTEST_WORKERS ?= 2
 # Small GP matrices: threaded BLAS only adds contention (see bridge/cli/main.py).
 export OPENBLAS_NUM_THREADS ?= 1
 export OMP_NUM_THREADS ?= 1
@@ -31,7 +34,7 @@ test: $(STAMP)
 	@bash scripts/ensure-uml.sh
 	$(BIN)/ruff check .
 	$(BIN)/lint-imports
-	$(BIN)/python -m pytest $(PYTEST_ARGS)
+	$(BIN)/python -m pytest -n $(PYTEST_WORKERS) $(PYTEST_ARGS)
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache .ruff_cache .hypothesis

@@ -7,7 +7,8 @@
   in the background (``scripts/uml_run.py``); it runs *all* selected ``vcan`` tests in one
   inner pytest with ``vcan0`` up and writes one JSON line per test phase to a host file; each
   proxy waits for it, then reports its own test's outcome (with the inner failure text and
-  captured output).
+  captured output). With pytest-xdist (``make test`` runs two workers) worker ``gw0`` boots it
+  and every worker's proxies read the same files (tests/uml_batch.py).
   ``HILBO_IN_UML=1`` is set inside the guest, so the inner run never boots UML again.
 * Skipped with the reason when neither is possible.
 
@@ -38,29 +39,21 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-import contextlib
-import importlib.util
 import json
 import re
-import shutil
 import signal
-import subprocess
-import sys
 import tempfile
 import threading
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, field
 from pathlib import Path
-from types import ModuleType
 from typing import Any
 
 import pytest
+import uml_batch
+from uml_batch import IN_UML, REPORT_ENV, UmlBatch, UmlProxyItem, uml_problem
 
-IN_UML = os.environ.get("HILBO_IN_UML") == "1"
 VCAN_CHANNEL = "vcan0"
-_REPORT_ENV = "HILBO_UML_REPORT"
-_ROOT = Path(__file__).resolve().parents[1]
 
 
 def native_vcan_problem(channel: str = VCAN_CHANNEL) -> str | None:
@@ -70,31 +63,12 @@ def native_vcan_problem(channel: str = VCAN_CHANNEL) -> str | None:
     return vcan_problem(channel)
 
 
-def _uml_module() -> ModuleType:
-    path = _ROOT / "scripts" / "uml_run.py"
-    spec = importlib.util.spec_from_file_location("hilbo_uml_run", path)
-    if spec is None or spec.loader is None:
-        raise ImportError(f"cannot load {path}")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
-
-
-def uml_problem() -> str | None:
-    """Why no guest (user-mode Linux, or a KVM guest on hosts where UML fails) can run the vcan
-    tests here, or None when one can."""
-    if IN_UML:
-        return "already inside user-mode Linux"
-    return _uml_module().guest_problem()
-
-
 # --- inside the guest: one JSON line per test phase --------------------------------------------
 
 
 def pytest_runtest_logreport(report: pytest.TestReport) -> None:
     """Inside UML, append each phase's outcome to the host-visible report file."""
-    path = os.environ.get(_REPORT_ENV)
+    path = os.environ.get(REPORT_ENV)
     if not (IN_UML and path):
         return
     if report.skipped and isinstance(report.longrepr, tuple):
@@ -117,210 +91,33 @@ def pytest_runtest_logreport(report: pytest.TestReport) -> None:
 # --- on the host: proxies for the vcan tests -----------------------------------------------------
 
 
-class UmlTestFailure(Exception):
-    """The test failed inside user-mode Linux; the message is the inner report."""
 
+# --- on the host: proxies for the vcan tests, one batch per run (tests/uml_batch.py) ----------
 
-@dataclass
-class _Outcome:
-    outcome: str = "passed"  # passed | failed | skipped | xfailed | xpassed
-    text: str = ""
-    sections: list[tuple[str, str]] = field(default_factory=list)
-
-
-class UmlBatch:
-    """Runs all the selected vcan tests in one UML boot, started in the background.
-
-    :meth:`start` launches the boot right after collection, so the guest's tests run beside the
-    host's (on 2 cores that takes its 2-3 minutes off the suite's wall time); the first vcan
-    proxy waits for it in :meth:`outcomes`; :meth:`close` ends a boot nobody waited for (``-x``,
-    Ctrl-C). Its output goes to files, not pipes, so nothing has to read while it runs.
-    """
-
-    def __init__(self, config: pytest.Config, nodeids: list[str]) -> None:
-        self.config = config
-        self.nodeids = nodeids
-        self._outcomes: dict[str, _Outcome] | None = None
-        self._proc: subprocess.Popen[bytes] | None = None
-        self._work: Path | None = None
-        self._deadline = 0.0
-        self.timeout_s = float(os.environ.get("HILBO_UML_TIMEOUT_S", "480"))
-        self.summary = ""
-        self.failure = ""
-
-    @property
-    def pid(self) -> int | None:
-        """The boot's process id while it runs (its descendants are not a test's leak)."""
-        return self._proc.pid if self._proc is not None and self._proc.poll() is None else None
-
-    def start(self) -> None:
-        """Boot UML and start the inner pytest; returns at once."""
-        if self._proc is not None or self._outcomes is not None:
-            return
-        timeout_s = self.timeout_s
-        self._work = work = Path(tempfile.mkdtemp(prefix="hilbo-vcan-"))
-        inner = [
-            sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
-            "--rootdir", str(self.config.rootpath),
-            "--basetemp", str(work / "basetemp"),
-            "--junitxml", str(work / "junit.xml"),
-            *self.nodeids,
-        ]
-        if self.config.inipath is not None:
-            inner[4:4] = ["-c", str(self.config.inipath)]
-        cmd = [
-            sys.executable, str(_ROOT / "scripts" / "uml_run.py"),
-            "--timeout", str(timeout_s), "--mem", os.environ.get("HILBO_UML_MEM", "1G"),
-            "--env", f"{_REPORT_ENV}={work / 'report.jsonl'}",
-            *(["--keep"] if os.environ.get("HILBO_UML_KEEP") == "1" else []),
-            "--", *inner,
-        ]
-        with open(work / "stdout.txt", "wb") as out, open(work / "stderr.txt", "wb") as err:
-            self._proc = subprocess.Popen(cmd, cwd=self.config.rootpath, stdin=subprocess.DEVNULL,
-                                          stdout=out, stderr=err, preexec_fn=_die_with_parent)
-        self._deadline = time.monotonic() + timeout_s + 30.0
-
-    def outcomes(self) -> dict[str, _Outcome]:
-        if self._outcomes is None:
-            self.start()
-            self._outcomes = self._collect()
-        return self._outcomes
-
-    def _collect(self) -> dict[str, _Outcome]:
-        proc, work = self._proc, self._work
-        if proc is None or work is None:
-            raise RuntimeError("UmlBatch._collect() before start()")
-        try:
-            status: int | None = proc.wait(timeout=max(0.0, self._deadline - time.monotonic()))
-        except subprocess.TimeoutExpired:
-            self.close()
-            status = None
-        output = (work / "stdout.txt").read_text(errors="replace")
-        log = (work / "stderr.txt").read_text(errors="replace")
-        outcomes = _read_report(work / "report.jsonl")
-        self.summary = (
-            f"{len(self.nodeids)} vcan test(s) ran inside user-mode Linux "
-            f"(inner pytest status {status}); {log.strip().splitlines()[-1] if log.strip() else ''}"
-        )
-        missing = [n for n in self.nodeids if n not in outcomes]
-        if missing:
-            self.failure = (
-                f"user-mode Linux run ended with status {status} without reporting "
-                f"{len(missing)} test(s).\n--- uml_run log ---\n{log[-6000:]}\n"
-                f"--- inner output ---\n{output[-6000:]}"
-            )
-        if not missing and os.environ.get("HILBO_UML_KEEP") != "1":
-            shutil.rmtree(work, ignore_errors=True)
-        return outcomes
-
-    def close(self) -> None:
-        """End a boot that is still running: SIGINT lets uml_run kill the guest's process group
-        (its ``finally``); SIGKILL of what is left after 10 s."""
-        proc = self._proc
-        if proc is None or proc.poll() is not None:
-            return
-        try:
-            import psutil
-            tree = psutil.Process(proc.pid).children(recursive=True)
-        except Exception:  # psutil missing or the process just ended: SIGINT + wait still apply
-            tree = []
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout=10.0)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-        for child in tree:
-            with contextlib.suppress(Exception):
-                child.kill()
-
-
-def _die_with_parent() -> None:
-    """In the UML batch's child: SIGTERM when pytest dies however it dies (SIGKILL too), which
-    uml_run turns into killing the guest's process group (Linux prctl PR_SET_PDEATHSIG)."""
-    with contextlib.suppress(Exception):  # not Linux, or no libc: close() still ends the boot
-        import ctypes
-        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG = 1
+_BATCH_KEY = pytest.StashKey[UmlBatch]()
+_WORK_KEY = pytest.StashKey[Path]()
+_SUMMARY_KEY = pytest.StashKey["str | None"]()
+#: The batch of this process, for the leak check (its boot's processes are no test's leak).
+_CURRENT_BATCH: list[UmlBatch] = []
 
 
 def uml_descendants() -> set[int]:
     """The processes of a running background UML batch (not any test's leak)."""
-    batch = _CURRENT_BATCH[0] if _CURRENT_BATCH else None
-    pid = batch.pid if batch is not None else None
-    if pid is None:
-        return set()
-    try:
-        import psutil
-        return {pid, *(c.pid for c in psutil.Process(pid).children(recursive=True))}
-    except Exception:  # psutil missing (then only direct children are checked) or it ended
-        return {pid}
+    return _CURRENT_BATCH[0].descendants() if _CURRENT_BATCH else set()
 
 
-_CURRENT_BATCH: list[UmlBatch] = []
+def _shared_work(config: pytest.Config) -> Path:
+    """The batch's directory, made once by the process that is not an xdist worker."""
+    work = config.stash.get(_WORK_KEY, None)
+    if work is None:
+        work = config.stash[_WORK_KEY] = Path(tempfile.mkdtemp(prefix="hilbo-vcan-"))
+    return work
 
 
-def _read_report(path: Path) -> dict[str, _Outcome]:
-    outcomes: dict[str, _Outcome] = {}
-    try:
-        lines = path.read_text(encoding="utf-8").splitlines()
-    except FileNotFoundError:
-        return outcomes
-    for line in lines:
-        rec: dict[str, Any] = json.loads(line)
-        out = outcomes.setdefault(rec["nodeid"], _Outcome())
-        # each phase's report repeats the sections of the phases before it
-        out.sections.extend((t, b) for t, b in rec["sections"] if (t, b) not in out.sections)
-        if rec["wasxfail"] is not None:
-            out.outcome = "xfailed" if rec["outcome"] == "skipped" else "xpassed"
-            out.text = rec["wasxfail"] or rec["longrepr"]
-        elif rec["outcome"] == "failed":
-            out.outcome = "failed"
-            out.text += f"[{rec['when']}] {rec['longrepr']}\n"
-        elif rec["outcome"] == "skipped" and out.outcome != "failed":
-            out.outcome = "skipped"
-            out.text = rec["longrepr"]
-    return outcomes
-
-
-class UmlProxyItem(pytest.Item):
-    """Stands in on the host for one vcan test that runs inside user-mode Linux."""
-
-    def __init__(self, *, original: pytest.Item, batch: UmlBatch, **kwargs: Any) -> None:
-        super().__init__(**kwargs)
-        self.original = original
-        self.batch = batch
-        self.own_markers.extend(original.own_markers)
-        self.keywords.update(original.keywords)
-
-    def runtest(self) -> None:
-        outcomes = self.batch.outcomes()
-        result = outcomes.get(self.nodeid)
-        if result is None:
-            raise UmlTestFailure(
-                self.batch.failure or f"{self.nodeid} did not report from user-mode Linux"
-            )
-        if result.sections:
-            self.add_report_section("call", "inside user-mode Linux", "\n".join(
-                f"----- {title} -----\n{body}" for title, body in result.sections
-            ))
-        if result.outcome == "skipped":
-            pytest.skip(f"inside user-mode Linux: {result.text}")
-        if result.outcome == "xfailed":
-            pytest.xfail(f"inside user-mode Linux: {result.text}")
-        if result.outcome == "failed":
-            raise UmlTestFailure(result.text)
-
-    def repr_failure(self, excinfo: pytest.ExceptionInfo[BaseException], style: Any = None) -> Any:
-        if isinstance(excinfo.value, UmlTestFailure):
-            return f"(ran inside user-mode Linux)\n{excinfo.value}"
-        return super().repr_failure(excinfo)
-
-    def reportinfo(self) -> tuple[Any, int | None, str]:
-        path, lineno, name = self.original.reportinfo()
-        return path, lineno, f"{name} [user-mode Linux]"
-
-
-_BATCH_KEY = pytest.StashKey[UmlBatch]()
+@pytest.hookimpl(optionalhook=True)
+def pytest_configure_node(node: Any) -> None:
+    """pytest-xdist's controller: every worker gets the one batch directory."""
+    node.workerinput["hilbo_uml_work"] = str(_shared_work(node.config))
 
 
 @pytest.hookimpl(trylast=True)
@@ -340,7 +137,11 @@ def pytest_collection_modifyitems(
         for item in vcan:
             item.add_marker(skip)
         return
-    batch = UmlBatch(config, [i.nodeid for i in vcan])
+    worker = getattr(config, "workerinput", None)
+    if worker is None:
+        batch = UmlBatch(config, _shared_work(config), owner=True)
+    else:  # an xdist worker: gw0 boots, the others' proxies read its files
+        batch = UmlBatch(config, Path(worker["hilbo_uml_work"]), owner=worker["workerid"] == "gw0")
     config.stash[_BATCH_KEY] = batch
     _CURRENT_BATCH[:] = [batch]
     # The proxies go last, so the host's tests run while the guest does; each may wait for the
@@ -364,23 +165,31 @@ def pytest_runtestloop(session: pytest.Session) -> None:
     if batch is None or opt.collectonly or getattr(opt, "setuponly", False) \
             or getattr(opt, "setupplan", False):
         return
-    batch.nodeids = [i.nodeid for i in session.items if isinstance(i, UmlProxyItem)]
-    if batch.nodeids:
-        batch.start()
+    batch.start([i.nodeid for i in session.items if isinstance(i, UmlProxyItem)])
 
 
 def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
-    """End a background UML boot whose results nobody waited for (``-x``, an interrupt)."""
+    """The owner waits for a boot other workers may still need, or ends one nobody will wait
+    for (``-x``, an interrupt); the process that made the batch's directory removes it."""
     batch = session.config.stash.get(_BATCH_KEY, None)
     if batch is not None:
-        batch.close()
+        batch.finish(interrupted=exitstatus == pytest.ExitCode.INTERRUPTED
+                     or bool(session.shouldstop or session.shouldfail))
+    work = session.config.stash.get(_WORK_KEY, None)
+    if work is not None and getattr(session.config, "workerinput", None) is None:
+        # said in the terminal summary, which comes after this hook
+        session.config.stash[_SUMMARY_KEY] = uml_batch.summary(work)
+        uml_batch.remove(work)
 
 
 def pytest_terminal_summary(terminalreporter: Any, exitstatus: int, config: pytest.Config) -> None:
     """Say that (and how) the vcan tests ran inside user-mode Linux."""
-    batch = config.stash.get(_BATCH_KEY, None)
-    if batch is not None and batch.summary:
-        terminalreporter.write_line(f"vcan: {batch.summary}")
+    line = config.stash.get(_SUMMARY_KEY, None)
+    if line:
+        terminalreporter.write_line(f"vcan: {line}")
+        work = config.stash.get(_WORK_KEY, None)
+        if work is not None and work.exists():
+            terminalreporter.write_line(f"vcan: the boot's files are kept in {work}")
 
 
 @pytest.fixture

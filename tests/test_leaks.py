@@ -71,6 +71,7 @@ def test_zzz_cleanup():
 
 def test_leak_check_fails_leakers_only(tmp_path: Path) -> None:
     shutil.copy(_CONFTEST, tmp_path / "conftest.py")
+    shutil.copy(_CONFTEST.with_name("uml_batch.py"), tmp_path / "uml_batch.py")  # it imports it
     (tmp_path / "test_leaky.py").write_text(_TESTS, encoding="utf-8")
     env = dict(os.environ, HILBO_LEAK_GRACE_S="1")
     proc = subprocess.run(

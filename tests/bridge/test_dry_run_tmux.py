@@ -58,8 +58,10 @@ READY_S = 20.0
 SESSION_S = 75.0
 POLL_S = 0.2
 #: The example config's protocol, shrunk (within the ranges `hilbo config check` accepts);
-#: pause_between_bouts stays true.
-PROTOCOL = {"warmup_s": "10.0", "n_explore": "2", "max_breaths": "6", "budget_min": "1.0"}
+#: pause_between_bouts stays true. The session's minutes are walked minutes, and at 30x a
+#: proposal's second on a loaded host is half a walked minute: 2 minutes leave the optimisation
+#: bout an evaluation however busy the host (1 minute ended in the exploration bout once).
+PROTOCOL = {"warmup_s": "10.0", "n_explore": "2", "max_breaths": "6", "budget_min": "2.0"}
 
 
 def _free_port() -> int:
