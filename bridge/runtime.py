@@ -386,12 +386,37 @@ class BridgeSession:
                 ]
                 self.endpoint.start_heartbeat(self.settings.heartbeat_period_s)
                 try:
+                    await self._worker_started()
                     await self._main()
                 finally:
                     for t in tasks:
                         t.cancel()
         finally:
             await self._drop_fit_ahead()
+
+    async def _worker_started(self) -> None:
+        """Wait until the proposal worker answers, then start the session's walking time.
+
+        Starting the worker process (numpy, scipy) takes a second or two, several on a busy
+        host. That is the bridge's start, not walked session time: in the lab it delays the
+        warm-up by that long; at ``hilbo sim --speed max`` (100x) it was 3-5 minutes of a
+        simulated session's budget. Breaths that came in meanwhile were walked before the
+        session: the cart task has logged them, the protocol never sees them, and its clock
+        starts at the next one.
+        """
+        if self._worker.in_process:  # a thread is ready at once
+            self.status.event("starting the proposal worker")
+            await self._worker.worker_pid()
+        b = self._breaths
+        dropped = 0
+        while not b.queue.empty():
+            b.queue.get_nowait()
+            dropped += 1
+        if dropped:
+            b.last_t = None  # the protocol's clock starts at the next breath
+            self._event("breaths_before_start",
+                        f"{dropped} breaths arrived while the proposal worker started; the "
+                        "session's walking time starts at the next one", n_breaths=dropped)
 
     def summary(self) -> dict[str, Any]:
         """The summary.json fields of shared/DESIGN.md (without simulation truth)."""

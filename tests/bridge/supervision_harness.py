@@ -18,6 +18,7 @@ import contextlib
 import dataclasses
 import itertools
 import math
+import os
 from collections import Counter
 from collections.abc import AsyncIterator, Callable, Iterator
 from pathlib import Path
@@ -200,6 +201,9 @@ class InlineWorker:
     lost: str | None = None
     in_process = True
 
+    def __init__(self, start_s: float = 0.0) -> None:
+        self.start_s = start_s  # loop time its "process" takes to answer the first call
+
     async def __aenter__(self) -> InlineWorker:
         return self
 
@@ -215,6 +219,10 @@ class InlineWorker:
 
     async def fit(self, fit: Any) -> Any:
         raise NotImplementedError
+
+    async def worker_pid(self) -> int:
+        await asyncio.sleep(self.start_s)
+        return os.getpid()
 
 
 class Cart:
@@ -298,6 +306,8 @@ class Outcome:
     cart: Cart
     #: Every event line of the session, in order.
     events: list[str]
+    #: The session's log.
+    log: Path
 
 
 FAULTS = ("pause", "stop", "heartbeat_loss", "bus_error")
@@ -307,7 +317,7 @@ _RUNS = itertools.count()
 def run_session(tmp: Path, *, at: int | None = None, at_time_s: float | None = None,
                 fault: str = "pause", n_evaluations: int = 4, resume_after_s: float = 5.0,
                 end_after_s: float | None = None, cart_restart_at_s: float | None = None,
-                **settings_kw: Any) -> Outcome:
+                worker_start_s: float = 0.0, **settings_kw: Any) -> Outcome:
     """One short session (warm-ups 0, 2 exploration points of 3 breaths, then optimisation).
 
     Args:
@@ -321,6 +331,7 @@ def run_session(tmp: Path, *, at: int | None = None, at_time_s: float | None = N
         end_after_s: The operator stops the session this long after the fault (None: the
             session runs to its budget's end).
         cart_restart_at_s: The cart's clock restarts near 0 at this loop time.
+        worker_start_s: The proposal worker answers its first call after this long (loop time).
         settings_kw: :class:`RuntimeSettings` fields to override, and ``pause_between_bouts``
             (the protocol's).
     """
@@ -364,16 +375,17 @@ def run_session(tmp: Path, *, at: int | None = None, at_time_s: float | None = N
     inj = Injector(device, at, fire if at is not None else None)
     cart = Cart(restart_at_s=cart_restart_at_s)
     events: list[str] = []
+    log_path = tmp / f"s{next(_RUNS)}.mcap"
 
     async def main() -> dict[str, Any]:
         loop = asyncio.get_running_loop()
         loop.set_task_factory(inj.factory)
-        with SessionLog(tmp / f"s{next(_RUNS)}.mcap", session_id="t", config_json={}) as log:
+        with SessionLog(log_path, session_id="t", config_json={}) as log:
             session = BridgeSession(opt, gate, device, cart, log, settings,  # type: ignore[arg-type]
                                     protocol=protocol, clock=loop.time)
             holder["session"] = session
             session.status.listeners.append(events.append)
-            session._worker = InlineWorker()  # type: ignore[assignment]
+            session._worker = InlineWorker(worker_start_s)  # type: ignore[assignment]
             device.is_paused = lambda: session.supervisor.paused
             if at_time_s is not None:
                 loop.call_at(at_time_s, fire)
@@ -385,4 +397,4 @@ def run_session(tmp: Path, *, at: int | None = None, at_time_s: float | None = N
     finally:
         loop.run_until_complete(loop.shutdown_asyncgens())
         loop.close()
-    return Outcome(summary, device, holder["session"], inj, cart, events)
+    return Outcome(summary, device, holder["session"], inj, cart, events, log_path)
