@@ -184,6 +184,7 @@ class ProposalWorker:
         self.start_timeout_s = _seconds("start_timeout_s", start_timeout_s)
         self._answered = False  # the worker process has answered a call (it has started)
         self._proc: asyncio.subprocess.Process | None = None
+        self._abandoned: asyncio.subprocess.Process | None = None  # left mid-call by a cancellation
         self._lock: asyncio.Lock | None = None
         self._threads: concurrent.futures.ThreadPoolExecutor | None = None
         #: Why the worker process was given up for a thread, or None.
@@ -203,6 +204,9 @@ class ProposalWorker:
         return self
 
     async def __aexit__(self, *exc: object) -> None:
+        abandoned, self._abandoned = self._abandoned, None
+        if abandoned is not None:
+            await self._kill(abandoned)
         proc, self._proc = self._proc, None
         if proc is not None:
             if proc.stdin is not None:
@@ -304,8 +308,10 @@ class ProposalWorker:
                     await self._kill(proc)
                 except asyncio.CancelledError:
                     # Its reply is still on the way: the pipe is out of step, so nothing more goes
-                    # to this worker (only at a session's end in practice).
-                    self._proc = None
+                    # to this worker (only at a session's end in practice). It may be busy for
+                    # seconds (a fit, or still importing at a Ctrl-C right after the start), so
+                    # __aexit__ kills and reaps it rather than let it outlive the session.
+                    self._proc, self._abandoned = None, proc
                     if proc.stdin is not None:
                         proc.stdin.close()
                     raise

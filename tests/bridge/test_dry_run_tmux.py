@@ -295,9 +295,14 @@ PRESS_AGAIN_S = 1.0
 
 
 def view_state(screen: str) -> str:
-    """The state the live view shows ("running", "paused: between bouts", ...), or ""."""
-    m = STATE_ROW.search(screen)
-    return m.group(1) if m else ""
+    """The state the live view shows ("running", "paused: between bouts", ...), or "".
+
+    The last state row on the screen: the live frame is drawn at the bottom, and lines written
+    past Rich (another process's stderr on the same terminal) can leave an older frame above it,
+    which a first match read as the state for the rest of a session once (a loaded host).
+    """
+    rows = STATE_ROW.findall(screen)
+    return rows[-1] if rows else ""
 
 
 @pytest.mark.skipif(shutil.which("tmux") is None, reason="tmux is not installed")

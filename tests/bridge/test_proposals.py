@@ -148,6 +148,23 @@ def test_a_worker_exits_when_its_session_is_killed() -> None:
     assert not _alive(worker_pid)
 
 
+async def test_a_call_cancelled_mid_way_leaves_no_worker_process() -> None:
+    # Ctrl-C while the session waits for the worker's first reply (it is still importing numpy
+    # and scipy): the worker is out of step and is killed and reaped on leaving the block, not
+    # left to find its EOF after the session has exited.
+    async with ProposalWorker(WorkerKind.PROCESS) as worker:
+        pid = worker.pid
+        assert pid is not None
+        first = asyncio.ensure_future(worker.worker_pid())
+        await asyncio.sleep(0)  # the request is on the pipe; the reply is awaited
+        assert not first.done()
+        first.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await first
+        assert worker.pid is None  # nothing more goes to it
+    assert not os.path.exists(f"/proc/{pid}")  # ended and reaped
+
+
 def _alive(pid: int) -> bool:
     try:
         with open(f"/proc/{pid}/stat") as f:
