@@ -13,10 +13,12 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import os
 import sys
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
+from typing import TextIO
 
 from rich.console import Console, Group
 from rich.live import Live
@@ -135,6 +137,28 @@ async def _read_keys(on_key: Callable[[str], None]) -> None:
         termios.tcsetattr(fd, termios.TCSADRAIN, old)
 
 
+@contextlib.contextmanager
+def _log_above_the_view(terminal: TextIO) -> Iterator[None]:
+    """Log handlers writing to the terminal write through Live's stderr (now ``sys.stderr``) while
+    the view is drawn, so Rich prints their lines above the frame.
+
+    A handler made before the view (``logging.basicConfig``) holds the terminal itself and wrote
+    past Rich: every warning scrolled the frame and left an older one on the screen, so on a
+    loaded PC (loop-stall and heartbeat warnings) the screen showed a stale "paused" state above
+    the live one.
+    """
+    handlers = [h for h in logging.getLogger().handlers
+                if type(h) is logging.StreamHandler and h.stream is terminal]
+    proxy = sys.stderr
+    for h in handlers:
+        h.setStream(proxy)
+    try:
+        yield
+    finally:
+        for h in handlers:
+            h.setStream(terminal)
+
+
 async def run_operator_view(session: BridgeSession, console: Console | None = None,
                             refresh_s: float = 0.25) -> None:
     """Show the live status until cancelled; forward keys as commands when stdin is a TTY."""
@@ -151,7 +175,9 @@ async def run_operator_view(session: BridgeSession, console: Console | None = No
 
         keys_task = asyncio.create_task(_read_keys(on_key), name="operator-keys")
     try:
-        with Live(render_status(session.status), console=console, refresh_per_second=4) as live:
+        terminal = sys.stderr
+        with Live(render_status(session.status), console=console, refresh_per_second=4) as live, \
+                _log_above_the_view(terminal):
             while True:
                 await asyncio.sleep(refresh_s)
                 live.update(render_status(session.status))

@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import io
+import logging
+import sys
+from types import SimpleNamespace
 
 import pytest
 from rich.console import Console
 
-from bridge.operator_view import describe_faults, render_status
+from bridge.operator_view import describe_faults, render_status, run_operator_view
 from bridge.runtime import SessionStatus
 from drivers.exosuit import DeviceFault
 
@@ -68,3 +73,29 @@ def test_best_so_far_is_what_opt_best_returns() -> None:
 @pytest.mark.parametrize("device", ["ok", "unknown"])
 def test_a_healthy_device_shows_its_state(device: str) -> None:
     assert row(text_of(SessionStatus(device=device)), "device") == device
+
+
+async def test_log_lines_are_printed_above_the_live_view_not_past_it(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    # A handler made before the view, as `logging.basicConfig` in `hilbo` makes it, holds the
+    # terminal: written past Rich, its lines left stale frames (and a stale state) on the screen.
+    terminal = io.StringIO()
+    monkeypatch.setattr(sys, "stderr", terminal)
+    handler = logging.StreamHandler(terminal)
+    root = logging.getLogger()
+    root.addHandler(handler)
+    screen = io.StringIO()
+    console = Console(file=screen, force_terminal=True, width=100, color_system=None)
+    session = SimpleNamespace(status=SessionStatus(), command=lambda cmd: None)
+    try:
+        view = asyncio.create_task(run_operator_view(session, console=console))  # type: ignore[arg-type]
+        await asyncio.sleep(0)  # the view is drawn and waits for its next refresh
+        logging.getLogger("bridge.runtime").warning("event loop stalled 84.2 ms")
+        view.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await view
+    finally:
+        root.removeHandler(handler)
+    assert "event loop stalled 84.2 ms" in screen.getvalue()  # through Rich, above the frame
+    assert terminal.getvalue() == ""
+    assert handler.stream is terminal  # given back when the view ends
