@@ -33,3 +33,8 @@ def test_breaths_before_the_worker_answers_are_not_session_time(tmp_path: Path) 
     assert slow.summary["n_evaluations"] == prompt.summary["n_evaluations"] == 3
     assert slow.summary["n_breaths"] == prompt.summary["n_breaths"] + 10
     assert any("starting the proposal worker" in e for e in slow.events)
+    # Session times (records, status) stay seconds since the log's first breath, as `hilbo
+    # review` reads them: the same evaluations, 10 breaths later.
+    assert [(e["t_start"] - 10 * BREATH_S, e["t_end"] - 10 * BREATH_S)
+            for e in slow.summary["evaluations"]] == \
+        [(e["t_start"], e["t_end"]) for e in prompt.summary["evaluations"]]
