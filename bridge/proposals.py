@@ -205,22 +205,29 @@ class ProposalWorker:
 
     async def __aexit__(self, *exc: object) -> None:
         abandoned, self._abandoned = self._abandoned, None
-        if abandoned is not None:
-            await self._kill(abandoned)
         proc, self._proc = self._proc, None
-        if proc is not None:
-            if proc.stdin is not None:
-                proc.stdin.close()  # the worker's loop ends at EOF
-            try:
-                async with asyncio.timeout(_EXIT_TIMEOUT_S):
-                    await proc.wait()
-            except TimeoutError:
-                logger.warning("proposal worker %d did not exit; killing it", proc.pid)
-                await self._kill(proc)
-        if self._threads is not None:
-            self._threads.shutdown(wait=True, cancel_futures=True)
-            self._threads = None
-        self._lock = None
+        try:
+            if abandoned is not None:
+                await self._kill(abandoned)
+            if proc is not None:
+                if proc.stdin is not None:
+                    proc.stdin.close()  # the worker's loop ends at EOF
+                try:
+                    async with asyncio.timeout(_EXIT_TIMEOUT_S):
+                        await proc.wait()
+                except TimeoutError:
+                    logger.warning("proposal worker %d did not exit; killing it", proc.pid)
+                    await self._kill(proc)
+        finally:
+            # Also when cancelled again while waiting (a second Ctrl-C): the worker must not
+            # outlive the session.
+            if proc is not None and proc.returncode is None:
+                with contextlib.suppress(ProcessLookupError):
+                    proc.kill()
+            if self._threads is not None:
+                self._threads.shutdown(wait=True, cancel_futures=True)
+                self._threads = None
+            self._lock = None
 
     @property
     def in_process(self) -> bool:

@@ -351,7 +351,7 @@ class BridgeSession:
         self._event("session_start", f"session started ({self.opt.phase.value})")
         try:
             with self.collector:
-                async with self._worker:  # the process starts during the warm-up walk
+                async with self._worker:  # the session's walking starts once it answers
                     await self._run_tasks()
         except* _Stopped:
             pass
@@ -399,12 +399,13 @@ class BridgeSession:
 
         Starting the worker process (numpy, scipy) takes a second or two, several on a busy
         host. That is the bridge's start, not walked session time: in the lab it delays the
-        warm-up by that long; at ``hilbo sim --speed max`` (100x) it was 3-5 minutes of a
-        simulated session's budget. Breaths that came in meanwhile were walked before the
+        warm-up by that long; at ``hilbo sim --speed max`` (100x) each second of it was more
+        than a minute of a simulated session's budget (12 s on a loaded 2-core host: 20
+        minutes of a 30-minute session). Breaths that came in meanwhile were walked before the
         session: the cart task has logged them, the protocol never sees them, and its clock
         starts at the next one.
         """
-        if self._worker.in_process:  # a thread is ready at once
+        if self._worker.in_process:  # a process starts; a thread would need no wait
             self.status.event("starting the proposal worker")
             await self._worker.worker_pid()
         b = self._breaths
@@ -477,7 +478,8 @@ class BridgeSession:
                 self._t_stop = None  # the next push answers the warm-up's end, not a stop decision
                 await self.supervisor.assistance_off(AssistanceOffReason.SESSION_END, "warm-up")
         elif act.kind is ActionKind.PROPOSE:
-            if self._breaths.last_t is None:  # no warm-up and no breath yet: the clock starts
+            # No warm-up and no breath yet (or only breaths dropped at the start): the clock starts.
+            if self._breaths.last_t is None:
                 act = p.on_breath((await self._next_breath()).t_s)
                 if act.kind is not ActionKind.TRANSITION:
                     return act

@@ -187,9 +187,9 @@ def pytest_terminal_summary(terminalreporter: Any, exitstatus: int, config: pyte
     line = config.stash.get(_SUMMARY_KEY, None)
     if line:
         terminalreporter.write_line(f"vcan: {line}")
-        work = config.stash.get(_WORK_KEY, None)
-        if work is not None and work.exists():
-            terminalreporter.write_line(f"vcan: the boot's files are kept in {work}")
+    work = config.stash.get(_WORK_KEY, None)
+    if work is not None and work.exists():  # kept: asked for, or a test did not report
+        terminalreporter.write_line(f"vcan: the boot's files are kept in {work}")
 
 
 @pytest.fixture

@@ -40,6 +40,19 @@ _ROOT = Path(__file__).resolve().parents[1]
 _START_WAIT_S = 300.0
 #: How often a proxy looks at the batch's files (another process writes them).
 _POLL_S = 0.25
+#: How long a proxy waits for status.json once the boot's process is gone.
+_ORPHAN_GRACE_S = 15.0
+
+
+def _running(pid: int) -> bool:
+    """The process exists (a zombie too: its owner is about to reap it and write the status)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, another user's (a reused pid): not ours to judge
+        return True
+    return True
 
 
 def uml_module() -> ModuleType:
@@ -170,11 +183,12 @@ class UmlBatch:
             *(["--keep"] if os.environ.get("HILBO_UML_KEEP") == "1" else []),
             "--", *inner,
         ]
-        _write_json(work / "batch.json", {"deadline": time.time() + self.timeout_s + 30.0,
-                                          "nodeids": nodeids})
         with open(work / "stdout.txt", "wb") as out, open(work / "stderr.txt", "wb") as err:
             self._proc = subprocess.Popen(cmd, cwd=self.config.rootpath, stdin=subprocess.DEVNULL,
                                           stdout=out, stderr=err, preexec_fn=_die_with_parent)
+        # Written once the boot runs: a proxy that finds it waits for that process.
+        _write_json(work / "batch.json", {"deadline": time.time() + self.timeout_s + 30.0,
+                                          "nodeids": nodeids, "boot_pid": self._proc.pid})
         # Writes status.json when the boot ends, for the proxies of every worker. Started before
         # any test, so it is not a test's leak; it ends with the boot.
         self._watcher = threading.Thread(target=self._watch, args=(self._proc,),
@@ -196,6 +210,7 @@ class UmlBatch:
         Raises:
             UmlTestFailure: The boot ended, or ran out of time, without reporting it.
         """
+        gone: float | None = None  # when the boot's process was first seen gone
         while True:
             result = read_report(self.work / "report.jsonl").get(nodeid)
             if result is not None and result.done:
@@ -216,6 +231,14 @@ class UmlBatch:
                 self.close()
                 raise UmlTestFailure(self._failure(f"did not report {nodeid} within "
                                                    f"{self.timeout_s:g} s (HILBO_UML_TIMEOUT_S)"))
+            elif not _running(batch["boot_pid"]):
+                # Its owner writes status.json as soon as it has reaped the boot; none within
+                # a grace means the owner died with it (an xdist worker that crashed).
+                gone = gone if gone is not None else time.monotonic()
+                if time.monotonic() - gone > _ORPHAN_GRACE_S:
+                    raise UmlTestFailure(self._failure(
+                        f"(pid {batch['boot_pid']}) ended without a status before reporting "
+                        f"{nodeid}; the worker that started it (gw0) is gone"))
             threading.Event().wait(_POLL_S)
 
     def _failure(self, what: str) -> str:
