@@ -346,7 +346,10 @@ def test_r_in_the_live_view_passes_the_bout_pause(tmp_path: Path, devices: Devic
     assert rc_file.read_text().strip() == "0", screen
     kinds = assert_session_ended_in_the_optimisation_bout(out_file.read_text())
     if "pause: between bouts" in kinds:  # else the bout pause fell into a watchdog pause
-        assert "paused: between bouts" in presses, f"the view never showed the bout pause: {presses}"
+        # A watchdog pause during it shows beside it ("paused: between bouts; device heartbeat
+        # lost for 145 ms" once): the operator still sees the bout pause.
+        assert any(p.startswith("paused: between bouts") for p in presses), \
+            f"the view never showed the bout pause: {presses}"
     after = kinds[next(i for i, k in enumerate(kinds) if k.startswith("bout_pause")):]
     ended = next(k for k in after if k.startswith(("resume", "stop")))
     assert ended == "resume: resumed by the operator", (ended, presses, kinds)
