@@ -163,14 +163,15 @@ async def run_session(
     # Ctrl-C and SIGTERM stop the session from before its log exists: a stop that comes before
     # the session is made is handed to it then, so no signal falls in a window where it is lost
     # (or ignored, when the caller ignores SIGINT).
-    sessions: list[BridgeSession] = []
-    stop_early = [False]
+    session: BridgeSession | None = None
+    stop_early = False
 
     def stop() -> None:
-        if sessions:
-            sessions[0].command(Command.STOP)
+        nonlocal stop_early
+        if session is not None:
+            session.command(Command.STOP)
         else:
-            stop_early[0] = True
+            stop_early = True
 
     with stop_signal_handlers(loop, stop):
         async with CanEndpoint(cfg.can.bus) as endpoint, stream:
@@ -185,8 +186,7 @@ async def run_session(
                 session = BridgeSession(opt, cfg.make_gate(), endpoint, stream, log, settings,
                                         protocol=protocol)
                 session.status.budget_s = protocol.config.budget_s
-                sessions.append(session)
-                if stop_early[0]:
+                if stop_early:
                     session.command(Command.STOP)
                 if live is not None:
                     session.status.event(f"live view: {live.url or 'off, ' + str(live.start_error)}")

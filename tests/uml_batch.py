@@ -153,6 +153,7 @@ class UmlBatch:
         self._proc: subprocess.Popen[bytes] | None = None
         self._watcher: threading.Thread | None = None
         self._created = time.monotonic()
+        self._deadline = 0.0  # wall clock (time.time) by which the boot must have reported
         self.timeout_s = float(os.environ.get("HILBO_UML_TIMEOUT_S", "480"))
 
     @property
@@ -187,8 +188,9 @@ class UmlBatch:
             self._proc = subprocess.Popen(cmd, cwd=self.config.rootpath, stdin=subprocess.DEVNULL,
                                           stdout=out, stderr=err, preexec_fn=_die_with_parent)
         # Written once the boot runs: a proxy that finds it waits for that process.
-        _write_json(work / "batch.json", {"deadline": time.time() + self.timeout_s + 30.0,
-                                          "nodeids": nodeids, "boot_pid": self._proc.pid})
+        self._deadline = time.time() + self.timeout_s + 30.0
+        _write_json(work / "batch.json", {"deadline": self._deadline, "nodeids": nodeids,
+                                          "boot_pid": self._proc.pid})
         # Writes status.json when the boot ends, for the proxies of every worker. Started before
         # any test, so it is not a test's leak; it ends with the boot.
         self._watcher = threading.Thread(target=self._watch, args=(self._proc,),
@@ -252,9 +254,8 @@ class UmlBatch:
         still wait for, unless the run was interrupted; then end it."""
         proc = self._proc
         if proc is not None and not interrupted:
-            batch = _read_json(self.work / "batch.json") or {"deadline": 0.0}
             with contextlib.suppress(subprocess.TimeoutExpired):
-                proc.wait(timeout=max(0.0, batch["deadline"] - time.time()))
+                proc.wait(timeout=max(0.0, self._deadline - time.time()))
         self.close()
         if self._watcher is not None:
             self._watcher.join(timeout=5.0)

@@ -37,9 +37,9 @@ def png_size(path: Path) -> tuple[int, int]:
 def sims(tmp_path_factory: pytest.TempPathFactory) -> dict[int, Path]:
     """Two small simulated sessions (seeds 2 and 3): {seed: directory with session.mcap, summary.json}.
 
-    8 walked minutes, proposals in a thread: start-up and pushes count as walking time, and at
-    --speed max the worker process's start beside CPU burners ate a 5-minute session's exploration
-    bout (no threshold plot).
+    8 walked minutes, proposals in a thread: pushes count as walking time, and at --speed max the
+    worker process's start beside CPU burners once ate a 5-minute session's exploration bout (no
+    threshold plot), before the session's clock waited for the worker.
     """
     out = {}
     for seed in (2, 3):

@@ -21,10 +21,10 @@ pytestmark = pytest.mark.slow
 
 
 def small(**kw) -> VirtualSimConfig:
-    # Walking time counts the bridge's start and every push (issue 17), and at --speed max a
-    # second of wall time is 100 s of it: the proposal worker's process start (2-3 s beside CPU
-    # burners) ate 5 of 8 minutes. These tests are not about the worker (test_sim_worker.py is),
-    # so they ask in a thread.
+    # Walking time counts every push (issue 17), and at --speed max a second of wall time is 100 s
+    # of it. The proposal worker's process start (2-3 s beside CPU burners) once ate 5 of 8
+    # minutes; the session's clock now waits for the worker (test_session_start.py), but these
+    # tests are not about the worker (test_sim_worker.py is), so they ask in a thread.
     opts = {"minutes": 8.0, "seed": 2, "n_explore": 3, "max_breaths": 10, "warmup_s": 20.0,
             "proposal_worker": "thread"}
     opts.update(kw)
