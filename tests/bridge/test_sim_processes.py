@@ -34,6 +34,7 @@ from bridge.cli.main import main
 from bridge.config import example_config_text
 from bridge.errors import DeviceProcessError
 from bridge.log.reader import LogContents, read_log
+from bridge.runtime import RuntimeSettings
 from bridge.sim.processes import ChildProcess, device_processes, run_process_sim, vcan_problem
 from bridge.sim.virtual import VirtualSimConfig
 from hilbo_core.presets import hip_6d
@@ -46,6 +47,8 @@ ROOT = Path(__file__).resolve().parents[2]
 # proposal's computing time is walking time at the new speed.
 SPEED = 30.0
 BUSES = [pytest.param("vcan", marks=pytest.mark.vcan), "remote"]
+#: Transfers of a push that got no ack ([can] push_retries, the default in the sims and the config).
+PUSH_ATTEMPTS = RuntimeSettings.push_retries + 1
 
 
 def small(**kw: Any) -> VirtualSimConfig:
@@ -113,15 +116,27 @@ def assert_log_and_summary_agree(log: LogContents, s: dict[str, Any]) -> None:
     assert [o["params"] for o in log.data("/observations")] == [e["params"] for e in s["evaluations"]]
     assert len(log.data("/breaths")) == s["n_breaths"]
     acks = log.data("/acks")
-    assert len(acks) >= s["n_evaluations"] and all(a["accepted"] for a in acks)
-    kinds = [e["kind"] for e in log.data("/events")]
+    failed = [a for a in acks if not a["accepted"]]
+    # The device refused no push. A push may still fail for want of an ack in time: inside
+    # user-mode Linux beside a CPU burner the event loop stalled for up to 200 ms and one push got
+    # no ack in its 4 attempts of 0.25 s. That is the protocol's failure path, and the session
+    # must take it: pause (assistance off), re-measure the setting, resume by the policy.
+    assert all(a["reason"] == "none" and "no ack" in a["error"] for a in failed), failed
+    assert len(acks) - len(failed) >= s["n_evaluations"]
+    events = log.data("/events")
+    kinds = [e["kind"] for e in events]
     assert kinds[0] == "session_start" and "session_end" in kinds and "bus_error" not in kinds
+    push_pauses = [e for e in events if e["kind"] == "pause" and "profile push failed" in e["message"]]
+    assert len(push_pauses) == len(failed)
 
 
 def assert_the_device_acked_every_push(log: LogContents, device_stats: dict[str, int]) -> None:
-    # A retried push (its ack came after the bridge's timeout) is acked once per transfer.
+    # A retried push (its ack came after the bridge's timeout) is acked once per transfer; a
+    # push that failed for want of an ack sent PUSH_ATTEMPTS transfers, each acked at most once.
     acks = log.data("/acks")
-    assert len(acks) <= device_stats["acks"] <= sum(a["attempts"] for a in acks)
+    accepted = [a for a in acks if a["accepted"]]
+    most = sum(a["attempts"] for a in accepted) + PUSH_ATTEMPTS * (len(acks) - len(accepted))
+    assert len(accepted) <= device_stats["acks"] <= most
 
 
 # --- hilbo sim --processes ------------------------------------------------------------------------
