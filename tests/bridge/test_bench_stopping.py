@@ -19,6 +19,7 @@ from bridge.bench.stopping import (
     summarize_stopping,
 )
 from hilbo_core.errors import ConfigError
+from hilbo_core.optimizer import OptimizerConfig
 from hilbo_core.studies.benchmarks import StoppingProtocol
 
 TOY = StoppingProtocol(n_explore=3, max_breaths=4, window=1, budget=8, n_candidates=32, n_local=0)
@@ -171,19 +172,20 @@ def test_cli_refit_growth_toy_run_and_bad_value(tmp_path: Path, capsys: pytest.C
     assert not bad.exists()
 
 
-def test_cli_n_local_defaults_to_one_refinement_and_is_recorded(tmp_path: Path,
-                                                                 capsys: pytest.CaptureFixture[str]) -> None:
+def test_cli_n_local_defaults_to_the_optimizers_three_and_is_recorded(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     argv = ["stopping", "--trials", "1", "--functions", "branin", "--noise", "1", "--methods", "fixed",
             "--n-explore", "3", "--max-breaths", "4", "--budget", "8", "--n-candidates", "32",
             "--workers", "1", "--no-progress"]
-    assert bench_main([*argv, "--out", str(tmp_path / "one")]) == 0
-    doc = json.loads((tmp_path / "one" / "results.json").read_text())
-    assert " --n-local 1 " in doc["command"] and doc["campaign"]["protocol"]["n_local"] == 1
-    # The optimizer's three refinements stay selectable, and are a campaign of their own.
-    assert bench_main([*argv, "--n-local", "3", "--out", str(tmp_path / "three")]) == 0
+    assert bench_main([*argv, "--out", str(tmp_path / "three")]) == 0
     doc = json.loads((tmp_path / "three" / "results.json").read_text())
     assert " --n-local 3 " in doc["command"] and doc["campaign"]["protocol"]["n_local"] == 3
-    assert load_trials(tmp_path / "three" / "trials.jsonl", StoppingProtocol(
+    assert doc["campaign"]["protocol"]["n_local"] == OptimizerConfig().n_local
+    # One refinement is selectable, and is a campaign of its own.
+    assert bench_main([*argv, "--n-local", "1", "--out", str(tmp_path / "one")]) == 0
+    doc = json.loads((tmp_path / "one" / "results.json").read_text())
+    assert " --n-local 1 " in doc["command"] and doc["campaign"]["protocol"]["n_local"] == 1
+    assert load_trials(tmp_path / "one" / "trials.jsonl", StoppingProtocol(
         n_explore=3, max_breaths=4, budget=8, n_candidates=32)) == {}
     capsys.readouterr()
     assert bench_main([*argv, "--n-local", "-1", "--out", str(tmp_path / "bad")]) == 2
