@@ -9,12 +9,12 @@ the better of the two. Writes a Markdown table and the count.
 from __future__ import annotations
 
 import json
-import math
 import statistics as st
 import sys
 from collections import defaultdict
 
-FUNCTION_ORDER = ["hartmann6", "ackley", "levy", "branin"]
+from paired import FUNCTION_ORDER, sem  # the sibling script (run as a script, its directory is on the path)
+
 PEERS = ("tpe-wilcoxon", "tpe-halving")
 
 
@@ -28,7 +28,7 @@ def final_y(paths: list[str]) -> dict[tuple[str, float, str], list[float]]:
 
 
 def cell(values: list[float]) -> str:
-    return f"{st.mean(values):.3f} ± {st.stdev(values) / math.sqrt(len(values)):.3f}"
+    return f"{st.mean(values):.3f} ± {sem(values):.3f}"
 
 
 def main(bo_path: str, tpe_path: str) -> None:
