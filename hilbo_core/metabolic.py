@@ -6,8 +6,10 @@
   reports, after every breath, the mean and variance of the steady-state cost ``c``.
 * :class:`GaussianProductEstimator` is the measurement model of the simulation study (seed 000
   §III.2): a Gaussian state fused with each measurement by the product of Gaussians.
+  :class:`PooledNoiseEstimator` is the same with the measurement variance learnt from the run's
+  data (:class:`MeasurementNoisePool`), the assumed σ_z² being only its prior.
 
-Both satisfy the :class:`Estimator` protocol. The optimizer takes an *estimator factory* (a
+All satisfy the :class:`Estimator` protocol. The optimizer takes an *estimator factory* (a
 callable returning a fresh estimator for each setting) so benchmarks can swap the model. The
 default estimator, :class:`~hilbo_core.estimation.TransitionEstimator`, lives in
 ``hilbo_core.estimation`` (issue 16).
@@ -38,7 +40,9 @@ __all__ = [
     "Estimator",
     "EstimatorFactory",
     "GaussianProductEstimator",
+    "MeasurementNoisePool",
     "MetabolicUKF",
+    "PooledNoiseEstimator",
     "UKFConfig",
     "brockway_watts",
     "divide_gaussian",
@@ -188,6 +192,15 @@ def _as_float(value: object, name: str) -> float:
         return float(value)  # type: ignore[arg-type]
     except (TypeError, ValueError) as err:
         raise MeasurementError(f"{name}={value!r} is not a number") from err
+
+
+def _check_measurement(t_s: float, value: object, last_t_s: float | None) -> tuple[float, float]:
+    """(t, z) of a measurement of the Gaussian-product estimators: a valid time, a finite z."""
+    t = _check_time(t_s, last_t_s)
+    z = _as_float(value, "value")
+    if not math.isfinite(z):
+        raise MeasurementError(f"value={value!r} at t_s={t_s!r} must be finite")
+    return t, z
 
 
 def _check_time(t_s: float, last_t_s: float | None) -> float:
@@ -551,13 +564,163 @@ class GaussianProductEstimator:
         Raises:
             MeasurementError: Bad time or non-finite value; the state is left unchanged.
         """
-        t = _check_time(t_s, self._last_t_s)
-        z = _as_float(value, "value")
-        if not math.isfinite(z):
-            raise MeasurementError(f"value={value!r} at t_s={t_s!r} must be finite")
+        t, z = _check_measurement(t_s, value, self._last_t_s)
         var = 1.0 / (1.0 / self._var + 1.0 / self._meas_var)
         self._mean = var * (self._mean / self._var + z / self._meas_var)
         self._var = var
         self._n_updates += 1
         self._last_t_s = t
         return self._mean, self._var
+
+
+class MeasurementNoisePool:
+    """One measurement variance shared by the estimators of one run, learnt from their data.
+
+    Seed 000 §III.2 gives every measurement the variance σ_z² the study assumes. When that
+    assumption is wrong (the study's ``assumed`` reading, or a person whose breaths are noisier
+    than expected), every estimate's variance is off by the same factor, and the stopping rule
+    trusts (or distrusts) single measurements accordingly. Here σ_z² is only the prior: a
+    scaled-inverse-χ² with ``prior_dof`` pseudo-measurements (the form of the breath noise of
+    :class:`~hilbo_core.estimation.TransitionEstimator`), updated with every setting's sum of
+    squares about its own mean (n − 1 degrees of freedom for n measurements: the setting's true
+    value is unknown, so the noise is measured around its mean). The settings of one run share
+    the noise because they are one person on one instrument.
+
+    The default weight is the weakest proper one, ν0 = 3 (the smallest with a finite Student-t
+    variance below). The TransitionEstimator's ν0 = 10 belongs to a prior measured on real
+    breaths (issue 16's median CV); an assumed σ_z² may be 10× off, and a run pools hundreds of
+    measurements, so the prior only has to carry the first breaths. With ν0 = 10 a prior 10×
+    too high still weighed 100 measurements' worth after exploration (docs/results.md §1,
+    "Learning the measurement variance").
+
+    The variance an estimate uses is the Student-t's, ``s²·ν/(ν − 2)`` with ν the degrees of
+    freedom, so it describes the errors while ν is small (the same inflation as the
+    TransitionEstimator's).
+
+    Args:
+        assumed_var: The assumed measurement variance σ_z² (> 0), the prior's scale.
+        prior_dof: Its weight ν0 in pseudo-measurements (> 2, so the inflation is finite;
+            default 3).
+
+    Raises:
+        ConfigError: A non-finite or out-of-range argument.
+    """
+
+    def __init__(self, assumed_var: float, prior_dof: float = 3.0) -> None:
+        for name, value, low in (("assumed_var", assumed_var, 0.0), ("prior_dof", prior_dof, 2.0)):
+            v = float(value)
+            if not (math.isfinite(v) and v > low):
+                raise ConfigError(f"MeasurementNoisePool {name}={value!r} must be a finite number > {low:g}")
+        self._prior_ss = float(prior_dof) * float(assumed_var)
+        self._prior_dof = float(prior_dof)
+        self._ss = 0.0
+        self._dof = 0
+
+    @property
+    def dof(self) -> float:
+        """ν: prior pseudo-measurements plus the measured degrees of freedom."""
+        return self._prior_dof + self._dof
+
+    @property
+    def scale_var(self) -> float:
+        """s², the posterior scale of the measurement variance."""
+        return (self._prior_ss + self._ss) / self.dof
+
+    @property
+    def meas_var(self) -> float:
+        """The variance one measurement is fused with: s²·ν/(ν − 2)."""
+        nu = self.dof
+        return self.scale_var * nu / (nu - 2.0)
+
+    def add(self, sum_squares: float, dof: int) -> None:
+        """Add a setting's new sum of squares about its mean and its new degrees of freedom."""
+        self._ss += max(float(sum_squares), 0.0)  # round-off can make a Welford step -1e-17
+        self._dof += int(dof)
+
+
+class PooledNoiseEstimator:
+    """:class:`GaussianProductEstimator` whose measurement variance is a :class:`MeasurementNoisePool`'s.
+
+    After n measurements with mean z̄ and the pool's variance v: ``var = 1/(1/prior_var + n/v)``
+    and ``mean = var·(prior_mean/prior_var + n·z̄/v)``, recomputed from (n, z̄) whenever read, so
+    every estimate of the run uses the variance learnt so far. Each measurement also adds its
+    part of the setting's sum of squares to the pool (Welford's update).
+
+    Args:
+        prior_mean: Initial mean (the benchmark uses the function's mean μ̃).
+        prior_var: Initial variance (> 0; the benchmark uses σ̃²).
+        pool: The run's shared measurement variance.
+
+    Raises:
+        ConfigError: A non-finite prior or a non-positive prior variance.
+    """
+
+    def __init__(self, prior_mean: float, prior_var: float, pool: MeasurementNoisePool) -> None:
+        for name, value, positive in (("prior_mean", prior_mean, False), ("prior_var", prior_var, True)):
+            v = float(value)
+            if not math.isfinite(v) or (positive and v <= 0.0):
+                what = "a finite variance > 0" if positive else "finite"
+                raise ConfigError(f"PooledNoiseEstimator {name}={value!r} must be {what}")
+        self._prior = (float(prior_mean), float(prior_var))
+        self._pool = pool
+        self._n = 0
+        self._zbar = 0.0
+        self._last_t_s: float | None = None
+
+    def _state(self) -> tuple[float, float]:
+        m0, v0 = self._prior
+        if self._n == 0:
+            return m0, v0
+        v = self._pool.meas_var
+        var = 1.0 / (1.0 / v0 + self._n / v)
+        return var * (m0 / v0 + self._n * self._zbar / v), var
+
+    @property
+    def mean(self) -> float:
+        """Current mean of the state."""
+        return self._state()[0]
+
+    @property
+    def var(self) -> float:
+        """Current variance of the state."""
+        return self._state()[1]
+
+    @property
+    def n_updates(self) -> int:
+        """Number of measurements fused."""
+        return self._n
+
+    @property
+    def last_t(self) -> float | None:
+        """Time of the last accepted measurement, or None."""
+        return self._last_t_s
+
+    def data_only(self) -> tuple[float, float]:
+        """The measurements' information without the prior (for the GP): (mean, variance).
+
+        After n measurements, (z̄, v/n) with the pool's current v; before any, (μ̃, 1e6·σ̃²)
+        (:func:`divide_gaussian`).
+        """
+        return divide_gaussian(*self._state(), *self._prior)
+
+    def update(self, t_s: float, value: float) -> tuple[float, float]:
+        """Fuse one measurement (and add it to the pool).
+
+        Args:
+            t_s: Measurement time; only checked (finite, ≥ 0, strictly increasing).
+            value: The measurement z (any finite number).
+
+        Returns:
+            (mean, variance) after fusing.
+
+        Raises:
+            MeasurementError: Bad time or non-finite value; the state is left unchanged.
+        """
+        t, z = _check_measurement(t_s, value, self._last_t_s)
+        self._n += 1
+        delta = z - self._zbar
+        self._zbar += delta / self._n
+        # Welford: the setting's sum of squares about its mean grows by delta·(z − new mean).
+        self._pool.add(delta * (z - self._zbar), 1 if self._n >= 2 else 0)
+        self._last_t_s = t
+        return self._state()

@@ -85,7 +85,8 @@ def _stopping_command(args: argparse.Namespace, campaign: Any) -> str:
     p = campaign.protocol
     return (f"hilbo bench stopping --trials {campaign.trials} --functions {','.join(campaign.functions)} "
             f"--noise {','.join(f'{n:g}' for n in campaign.noises)} --methods {','.join(campaign.methods)} "
-            f"--noise-model {p.noise_model.value} --budget {p.budget} --n-explore {p.n_explore} "
+            f"--noise-model {p.noise_model.value} --noise-estimate {p.noise_estimate.value} "
+            f"--budget {p.budget} --n-explore {p.n_explore} "
             f"--max-breaths {p.max_breaths} --window {p.window} --n-candidates {p.n_candidates} "
             f"--n-local {p.n_local} --seed {campaign.seed} --refit-growth {campaign.refit_growth:g} "
             f"--grid-step {args.grid_step} --out {args.out}"
@@ -115,7 +116,8 @@ def _cmd_stopping(args: argparse.Namespace) -> int:
             raise ConfigError(f"--grid-step {args.grid_step}; expected an integer >= 1")
         protocol = StoppingProtocol(n_explore=args.n_explore, max_breaths=args.max_breaths,
                                     window=args.window, budget=args.budget, noise_model=args.noise_model,
-                                    n_candidates=args.n_candidates, n_local=args.n_local)
+                                    noise_estimate=args.noise_estimate, n_candidates=args.n_candidates,
+                                    n_local=args.n_local)
         campaign = StoppingCampaign(functions=tuple(functions), noises=tuple(noises),
                                     methods=tuple(methods), trials=args.trials, seed=args.seed,
                                     protocol=protocol, refit_growth=args.refit_growth)
@@ -155,7 +157,9 @@ def _cmd_stopping(args: argparse.Namespace) -> int:
         "functions": function_descriptions(functions),
         "noise": "σ_z²/σ̃² (seed 000 §III.2 levels 0.1, 1, 10); noise_model 'matched': measurements "
                  "have variance σ_z² and the estimator knows it; 'assumed': measurements have "
-                 "variance σ̃² and σ_z² is the estimator's assumption",
+                 "variance σ̃² and σ_z² is the estimator's assumption; noise_estimate 'seed': "
+                 "every measurement is fused with σ_z²; 'pooled': with the variance learnt from "
+                 "the trial's measurements, σ_z² as its prior",
         **summary,
     }
     write_json(out / "results.json", doc)
@@ -394,6 +398,10 @@ def add_bench_parser(subparsers: Any) -> Any:
     st.add_argument("--noise-model", default="matched", choices=["matched", "assumed"],
                     help="matched: measurements have variance σ_z²; assumed: they have σ̃² and σ_z² "
                          "is only the estimator's assumption (default matched)")
+    st.add_argument("--noise-estimate", default="pooled", choices=["pooled", "seed"],
+                    help="pooled: the measurement variance is learnt from the trial's measurements, "
+                         "σ_z² being its prior (10 pseudo-measurements); seed: every measurement "
+                         "has variance σ_z², as in seed 000 (default pooled)")
     st.add_argument("--budget", type=_int, default=630, help="measurements after exploration (630)")
     st.add_argument("--n-explore", type=_int, default=6, help="exploration points (6)")
     st.add_argument("--max-breaths", type=_int, default=45, help="N, measurements per evaluation (45)")

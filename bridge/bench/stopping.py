@@ -29,7 +29,6 @@ estimate (pruned settings have no final value). Optuna is the optional extra ``p
 
 from __future__ import annotations
 
-import functools
 import json
 import logging
 import math
@@ -45,7 +44,6 @@ import numpy as np
 from bridge.bench.common import blas_threads, markdown_table, round_sig
 from bridge.bench.executors import keep_freed_memory
 from hilbo_core.errors import ConfigError, OptimizerStateError
-from hilbo_core.metabolic import GaussianProductEstimator
 from hilbo_core.optimizer import HILOptimizer, OptimizerConfig, Phase
 from hilbo_core.space import DesignKind
 from hilbo_core.studies.benchmarks import (
@@ -57,6 +55,7 @@ from hilbo_core.studies.benchmarks import (
     StoppingMethod,
     StoppingProtocol,
     check_noise,
+    estimator_factory,
     measure,
     resolve_function,
     resolve_method,
@@ -144,9 +143,9 @@ def peer_trial(function: str, noise: float, method: str, seed: int,
         raise ConfigError(f"seed={seed!r}; expected an integer >= 0")
     optuna = _import_optuna()
     prior_var = fn.prior_std**2
-    assumed_var = level * prior_var
-    true_var = assumed_var if proto.noise_model is NoiseModel.MATCHED else prior_var
-    estimator = functools.partial(GaussianProductEstimator, fn.prior_mean, prior_var, assumed_var)
+    true_var = level * prior_var if proto.noise_model is NoiseModel.MATCHED else prior_var
+    # One factory per trial: exploration and every Optuna setting share its noise pool.
+    estimator = estimator_factory(fn, level, proto.noise_estimate)
     rng = np.random.default_rng([int(seed), _NOISE_STREAM])
 
     # Exploration exactly as stopping_trial runs it (same optimizer seed, design, noise stream):
@@ -191,8 +190,11 @@ def peer_trial(function: str, noise: float, method: str, seed: int,
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     study = optuna.create_study(direction="minimize", pruner=pruner,
                                 sampler=optuna.samplers.TPESampler(seed=int(seed)))
-    for params, mean, zs in explored:
-        inter = _intermediates(peer, zs, estimator)
+    # The running estimates of the exploration settings are the explorer's traces (estimating
+    # them again would add their measurements to the trial's noise pool a second time).
+    running, _ = explorer.exploration_traces
+    for (params, mean, zs), trace in zip(explored, running, strict=True):
+        inter = [float(z) for z in zs] if peer.pruner == "wilcoxon" else [float(m) for m in trace]
         study.add_trial(optuna.trial.create_trial(
             params={n: float(params[n]) for n in names}, distributions=dists, value=float(mean),
             intermediate_values=dict(enumerate(inter))))
@@ -233,15 +235,6 @@ def peer_trial(function: str, noise: float, method: str, seed: int,
         "y": y.tolist(), "evaluations": evaluations, "early_stops": pruned, "pruned": pruned,
         "measurements": t, "f_x0": f_x0, "f_final": fn.value(rec), "x0": x0, "x_final": rec,
     }
-
-
-def _intermediates(peer: PeerMethod, zs: Sequence[float], estimator: Callable[[], Any]) -> list[float]:
-    """The intermediate values a setting measured ``zs`` reports: the single measurements
-    (Wilcoxon) or the running estimate (successive halving)."""
-    if peer.pruner == "wilcoxon":
-        return [float(z) for z in zs]
-    est = estimator()
-    return [float(est.update(float(i + 1), z)[0]) for i, z in enumerate(zs)]
 
 
 @dataclass(frozen=True)
@@ -353,7 +346,8 @@ def load_trials(path: Path, protocol: StoppingProtocol, refit_growth: float = 1.
     :meth:`StoppingTask.key`.
 
     Lines of other protocols or growth factors are skipped (a line without ``refit_growth`` was
-    written before the option existed and refitted at every proposal: 1.0); a truncated last line
+    written before the option existed and refitted at every proposal: 1.0; one without the
+    protocol's ``noise_estimate`` used the seed's estimator); a truncated last line
     (a killed run) is ignored.
     """
     out: dict[tuple[str, float, str, int], dict[str, Any]] = {}
@@ -368,7 +362,9 @@ def load_trials(path: Path, protocol: StoppingProtocol, refit_growth: float = 1.
         except json.JSONDecodeError:
             logger.warning("%s:%d: unreadable line skipped (interrupted write?)", path, n)
             continue
-        if rec.get("protocol") != want or float(rec.get("refit_growth", 1.0)) != refit_growth:
+        # A line without noise_estimate was written before the option existed: the seed's.
+        proto = {"noise_estimate": "seed", **rec.get("protocol", {})}
+        if proto != want or float(rec.get("refit_growth", 1.0)) != refit_growth:
             continue
         out[(rec["function"], float(rec["noise"]), rec["method"], int(rec["seed"]))] = rec
     return out

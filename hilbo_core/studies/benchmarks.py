@@ -5,8 +5,11 @@
   initialises every estimate with. Definitions follow Surjanovic & Bingham's Virtual Library of
   Simulation Experiments (the standard forms the seed's Table I values belong to).
 * The measurement model: a measurement of x is ``z = f(x) + ε`` with ``ε ~ N(0, σ_z²)``; the
-  estimate of x starts at (μ̃, σ̃²) and fuses every z by the product of Gaussians
-  (:class:`~hilbo_core.metabolic.GaussianProductEstimator`).
+  estimate of x starts at (μ̃, σ̃²) and fuses every z by the product of Gaussians. The seed's
+  estimator fuses every z with σ_z² (:class:`~hilbo_core.metabolic.GaussianProductEstimator`,
+  ``noise_estimate="seed"``); the default learns the measurement variance from the trial's
+  measurements with σ_z² as its prior (:class:`~hilbo_core.metabolic.PooledNoiseEstimator`,
+  ``"pooled"``, :class:`NoiseEstimate`).
 * :func:`stopping_trial` — one trial of one method: the same ``n_explore`` design points for every
   method (the design depends on the seed only), ``max_breaths`` (N) measurements each, then
   ``budget`` further measurements of Bayesian optimisation, and the metric
@@ -41,7 +44,7 @@ import numpy as np
 import numpy.typing as npt
 
 from hilbo_core.errors import ConfigError, OptimizerStateError
-from hilbo_core.metabolic import GaussianProductEstimator
+from hilbo_core.metabolic import GaussianProductEstimator, MeasurementNoisePool, PooledNoiseEstimator
 from hilbo_core.optimizer import HILOptimizer, Phase
 from hilbo_core.space import Parameter, ParameterSpace
 
@@ -49,12 +52,14 @@ __all__ = [
     "FUNCTIONS",
     "METHODS",
     "NOISE_LEVELS",
+    "NoiseEstimate",
     "NoiseModel",
     "StoppingMethod",
     "StoppingProtocol",
     "TestFunction",
     "ackley",
     "branin",
+    "estimator_factory",
     "hartmann6",
     "levy",
     "measure",
@@ -249,6 +254,36 @@ class NoiseModel(enum.Enum):
     ASSUMED = "assumed"  # measurements have variance σ̃²; the estimator assumes σ_z²
 
 
+class NoiseEstimate(enum.Enum):
+    """What measurement variance the estimates fuse with.
+
+    ``seed``: σ_z², always (seed 000 §III.2's estimator). ``pooled`` (the default): σ_z² is the
+    prior of a variance learnt from every measurement of the trial
+    (:class:`~hilbo_core.metabolic.MeasurementNoisePool`, 10 pseudo-measurements), as hilbo's
+    breath estimator learns a person's breath noise. Under ``assumed`` with σ_z² ≠ σ̃² the seed's
+    estimator is over- or under-confident by the factor σ_z²/σ̃² at every measurement
+    (docs/results.md §1); the pooled one learns σ̃² during exploration.
+    """
+
+    SEED = "seed"
+    POOLED = "pooled"
+
+
+def estimator_factory(fn: TestFunction, noise: float,
+                      estimate: NoiseEstimate = NoiseEstimate.POOLED) -> Callable[[], Any]:
+    """The estimator factory of one trial: (μ̃, σ̃²) priors, assumed measurement variance noise·σ̃².
+
+    Call it once per trial: with ``pooled`` its estimators share one
+    :class:`~hilbo_core.metabolic.MeasurementNoisePool`.
+    """
+    prior_var = fn.prior_std**2
+    assumed_var = check_noise(noise) * prior_var
+    if NoiseEstimate(estimate) is NoiseEstimate.SEED:
+        return functools.partial(GaussianProductEstimator, fn.prior_mean, prior_var, assumed_var)
+    pool = MeasurementNoisePool(assumed_var)
+    return functools.partial(PooledNoiseEstimator, fn.prior_mean, prior_var, pool)
+
+
 def measure(f_value: float, var: float, rng: np.random.Generator) -> float:
     """One noisy measurement ``z = f(x) + ε``, ``ε ~ N(0, var)`` (seed 000 §III.2)."""
     return float(f_value + rng.normal(0.0, math.sqrt(var)))
@@ -312,6 +347,7 @@ class StoppingProtocol:
         window: Algorithm 2's window W (2).
         budget: Measurements of the optimisation phase (630 = 14 fixed evaluations).
         noise_model: ``"matched"`` or ``"assumed"`` (:class:`NoiseModel`).
+        noise_estimate: ``"pooled"`` or ``"seed"`` (:class:`NoiseEstimate`).
         n_candidates: Feasible Sobol candidates per EI maximisation.
         n_local: Candidates refined locally per EI maximisation.
     """
@@ -321,6 +357,7 @@ class StoppingProtocol:
     window: int = 2
     budget: int = 630
     noise_model: NoiseModel = NoiseModel.MATCHED
+    noise_estimate: NoiseEstimate = NoiseEstimate.POOLED
     n_candidates: int = 1024
     # OptimizerConfig's 3. One refinement makes the campaign 1.6x faster but changed the fixed
     # method's y_T beyond noise on the 6-D functions (docs/results.md §1, "Campaign time on
@@ -333,6 +370,12 @@ class StoppingProtocol:
         except ValueError as err:
             raise ConfigError(
                 f"noise_model={self.noise_model!r}; choose one of {[m.value for m in NoiseModel]}"
+            ) from err
+        try:
+            object.__setattr__(self, "noise_estimate", NoiseEstimate(self.noise_estimate))
+        except ValueError as err:
+            raise ConfigError(
+                f"noise_estimate={self.noise_estimate!r}; choose one of {[m.value for m in NoiseEstimate]}"
             ) from err
         for name, low in (("n_explore", 1), ("max_breaths", 2), ("window", 0), ("budget", 1),
                           ("n_candidates", 16), ("n_local", 0)):
@@ -349,6 +392,7 @@ class StoppingProtocol:
         """JSON-able form."""
         return {"n_explore": self.n_explore, "max_breaths": self.max_breaths, "window": self.window,
                 "budget": self.budget, "noise_model": self.noise_model.value,
+                "noise_estimate": self.noise_estimate.value,
                 "n_candidates": self.n_candidates, "n_local": self.n_local}
 
 
@@ -416,12 +460,11 @@ def stopping_trial(
     if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
         raise ConfigError(f"seed={seed!r}; expected an integer >= 0")
     prior_var = fn.prior_std**2
-    assumed_var = level * prior_var
-    true_var = assumed_var if proto.noise_model is NoiseModel.MATCHED else prior_var
+    true_var = level * prior_var if proto.noise_model is NoiseModel.MATCHED else prior_var
     space = fn.space()
     opt = HILOptimizer(
         space,
-        estimator_factory=functools.partial(GaussianProductEstimator, fn.prior_mean, prior_var, assumed_var),
+        estimator_factory=estimator_factory(fn, level, proto.noise_estimate),
         n_explore=proto.n_explore, max_breaths=proto.max_breaths, window=proto.window,
         budget_breaths=proto.budget, seed=int(seed), n_candidates=proto.n_candidates,
         n_local=proto.n_local, **dict(meth.options),

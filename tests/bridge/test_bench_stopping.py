@@ -110,6 +110,16 @@ def test_toy_campaign_runs_resumes_and_respects_budgets(tmp_path: Path) -> None:
     assert load_trials(tmp_path / "trials.jsonl", StoppingProtocol()) == {}  # other protocol
 
 
+def test_load_trials_reads_a_line_without_noise_estimate_as_the_seeds(tmp_path: Path) -> None:
+    # Campaigns written before --noise-estimate existed used the seed's estimator.
+    path = tmp_path / "trials.jsonl"
+    old = {k: v for k, v in TOY.to_json().items() if k != "noise_estimate"}
+    path.write_text(json.dumps(fake("fixed", 0, [1.0]) | {"protocol": old}) + "\n")
+    seed = StoppingProtocol(**{**old, "noise_estimate": "seed"})  # type: ignore[arg-type]
+    assert list(load_trials(path, seed)) == [("branin", 1.0, "fixed", 0)]
+    assert load_trials(path, TOY) == {}  # TOY is pooled (the default)
+
+
 def test_load_trials_skips_a_truncated_last_line(tmp_path: Path) -> None:
     path = tmp_path / "trials.jsonl"
     rec = fake("fixed", 0, [1.0]) | {"protocol": TOY.to_json()}
@@ -191,3 +201,24 @@ def test_cli_n_local_defaults_to_the_optimizers_three_and_is_recorded(
     assert bench_main([*argv, "--n-local", "-1", "--out", str(tmp_path / "bad")]) == 2
     assert "n_local=-1; expected an integer >= 0" in capsys.readouterr().err
     assert not (tmp_path / "bad").exists()
+
+
+def test_cli_noise_estimate_defaults_to_pooled_and_the_seeds_is_selectable(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    argv = ["stopping", "--trials", "1", "--functions", "branin", "--noise", "0.1", "--methods",
+            "adaptive", "--noise-model", "assumed", "--n-explore", "3", "--max-breaths", "6",
+            "--budget", "24", "--n-candidates", "32", "--workers", "1", "--no-progress"]
+    docs = {}
+    for name, extra in (("pooled", []), ("seed", ["--noise-estimate", "seed"])):
+        assert bench_main([*argv, *extra, "--out", str(tmp_path / name)]) == 0
+        docs[name] = json.loads((tmp_path / name / "results.json").read_text())
+        assert f" --noise-estimate {name} " in docs[name]["command"]
+        assert docs[name]["campaign"]["protocol"]["noise_estimate"] == name
+    # Same seed, same measurements, different estimators: different trials.
+    trials = {n: (tmp_path / n / "trials.jsonl").read_text() for n in docs}
+    assert json.loads(trials["pooled"])["y"] != json.loads(trials["seed"])["y"]
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:
+        bench_main([*argv, "--noise-estimate", "fitted", "--out", str(tmp_path / "bad")])
+    assert exc.value.code == 2
+    assert "invalid choice: 'fitted'" in capsys.readouterr().err

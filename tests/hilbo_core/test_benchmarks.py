@@ -10,13 +10,16 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from hilbo_core.errors import ConfigError
+from hilbo_core.metabolic import GaussianProductEstimator
 from hilbo_core.studies.benchmarks import (
     FUNCTIONS,
     METHODS,
+    NoiseEstimate,
     StoppingMethod,
     StoppingProtocol,
     ackley,
     branin,
+    estimator_factory,
     hartmann6,
     levy,
     measure,
@@ -183,7 +186,8 @@ def test_trial_rejects_bad_input_by_name(kwargs: dict, match: str) -> None:
 def test_noise_models_agree_at_the_prior_variance_and_differ_elsewhere() -> None:
     # matched: measurement variance = σ_z²; assumed: σ̃² (σ_z² only in the estimator). At
     # σ_z² = σ̃² the two readings of seed 000 §III.2 are the same experiment.
-    proto = {"n_explore": 3, "max_breaths": 4, "budget": 8, "n_candidates": 32, "n_local": 0}
+    proto = {"n_explore": 3, "max_breaths": 4, "budget": 8, "n_candidates": 32, "n_local": 0,
+             "noise_estimate": "seed"}
     matched = StoppingProtocol(**proto, noise_model="matched")  # type: ignore[arg-type]
     assumed = StoppingProtocol(**proto, noise_model="assumed")  # type: ignore[arg-type]
     same = [stopping_trial("branin", 1.0, "adaptive", 3, p) for p in (matched, assumed)]
@@ -200,6 +204,30 @@ def test_protocol_rejects_a_budget_smaller_than_one_evaluation() -> None:
         StoppingProtocol(max_breaths=45, budget=10)
     with pytest.raises(ConfigError, match="noise_model='loud'"):
         StoppingProtocol(noise_model="loud")  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match="noise_estimate='guess'"):
+        StoppingProtocol(noise_estimate="guess")  # type: ignore[arg-type]
+
+
+def test_noise_estimate_defaults_to_pooled_and_seed_is_the_seeds_estimator() -> None:
+    assert StoppingProtocol().noise_estimate is NoiseEstimate.POOLED
+    assert StoppingProtocol().to_json()["noise_estimate"] == "pooled"
+    fn = FUNCTIONS["branin"]
+    seed = estimator_factory(fn, 0.1, "seed")()
+    assert isinstance(seed, GaussianProductEstimator)
+    seed.update(1.0, 10.0)
+    # The seed's: fused with σ_z² = 0.1σ̃², whatever the data say.
+    assert seed.var == pytest.approx(1.0 / (1.0 / fn.prior_std**2 + 1.0 / (0.1 * fn.prior_std**2)))
+    # Pooled: the estimators of one factory (one trial) share one variance, another trial's don't.
+    make = estimator_factory(fn, 0.1)
+    a, b, other = make(), make(), estimator_factory(fn, 0.1)()
+    for est in (b, other):
+        est.update(1.0, 10.0)
+    a.update(1.0, 10.0)
+    before = (a.var, other.var)
+    for i, z in enumerate((-100.0, 100.0, -100.0)):
+        b.update(float(i + 2), z)
+    assert a.var > before[0]
+    assert other.var == before[1]
 
 
 def test_methods_may_not_override_the_protocol() -> None:
