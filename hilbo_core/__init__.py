@@ -17,7 +17,14 @@ from hilbo_core.errors import (
     OptimizerStateError,
 )
 from hilbo_core.gp import GaussianProcess, GPHyperparameters, KernelKind
-from hilbo_core.metabolic import GaussianProductEstimator, MetabolicUKF, UKFConfig, brockway_watts
+from hilbo_core.metabolic import (
+    GaussianProductEstimator,
+    MeasurementNoisePool,
+    MetabolicUKF,
+    PooledNoiseEstimator,
+    UKFConfig,
+    brockway_watts,
+)
 from hilbo_core.optimizer import (
     BreathStep,
     Evaluation,
@@ -59,12 +66,14 @@ __all__ = [
     "KernelKind",
     "LinearConstraint",
     "MeasurementError",
+    "MeasurementNoisePool",
     "MetabolicUKF",
     "OptimizerConfig",
     "OptimizerStateError",
     "Parameter",
     "ParameterSpace",
     "Phase",
+    "PooledNoiseEstimator",
     "PriorObservation",
     "SigmaScaledRule",
     "StopDecision",
