@@ -400,7 +400,7 @@ def add_bench_parser(subparsers: Any) -> Any:
                          "is only the estimator's assumption (default matched)")
     st.add_argument("--noise-estimate", default="pooled", choices=["pooled", "seed"],
                     help="pooled: the measurement variance is learnt from the trial's measurements, "
-                         "σ_z² being its prior (10 pseudo-measurements); seed: every measurement "
+                         "σ_z² being its prior (3 pseudo-measurements); seed: every measurement "
                          "has variance σ_z², as in seed 000 (default pooled)")
     st.add_argument("--budget", type=_int, default=630, help="measurements after exploration (630)")
     st.add_argument("--n-explore", type=_int, default=6, help="exploration points (6)")

@@ -259,7 +259,7 @@ class NoiseEstimate(enum.Enum):
 
     ``seed``: σ_z², always (seed 000 §III.2's estimator). ``pooled`` (the default): σ_z² is the
     prior of a variance learnt from every measurement of the trial
-    (:class:`~hilbo_core.metabolic.MeasurementNoisePool`, 10 pseudo-measurements), as hilbo's
+    (:class:`~hilbo_core.metabolic.MeasurementNoisePool`, 3 pseudo-measurements), as hilbo's
     breath estimator learns a person's breath noise. Under ``assumed`` with σ_z² ≠ σ̃² the seed's
     estimator is over- or under-confident by the factor σ_z²/σ̃² at every measurement
     (docs/results.md §1); the pooled one learns σ̃² during exploration.
