@@ -194,6 +194,16 @@ def _as_float(value: object, name: str) -> float:
         raise MeasurementError(f"{name}={value!r} is not a number") from err
 
 
+def _check_gaussian_args(owner: str, **args: float) -> None:
+    """ConfigError unless every argument is finite and every ``*_var`` one is > 0."""
+    for name, value in args.items():
+        v = float(value)
+        positive = name.endswith("_var")
+        if not math.isfinite(v) or (positive and v <= 0.0):
+            what = "a finite variance > 0" if positive else "finite"
+            raise ConfigError(f"{owner} {name}={value!r} must be {what}")
+
+
 def _check_measurement(t_s: float, value: object, last_t_s: float | None) -> tuple[float, float]:
     """(t, z) of a measurement of the Gaussian-product estimators: a valid time, a finite z."""
     t = _check_time(t_s, last_t_s)
@@ -506,15 +516,8 @@ class GaussianProductEstimator:
     """
 
     def __init__(self, prior_mean: float, prior_var: float, meas_var: float) -> None:
-        for name, value, positive in (
-            ("prior_mean", prior_mean, False),
-            ("prior_var", prior_var, True),
-            ("meas_var", meas_var, True),
-        ):
-            v = float(value)
-            if not math.isfinite(v) or (positive and v <= 0.0):
-                what = "a finite variance > 0" if positive else "finite"
-                raise ConfigError(f"GaussianProductEstimator {name}={value!r} must be {what}")
+        _check_gaussian_args("GaussianProductEstimator", prior_mean=prior_mean, prior_var=prior_var,
+                             meas_var=meas_var)
         self._mean = float(prior_mean)
         self._var = float(prior_var)
         self._prior = (self._mean, self._var)
@@ -656,11 +659,7 @@ class PooledNoiseEstimator:
     """
 
     def __init__(self, prior_mean: float, prior_var: float, pool: MeasurementNoisePool) -> None:
-        for name, value, positive in (("prior_mean", prior_mean, False), ("prior_var", prior_var, True)):
-            v = float(value)
-            if not math.isfinite(v) or (positive and v <= 0.0):
-                what = "a finite variance > 0" if positive else "finite"
-                raise ConfigError(f"PooledNoiseEstimator {name}={value!r} must be {what}")
+        _check_gaussian_args("PooledNoiseEstimator", prior_mean=prior_mean, prior_var=prior_var)
         self._prior = (float(prior_mean), float(prior_var))
         self._pool = pool
         self._n = 0

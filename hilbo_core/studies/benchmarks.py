@@ -365,18 +365,13 @@ class StoppingProtocol:
     n_local: int = 3
 
     def __post_init__(self) -> None:
-        try:
-            object.__setattr__(self, "noise_model", NoiseModel(self.noise_model))
-        except ValueError as err:
-            raise ConfigError(
-                f"noise_model={self.noise_model!r}; choose one of {[m.value for m in NoiseModel]}"
-            ) from err
-        try:
-            object.__setattr__(self, "noise_estimate", NoiseEstimate(self.noise_estimate))
-        except ValueError as err:
-            raise ConfigError(
-                f"noise_estimate={self.noise_estimate!r}; choose one of {[m.value for m in NoiseEstimate]}"
-            ) from err
+        choice: type[enum.Enum]
+        for name, choice in (("noise_model", NoiseModel), ("noise_estimate", NoiseEstimate)):
+            value = getattr(self, name)
+            try:
+                object.__setattr__(self, name, choice(value))
+            except ValueError as err:
+                raise ConfigError(f"{name}={value!r}; choose one of {[m.value for m in choice]}") from err
         for name, low in (("n_explore", 1), ("max_breaths", 2), ("window", 0), ("budget", 1),
                           ("n_candidates", 16), ("n_local", 0)):
             value = getattr(self, name)
