@@ -1,4 +1,4 @@
-"""The ``hilbo bench`` subcommands: ``stopping``, ``hil`` and ``perf``.
+"""The ``hilbo bench`` subcommands: ``stopping``, ``hil``, ``perf``, ``estimator``, ``tutor`` and ``pairs``.
 
 :func:`add_bench_parser` registers them on the main ``hilbo`` parser; :func:`bench_main` is a
 standalone entry point (``python -m bridge.bench ...``) with the same exit codes as ``hilbo``:
@@ -524,6 +524,10 @@ def add_bench_parser(subparsers: Any) -> Any:
     from bridge.bench.estimator import add_estimator_bench_parser
 
     add_estimator_bench_parser(bsub)  # hilbo bench estimator (issue 16)
+
+    from bridge.bench.pairs import add_pairs_bench_parser
+
+    add_pairs_bench_parser(bsub)  # hilbo bench pairs (issue 17)
     return bsub
 
 

@@ -98,7 +98,20 @@ class Bout:
 
 
 # ------------------------------------------------------------------------------ synthetic data
-def synthetic_people(n: int, seed: int, *, bouts: int = 5) -> list[list[Bout]]:
+def _check_bout_s(bout_s: float | None) -> None:
+    if bout_s is not None and (isinstance(bout_s, bool) or not isinstance(bout_s, int | float)
+                               or not (math.isfinite(bout_s) and bout_s > 0.0)):
+        raise ConfigError(f"bout_s={bout_s!r}; expected a finite duration > 0 s")
+
+
+def _duration(rng: np.random.Generator, bout_s: float | None) -> float:
+    """A bout's length: ``bout_s``, else 45–120 s (an early stop) or 200–300 s, half each."""
+    if bout_s is not None:
+        return float(bout_s)
+    return float(rng.uniform(45.0, 120.0) if rng.random() < 0.5 else rng.uniform(200.0, 300.0))
+
+
+def synthetic_people(n: int, seed: int, *, bouts: int = 5, bout_s: float | None = None) -> list[list[Bout]]:
     """Synthetic breath trajectories: ``n`` people, each walking ``bouts`` settings in a row.
 
     Per person: τ ~ U(30, 60) s and a steady-state breath CV ~ U(8, 12) % (issue 16's facts of
@@ -107,12 +120,14 @@ def synthetic_people(n: int, seed: int, *, bouts: int = 5) -> list[list[Bout]]:
     (1 + d), d ~ U(−0.7, 0.8) (steps up to ±80 % of the distance from the new steady state;
     c clipped to 120–1200 W); the body follows m(t) = c + (b0 − c)·e^{−t/τ} from the level b0
     the previous setting left it at. Durations are 45–120 s (half the settings: early stops) or
-    200–300 s. Breaths every U(2, 3.5) s; y = m·(1 + cv·ε) with ε an AR(1) of correlation
+    200–300 s, or all ``bout_s`` when it is given. Breaths every U(2, 3.5) s; y = m·(1 + cv·ε)
+    with ε an AR(1) of correlation
     e^{−Δt/1.5 s} (≤ 0.14 beyond 3 s: issue 16's "below 0.15 beyond 3 s"), and 3 % outliers
     (swallows, coughs, talking) with an extra Student-t(2) error of scale 3·cv.
 
-    Pure: the same (n, seed, bouts) give the same data.
+    Pure: the same (n, seed, bouts, bout_s) give the same data.
     """
+    _check_bout_s(bout_s)
     rng = np.random.default_rng([int(seed), 0xE57])
     people: list[list[Bout]] = []
     for _ in range(n):
@@ -123,7 +138,7 @@ def synthetic_people(n: int, seed: int, *, bouts: int = 5) -> list[list[Bout]]:
         for k in range(bouts):
             d = rng.uniform(-0.7, 0.8)
             c = float(np.clip(level / (1.0 + d), 120.0, 1200.0))
-            dur = rng.uniform(45.0, 120.0) if rng.random() < 0.5 else rng.uniform(200.0, 300.0)
+            dur = _duration(rng, bout_s)
             ts: list[float] = []
             t = rng.uniform(0.5, 3.5)
             while t <= dur:
@@ -148,19 +163,22 @@ def synthetic_people(n: int, seed: int, *, bouts: int = 5) -> list[list[Bout]]:
     return people
 
 
-def realistic_people(n: int, seed: int, *, bouts: int = 6) -> list[list[Bout]]:
+def realistic_people(n: int, seed: int, *, bouts: int = 6, bout_s: float | None = None) -> list[list[Bout]]:
     """The realistic simulated wearer (bridge.sim.devices, issue 16 part 3) walked through settings.
 
     Person k is the wearer of seed ``1000·seed + k`` in the ``hip_6d`` space; each bout applies a
     random feasible setting at the breath clock's current time and lasts as the synthetic
     bouts do (45–120 s or 200–300 s), so its transition starts wherever the previous one left
-    the body. The truth of a bout is the setting's steady-state cost at the bout's end (the
-    wearer adapts, 0–3 % over the hour); the first bout only starts the chained estimator.
+    the body; ``bout_s`` makes every bout last that long instead (``hilbo bench pairs`` needs
+    full-length evaluations). The truth of a bout is the setting's steady-state cost at the
+    bout's end (the wearer adapts, 0–3 % over the hour); the first bout only starts the chained
+    estimator.
     Steps between hip settings are small (5–25 % of the cost at most), unlike the walking /
     running transitions of the real data of issue 16.
 
-    Pure given (n, seed): the same people every time.
+    Pure given (n, seed, bouts, bout_s): the same people every time.
     """
+    _check_bout_s(bout_s)
     space = hip_6d()
     rng = np.random.default_rng([int(seed), 0x5EA])
     people: list[list[Bout]] = []
@@ -171,7 +189,7 @@ def realistic_people(n: int, seed: int, *, bouts: int = 6) -> list[list[Bout]]:
             params = space.to_dict(space.from_unit(space.sample_unit(1, rng))[0])
             t0 = wearer.t_s
             wearer.apply_params(params, t0)
-            dur = rng.uniform(45.0, 120.0) if rng.random() < 0.5 else rng.uniform(200.0, 300.0)
+            dur = _duration(rng, bout_s)
             first_level = wearer.metabolic_rate_w(t0)
             ts: list[float] = []
             ys: list[float] = []
@@ -188,9 +206,9 @@ def realistic_people(n: int, seed: int, *, bouts: int = 6) -> list[list[Bout]]:
     return people
 
 
-WEARERS: dict[str, Callable[[int, int], list[list[Bout]]]] = {
+WEARERS: dict[str, Callable[..., list[list[Bout]]]] = {
     "synthetic": synthetic_people, "realistic": realistic_people}
-"""Wearers ``--wearer`` can name: ``name -> (n, seed) -> people``."""
+"""Wearers ``--wearer`` can name: ``name -> (n, seed, *, bouts, bout_s) -> people``."""
 
 
 # ------------------------------------------------------------------------------ replay

@@ -124,31 +124,60 @@ class SoundReplay:
             else finals[:, None] <= finals[None, :]
         self.n, self.N = n, self.means.shape[1]
 
-    def steps(self, j: int, min_decision_s: float, a_floor: float) -> np.ndarray:
-        """Breaths trajectory j uses against every incumbent k (N if never stopped), shape (n,)."""
+    def outcomes(self, j: int, min_decision_s: float, a_floor: float, accept_z: float | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        """Trajectory j against every incumbent k: (breaths used, N if never stopped; whether
+        the stop was a rejection by the threshold), both shape (n,).
+
+        With ``accept_z`` the rule also ends an evaluation the other way once μ < −accept_z·σ
+        (:class:`~hilbo_core.stopping.SoundRule`'s DECIDED stop; not a rejection).
+        """
         a = np.maximum(self.schedules[j], a_floor)[None, :-1]
         mu = self.means[j][None, :-1] - self.means[:, -1][:, None]
         sigma = np.sqrt(self.vars[j][None, :-1] + self.vars[:, -1][:, None])
-        hit = (mu > a * sigma) & (self.times[j][None, :-1] >= min_decision_s)
-        first = np.where(hit.any(axis=1), hit.argmax(axis=1) + 1, self.N)
-        return first
+        late = self.times[j][None, :-1] >= min_decision_s
+        reject = (mu > a * sigma) & late
+        hit = (reject | ((mu < -accept_z * sigma) & late)) if accept_z is not None else reject
+        stopped = hit.any(axis=1)
+        first = np.where(stopped, hit.argmax(axis=1) + 1, self.N)
+        rejected = stopped & reject[np.arange(self.n), np.where(stopped, first - 1, 0)]
+        return first, rejected
 
-    def stats(self, min_decision_s: float, a_floor: float, js: Sequence[int] | None = None
-              ) -> dict[str, float]:
-        """Pooled replay statistics over the pairs (j, k ≠ j) for j in ``js`` (default all)."""
-        used, end30, rej, nbetter = [], [], 0, 0
+    def steps(self, j: int, min_decision_s: float, a_floor: float, accept_z: float | None = None
+              ) -> np.ndarray:
+        """Breaths trajectory j uses against every incumbent k (N if never stopped), shape (n,)."""
+        return self.outcomes(j, min_decision_s, a_floor, accept_z)[0]
+
+    def stats(self, min_decision_s: float, a_floor: float, js: Sequence[int] | None = None,
+              accept_z: float | None = None) -> dict[str, float]:
+        """Pooled replay statistics over the pairs (j, k ≠ j) for j in ``js`` (default all).
+
+        ``a_floor`` may be ``-inf`` (Algorithm 2's schedule unfloored: the seed's rule, with
+        ``min_decision_s`` 0). Rates, and the counts behind them (``n_pairs``,
+        ``breaths_total``, ``n_early`` (every stop before N, rejections and accept stops),
+        ``n_ended_30s``, ``n_better``, ``n_rejected_better``, ``n_better_above_at_n``: truly
+        better candidates whose N-breath estimate is above the incumbent's, the measurement's
+        own error) so that replays can be pooled.
+        """
+        used, end30, rej, nbetter, above = [], [], 0, 0, 0
+        final = self.means[:, -1]
         for j in (range(self.n) if js is None else js):
-            s = np.delete(self.steps(j, min_decision_s, a_floor), j)
+            steps, rejected = self.outcomes(j, min_decision_s, a_floor, accept_z)
+            s = np.delete(steps, j)
             b = np.delete(self.better[j], j)
             used.append(s)
             end30.append(self.times[j][s - 1] < 30.0)
-            rej += int(((s < self.N) & b).sum())
+            rej += int((np.delete(rejected, j) & b).sum())
             nbetter += int(b.sum())
+            above += int((b & (final[j] > np.delete(final, j))).sum())
         u = np.concatenate(used)
+        n_end30 = int(np.concatenate(end30).sum())
         return {"mean_breaths": float(u.mean()), "breath_fraction": float(u.mean() / self.N),
                 "early_stop_rate": float((u < self.N).mean()),
-                "ended_30s": float(np.concatenate(end30).mean()),
-                "rejected_better": rej / nbetter if nbetter else 0.0, "n_better": nbetter}
+                "ended_30s": n_end30 / u.size,
+                "rejected_better": rej / nbetter if nbetter else 0.0, "n_better": nbetter,
+                "n_pairs": int(u.size), "breaths_total": int(u.sum()), "n_early": int((u < self.N).sum()),
+                "n_ended_30s": n_end30, "n_rejected_better": rej, "n_better_above_at_n": above}
 
 
 def sound_cost(stats: Mapping[str, float], config: TuneSoundConfig) -> float:

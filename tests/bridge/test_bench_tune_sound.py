@@ -54,6 +54,35 @@ def test_stats_count_rejected_better_candidates_by_truth() -> None:
     assert st["ended_30s"] == pytest.approx(4 / 6)
 
 
+def test_stats_give_the_counts_behind_the_rates() -> None:
+    r = _replay(truth=[500.0, 400.0, 340.0])
+    st = r.stats(15.0, 1.0)
+    assert st["n_pairs"] == 6 and st["breaths_total"] == 16 and st["n_early"] == 4
+    assert st["n_ended_30s"] == 4 and st["n_rejected_better"] == 1
+    # Truly better, and its final estimate above the incumbent's final: none here (2 ends at
+    # 350 < 400 < 500; 1 at 400 < 500).
+    assert st["n_better_above_at_n"] == 0
+    assert r.stats(15.0, 1.0, js=[2])["n_pairs"] == 2
+
+
+def test_accept_stop_ends_decided_evaluations_without_rejecting_them() -> None:
+    r = _replay(truth=[500.0, 400.0, 340.0])
+    # Trace 1 (400 W) against incumbent 0 (500 W): 100 W better, σ = 10, so −10 σ from breath
+    # 0; with accept_z 3 and no time floor it ends after one breath, and it is no rejection.
+    steps, rejected = r.outcomes(1, 0.0, 1.0, accept_z=3.0)
+    assert steps[0] == 1 and not rejected[0]
+    # Without the accept stop it runs to N.
+    assert r.steps(1, 0.0, 1.0)[0] == N
+    # The time floor holds for accept stops too: the first breath at >= 30 s is breath 2.
+    assert r.steps(1, 30.0, 1.0, accept_z=3.0)[0] == 3
+    # A rejection stays a rejection: trace 0 against 1 is stopped at breath 0 by the threshold.
+    steps, rejected = r.outcomes(0, 0.0, 1.0, accept_z=3.0)
+    assert steps[1] == 1 and rejected[1]
+    st = r.stats(15.0, 1.0, accept_z=3.0)
+    # Pair (2, 1): at 20 s trace 2 is 2 σ worse — rejected as before; accept stops add none.
+    assert st["n_rejected_better"] == 1 and st["n_early"] > r.stats(15.0, 1.0)["n_early"]
+
+
 def test_cost_penalises_only_the_excess() -> None:
     cfg = TuneSoundConfig(penalty=10.0)
     ok = {"breath_fraction": 0.7, "rejected_better": 0.10, "ended_30s": 0.05}

@@ -1,0 +1,356 @@
+"""``hilbo bench pairs``: the stopping rules on within-person pairs of transitions (issue 17).
+
+Issue 17 asks for stop statistics on *real* breath data, measured on within-person pairs of
+transitions: ≤ 10 % of truly better candidates rejected, ≥ 25 % fewer breaths than N = 45 per
+evaluation, ≤ 5 % of evaluations ending within the first 30 s. This command measures them on a
+lab's own recordings (``--replay FILE --transitions ...``, one person per file, the option pair
+repeated per person) or on simulated people (``--wearer realistic``: the realistic wearer's hip
+settings, whose costs differ by 5–25 %; ``--wearer synthetic``: issue 16's synthetic transitions,
+steps up to ±80 %, closer to the walking/running transitions of real recordings).
+
+For every person the chained :class:`~hilbo_core.estimation.TransitionEstimator` (the
+optimizer's default; each setting starts from where the previous one left the body, as in a
+session) runs over every bout. Every scored bout with at least N breaths is a *candidate*
+against every other such bout of the same person as the *incumbent* (that bout's N-breath
+estimate). "Truly better": the candidate's truth below the incumbent's. A recording's truth is
+the mean of the bout's last 60 s of breaths (:func:`bridge.bench.estimator.replay_people`), so
+its bouts should last longer than N breaths; a simulated wearer's is the setting's true cost.
+
+Rules (replayed by :class:`bridge.bench.tune_sound.SoundReplay`, on Algorithm 2's W = 2 schedule
+built from up to 6 *other* bouts of the same person, standing in for a session's exploration):
+
+* ``sound`` — :class:`~hilbo_core.stopping.SoundRule` with the optimizer's defaults
+  (``min_decision_s``, ``a_floor``; ``--min-decision-s`` and ``--a-floor`` change them);
+* ``adaptive`` — the seed's rule (seed 000 Algorithm 1/2: the same schedule, no floors);
+* ``fixed`` — N breaths every time. Its row also gives the share of truly better candidates
+  whose N-breath estimate is above the incumbent's: the measurement's own error, which no rule
+  that decides on these estimates can beat.
+
+What a replay leaves out (as :mod:`bridge.bench.tune_sound` says): in a session the candidate's
+estimate is fused with the GP's predictive at x_t and the incumbent is the GP posterior at x\\*;
+here both are the estimator's data-only estimates. ``hilbo bench hil`` measures whole sessions.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bridge.bench.common import machine_info, markdown_table, round_sig, write_json
+from bridge.bench.estimator import WEARERS, Bout, replay_people
+from bridge.bench.tune_sound import SoundReplay
+from bridge.bench.tune_stopping import BreathTrace, _exploration_groups, _schedules
+from hilbo_core.errors import ConfigError, EstimatorError, MeasurementError
+from hilbo_core.estimation import StartState, TransitionEstimator
+from hilbo_core.optimizer import OptimizerConfig
+
+__all__ = ["PairsConfig", "PersonTraces", "add_pairs_bench_parser", "pair_stats", "person_traces",
+           "run_pairs_bench"]
+
+# Issue 17's targets for the stop statistics on within-person pairs.
+TARGET_REJECTED_BETTER = 0.10
+TARGET_BREATH_FRACTION = 0.75
+TARGET_ENDED_30S = 0.05
+_DEFAULTS = OptimizerConfig()
+_COUNTS = ("n_pairs", "breaths_total", "n_early", "n_ended_30s", "n_better", "n_rejected_better",
+           "n_better_above_at_n")
+
+
+@dataclass(frozen=True)
+class PairsConfig:
+    """Options of :func:`run_pairs_bench`.
+
+    Attributes:
+        n_max: N, breaths of a full evaluation.
+        min_decision_s: The sound rule's time floor (s).
+        a_floor: The sound rule's threshold floor (σ).
+        accept_z: The sound rule's accept-stop margin (σ), or None for none.
+        window: Algorithm 2's window W.
+        n_explore: Other bouts of the person behind each candidate's schedule.
+        seed: Seeds the choice of those bouts.
+    """
+
+    n_max: int = _DEFAULTS.max_breaths
+    min_decision_s: float = _DEFAULTS.min_decision_s
+    a_floor: float = _DEFAULTS.a_floor
+    accept_z: float | None = _DEFAULTS.accept_z
+    window: int = 2
+    n_explore: int = 6
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if isinstance(self.n_max, bool) or not isinstance(self.n_max, int) or self.n_max < 2:
+            raise ConfigError(f"n_max={self.n_max!r}; expected an integer >= 2 breaths")
+        for name in ("min_decision_s", "a_floor", "accept_z"):
+            v = getattr(self, name)
+            if v is None and name == "accept_z":
+                continue
+            if isinstance(v, bool) or not isinstance(v, int | float) or not (math.isfinite(v) and v >= 0):
+                raise ConfigError(f"{name}={v!r}; expected a finite number >= 0")
+        for name in ("window", "n_explore"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < (0 if name == "window" else 1):
+                raise ConfigError(f"{name}={v!r}; expected an integer >= {0 if name == 'window' else 1}")
+
+
+@dataclass(frozen=True)
+class PersonTraces:
+    """One person's full-length evaluations, ready to pair.
+
+    Attributes:
+        traces: The chained estimator's running estimate over each bout's first N breaths.
+        times: Per trace, the breath times since the setting began (s), shape (N,).
+        truth_w: Per trace, the bout's truth (W).
+        short: Scored bouts left out for having fewer than N breaths.
+    """
+
+    traces: list[BreathTrace]
+    times: list[np.ndarray]
+    truth_w: list[float]
+    short: int
+
+
+def person_traces(person: Sequence[Bout], n_max: int) -> PersonTraces:
+    """Run the chained estimator over a person's bouts; keep the scored ones with N breaths.
+
+    Every bout (scored or not, long or short) moves the chained estimator on, as every setting
+    a person walked moves the body; a breath the estimator rejects leaves the estimate as in the
+    optimizer.
+    """
+    traces: list[BreathTrace] = []
+    times: list[np.ndarray] = []
+    truth: list[float] = []
+    short = 0
+    handover: StartState | None = None
+    for k, bout in enumerate(person):
+        if bout.t_s.size == 0:
+            continue
+        est = TransitionEstimator()
+        if handover is not None:
+            est.start_from_state(handover)
+        means, variances = [], []
+        mean = var = math.nan
+        for t, w in zip(bout.t_s, bout.watts, strict=True):
+            try:
+                mean, var = est.update(float(t), float(w))
+            except (MeasurementError, EstimatorError):
+                pass  # the previous estimate stands
+            means.append(mean)
+            variances.append(var)
+        if est.n_updates:
+            handover = est.handover()
+        if not bout.evaluate:
+            continue
+        if bout.t_s.size < n_max or not np.all(np.isfinite(means[:n_max])):
+            short += 1
+            continue
+        traces.append(BreathTrace(np.array(means[:n_max]), np.array(variances[:n_max]), f"bout {k}"))
+        times.append(np.asarray(bout.t_s[:n_max], dtype=float))
+        truth.append(float(bout.truth_w))
+    return PersonTraces(traces, times, truth, short)
+
+
+def pair_stats(people: Sequence[PersonTraces], config: PairsConfig) -> dict[str, dict[str, Any]]:
+    """Pooled stop statistics of ``sound``, ``adaptive`` and ``fixed`` over every person's pairs.
+
+    Raises:
+        ConfigError: No person has two full-length scored bouts.
+    """
+    rules: dict[str, tuple[float, float, float | None]] = {
+        "sound": (config.min_decision_s, config.a_floor, config.accept_z),
+        "adaptive": (0.0, -math.inf, None)}
+    counts = {r: dict.fromkeys(_COUNTS, 0) for r in (*rules, "fixed")}
+    for p in people:
+        if len(p.traces) < 2:
+            continue
+        groups = _exploration_groups(len(p.traces), config.n_explore, config.seed)
+        schedules = _schedules(p.traces, min(config.window, config.n_max - 1), groups)
+        replay = SoundReplay(p.traces, p.times, schedules, p.truth_w)
+        for rule, (min_s, floor, accept) in rules.items():
+            st = replay.stats(min_s, floor, accept_z=accept)
+            for key in _COUNTS:
+                counts[rule][key] += int(st[key])
+        # fixed: N breaths against every incumbent, no stop; the measurement's error as above.
+        st = replay.stats(math.inf, math.inf)
+        for key in _COUNTS:
+            counts["fixed"][key] += int(st[key])
+    if counts["fixed"]["n_pairs"] == 0:
+        raise ConfigError(f"no within-person pairs: every person needs at least 2 scored bouts of "
+                          f">= {config.n_max} breaths")
+    out: dict[str, dict[str, Any]] = {}
+    for rule, c in counts.items():
+        n, nb = c["n_pairs"], c["n_better"]
+        out[rule] = {**c, "mean_breaths": c["breaths_total"] / n,
+                     "breath_fraction": c["breaths_total"] / n / config.n_max,
+                     "pct_fewer_breaths": 100.0 * (1.0 - c["breaths_total"] / n / config.n_max),
+                     "pct_early": 100.0 * c["n_early"] / n, "pct_ended_30s": 100.0 * c["n_ended_30s"] / n,
+                     "pct_rejected_better": 100.0 * c["n_rejected_better"] / nb if nb else None,
+                     "pct_better_above_at_n": 100.0 * c["n_better_above_at_n"] / nb if nb else None}
+    s = out["sound"]
+    s["targets"] = {
+        "rejected_better_at_most_10pct": s["pct_rejected_better"] is not None
+        and s["pct_rejected_better"] <= 100.0 * TARGET_REJECTED_BETTER,
+        "breaths_at_least_25pct_fewer": s["breath_fraction"] <= TARGET_BREATH_FRACTION,
+        "ended_30s_at_most_5pct": s["pct_ended_30s"] <= 100.0 * TARGET_ENDED_30S}
+    return out
+
+
+def pairs_table(stats: dict[str, dict[str, Any]], n_max: int) -> str:
+    """Markdown: one row per rule."""
+    def pct(v: float | None) -> str:
+        return "–" if v is None else f"{v:.1f} %"
+
+    rows = [[rule, s["n_pairs"], f"{s['mean_breaths']:.1f}", f"{s['pct_fewer_breaths']:.1f} %",
+             pct(s["pct_ended_30s"]), pct(s["pct_early"]),
+             f"{pct(s['pct_rejected_better'])} (of {s['n_better']})", pct(s["pct_better_above_at_n"])]
+            for rule, s in stats.items()]
+    return markdown_table(["rule", "pairs", "mean breaths / evaluation", f"fewer than {n_max}",
+                           "ended within 30 s", "early stops", "truly better rejected",
+                           f"truly better, estimate above the incumbent's at {n_max}"], rows)
+
+
+def run_pairs_bench(people: Sequence[Sequence[Bout]], config: PairsConfig | None = None,
+                    progress: Callable[[int], None] | None = None) -> dict[str, Any]:
+    """Trace every person, pair, and pool; the JSON document without command and machine."""
+    cfg = PairsConfig() if config is None else config
+    t0 = time.perf_counter()
+    traced = []
+    for i, person in enumerate(people):
+        traced.append(person_traces(person, cfg.n_max))
+        if progress is not None:
+            progress(i + 1)
+    stats = pair_stats(traced, cfg)
+    return {"benchmark": "pairs", "config": {k: getattr(cfg, k) for k in cfg.__dataclass_fields__},
+            "people": len(traced), "people_with_pairs": sum(len(p.traces) >= 2 for p in traced),
+            "full_length_bouts": sum(len(p.traces) for p in traced),
+            "short_bouts": sum(p.short for p in traced), "rules": stats,
+            "wall_s": time.perf_counter() - t0}
+
+
+# ------------------------------------------------------------------------------ command
+def _fmt_accept(z: float | None) -> str:
+    return "none" if z is None else f"{z:g}"
+
+
+def _accept_z(text: str) -> float | None:
+    if text.strip().lower() == "none":
+        return None
+    try:
+        return float(text)
+    except ValueError as err:
+        raise ConfigError(f"--accept-z {text!r}; expected a number of σ >= 0 or none") from err
+
+
+def _cmd_pairs(args: argparse.Namespace) -> int:
+    from rich.console import Console
+
+    from bridge.bench.cli import options
+
+    console = Console(highlight=False, soft_wrap=True)
+    replays = args.replay or []
+    transitions = args.transitions or []
+    with options():  # the command line's values (exit status 2); the files' are 1
+        accept = _accept_z(args.accept_z)
+        cfg = PairsConfig(n_max=args.n_max, min_decision_s=args.min_decision_s, a_floor=args.a_floor,
+                          accept_z=accept)
+        if len(replays) != len(transitions):
+            raise ConfigError(f"{len(replays)} --replay and {len(transitions)} --transitions: give one "
+                              "--transitions t1,t2,... after each --replay FILE")
+        if not replays and args.csv_columns is not None:
+            raise ConfigError("--csv-columns goes with --replay")
+        if not replays and args.wearer not in WEARERS:
+            raise ConfigError(f"--wearer {args.wearer!r}; expected one of {sorted(WEARERS)} "
+                              "(or --replay files)")
+        if not replays and (args.n < 1 or args.seed < 0 or args.bouts < 3):
+            raise ConfigError(f"--n {args.n} --seed {args.seed} --bouts {args.bouts}; expected "
+                              "n >= 1, seed >= 0, bouts >= 3")
+        if not replays and not (math.isfinite(args.bout_s) and args.bout_s > 0):
+            raise ConfigError(f"--bout-s {args.bout_s}; expected a duration > 0 s")
+        trans: list[list[float]] = []
+        for text in transitions:
+            try:
+                trans.append([float(x) for x in text.split(",") if x.strip()])
+            except ValueError as err:
+                raise ConfigError(f"--transitions {text!r}: expected comma-separated seconds") from err
+    if replays:
+        cols = args.csv_columns.split(",") if args.csv_columns else None
+        people = [p for f, t in zip(replays, trans, strict=True) for p in replay_people(f, t, cols)]
+        source = " ".join(f"--replay {f} --transitions {t}"
+                          for f, t in zip(replays, transitions, strict=True))
+        source += f" --csv-columns {args.csv_columns}" if args.csv_columns else ""
+    else:
+        people = WEARERS[args.wearer](args.n, args.seed, bouts=args.bouts, bout_s=args.bout_s)
+        source = (f"--wearer {args.wearer} --n {args.n} --seed {args.seed} --bouts {args.bouts} "
+                  f"--bout-s {args.bout_s:g}")
+    n_people = len(people)
+    step = max(1, n_people // 10)
+
+    def progress(i: int) -> None:
+        if not args.no_progress and n_people > 1 and (i % step == 0 or i == n_people):
+            console.print(f"  {i}/{n_people} people", style="dim")
+
+    console.print(f"hilbo bench pairs: {n_people} people, N = {cfg.n_max}, sound rule "
+                  f"{cfg.min_decision_s:g} s / {cfg.a_floor:g} σ / accept {_fmt_accept(cfg.accept_z)}")
+    doc = run_pairs_bench(people, cfg, progress)
+    doc["command"] = (f"hilbo bench pairs {source} --n-max {cfg.n_max} "
+                      f"--min-decision-s {cfg.min_decision_s:g} --a-floor {cfg.a_floor:g} "
+                      f"--accept-z {_fmt_accept(cfg.accept_z)} --out {args.out}")
+    doc["machine"] = machine_info()
+    out = Path(args.out)
+    write_json(out / "pairs.json", round_sig(doc))
+    table = pairs_table(doc["rules"], cfg.n_max)
+    (out / "pairs_table.md").write_text(table)
+    console.print(table)
+    if doc["short_bouts"]:
+        console.print(f"{doc['short_bouts']} scored bouts had fewer than {cfg.n_max} breaths and were "
+                      "left out", style="yellow")
+    met = doc["rules"]["sound"]["targets"]
+    console.print("issue 17 targets (sound): " + ", ".join(
+        f"{k} {'met' if v else 'NOT met'}" for k, v in met.items()))
+    console.print(str(out / "pairs.json"))
+    return 0
+
+
+def add_pairs_bench_parser(bench_subparsers: Any) -> argparse.ArgumentParser:
+    """Add ``pairs`` to the ``hilbo bench`` subcommands; returns its parser."""
+    p = bench_subparsers.add_parser(
+        "pairs", help="stop statistics on within-person pairs of transitions (issue 17)",
+        description="Replay the sound rule, the seed's adaptive rule and fixed N breaths on every "
+                    "within-person pair of full-length bouts (candidate against incumbent) of recorded "
+                    "breath files (--replay FILE --transitions ..., repeated per person) or of "
+                    "simulated people (--wearer); reports breaths per evaluation, evaluations ended "
+                    "within 30 s and truly better candidates rejected, against issue 17's targets.")
+    p.add_argument("--replay", action="append", default=None, metavar="FILE",
+                   help="a recorded breath file (one person); repeat per person")
+    p.add_argument("--transitions", action="append", default=None, metavar="T1,T2,...",
+                   help="after each --replay: its setting-change times in s on the file's clock")
+    p.add_argument("--csv-columns", default=None, metavar="TIME,VO2,VCO2",
+                   help="with --replay: the files are CSVs with these header names (s, ml/min)")
+    p.add_argument("--wearer", default="realistic",
+                   help=f"simulated people instead, from {','.join(sorted(WEARERS))} (realistic: hip "
+                        "settings, steps of 5-25 %%; synthetic: steps up to ±80 %%)")
+    p.add_argument("--n", type=int, default=20, help="simulated people (20)")
+    p.add_argument("--seed", type=int, default=1, help="seed of the simulated people (1)")
+    p.add_argument("--bouts", type=int, default=10,
+                   help="settings per simulated person, the first a warm-up (10)")
+    p.add_argument("--bout-s", type=float, default=180.0, help="seconds per simulated setting (180)")
+    p.add_argument("--n-max", type=int, default=_DEFAULTS.max_breaths,
+                   help=f"N, breaths of a full evaluation ({_DEFAULTS.max_breaths})")
+    p.add_argument("--min-decision-s", type=float, default=_DEFAULTS.min_decision_s,
+                   help=f"the sound rule's time floor in s ({_DEFAULTS.min_decision_s:g})")
+    p.add_argument("--a-floor", type=float, default=_DEFAULTS.a_floor,
+                   help=f"the sound rule's threshold floor in σ ({_DEFAULTS.a_floor:g})")
+    p.add_argument("--accept-z", default=_fmt_accept(_DEFAULTS.accept_z), metavar="Z",
+                   help="the sound rule's accept stop in σ, or none "
+                        f"({_fmt_accept(_DEFAULTS.accept_z)})")
+    p.add_argument("--out", default="runs/bench/pairs", help="output directory")
+    p.add_argument("--no-progress", action="store_true", help="no progress lines")
+    p.set_defaults(func=_cmd_pairs)
+    return p
