@@ -75,7 +75,7 @@ from hilbo_core.config_model import (
 )
 from hilbo_core.errors import ConfigError, InfeasibleError
 from hilbo_core.gp import KernelKind
-from hilbo_core.optimizer import OptimizerConfig, PriorObservation, StoppingKind
+from hilbo_core.optimizer import DEFAULT_ACCEPT_Z, OptimizerConfig, PriorObservation, StoppingKind
 from hilbo_core.presets import PRESETS
 from hilbo_core.priors import (
     DEFAULT_PRIOR_NOISE,
@@ -343,6 +343,10 @@ class ProtocolConfig:
             σ-scaled rule) or ``fixed`` (always N breaths).
         min_decision_s: The sound rule's seconds in a setting before any stop decision, 0–600.
         a_floor: The sound rule's threshold floor in σ, 0–10.
+        accept_stop: The sound rule's accept stop: end a setting already ``accept_z`` σ better
+            than the incumbent (default on; off: every candidate that is not rejected walks N
+            breaths).
+        accept_z: Its margin in σ, 0–10 (default 3).
         design: The exploration bout's settings: ``sobol`` (the centre, then scrambled Sobol
             points) or ``maximin`` (the centre, then points at the boundary); absent:
             ``sobol`` with the sound rule, ``maximin`` with the seed's rules
@@ -378,6 +382,8 @@ class ProtocolConfig:
     stopping: StoppingKind = choice(StoppingKind, OptimizerConfig.stopping)
     min_decision_s: float = number(OptimizerConfig.min_decision_s, lo=0.0, hi=600.0)
     a_floor: float = number(OptimizerConfig.a_floor, lo=0.0, hi=10.0)
+    accept_stop: bool = boolean(OptimizerConfig.accept_z is not None)
+    accept_z: float = number(DEFAULT_ACCEPT_Z, lo=0.0, hi=10.0)
     design: DesignKind | None = choice(DesignKind, OptimizerConfig.design)
     seed: int = integer(OptimizerConfig.seed, lo=0, hi=2**63 - 1)
     xi: float = number(OptimizerConfig.xi, lo=-1e6, hi=1e6)
@@ -420,7 +426,8 @@ class ProtocolConfig:
             n_explore=self.n_explore, max_breaths=self.max_breaths, window=self.window,
             budget_s=self.budget_s if with_budget else None,
             budget_breaths=self.budget_breaths if with_budget else None, stopping=self.stopping,
-            min_decision_s=self.min_decision_s, a_floor=self.a_floor, design=self.design,
+            min_decision_s=self.min_decision_s, a_floor=self.a_floor,
+            accept_z=self.accept_z if self.accept_stop else None, design=self.design,
             seed=self.seed, xi=self.xi, kernel=self.kernel, n_candidates=self.n_candidates,
             n_local=self.n_local, refit_lag=1 if self.refit is RefitMode.AHEAD else 0,
         )
@@ -1107,6 +1114,14 @@ def _expected_end_text(pr: ProtocolConfig) -> str:
             f"{', plus the pause between the bouts' if pr.pause_between_bouts else ''})")
 
 
+def _sound_text(pr: ProtocolConfig) -> str:
+    """The sound rule's constants for the summary ("" for the seed's rules)."""
+    if pr.stopping is not StoppingKind.SOUND:
+        return ""
+    accept = f"accept at {pr.accept_z:g} σ" if pr.accept_stop else "no accept stop"
+    return f"; no decision before {pr.min_decision_s:g} s, reject above {pr.a_floor:g} σ at least, {accept}"
+
+
 def summarize(cfg: HilboConfig) -> str:
     """A few lines saying what the config will do."""
     s, sp, pr, c, lim, wd = cfg.session, cfg.space.space, cfg.protocol, cfg.can, cfg.limits, cfg.watchdog
@@ -1125,7 +1140,7 @@ def summarize(cfg: HilboConfig) -> str:
         f"protocol  warm-up {pr.warmup_s:g} s per bout; exploration {pr.n_explore} settings x "
         f"{pr.max_breaths} breaths ({DesignKind(pr.optimizer_config().design).value} design); "
         f"optimisation budget {budget}; {pr.stopping.value} stopping "
-        f"(W = {pr.window}); {pr.kernel.value} kernel, xi = {pr.xi:g}, seed {pr.seed}; "
+        f"(W = {pr.window}{_sound_text(pr)}); {pr.kernel.value} kernel, xi = {pr.xi:g}, seed {pr.seed}; "
         f"{'pause' if pr.pause_between_bouts else 'no pause'} between bouts",
         f"          expected end {_expected_end_text(pr)}",
         f"cart      {cfg.cart.transport}, {cfg.cart.format.value}",

@@ -80,6 +80,7 @@ from hilbo_core.stopping import (
 )
 
 __all__ = [
+    "DEFAULT_ACCEPT_Z",
     "BreathStep",
     "EstimatorKind",
     "Evaluation",
@@ -97,6 +98,10 @@ _STATE_VERSION = 1
 # Generator stream of fits made ahead (HyperparameterFit.seed), apart from the optimizer's own.
 _FIT_AHEAD_STREAM = 0xF17
 _MAX_WATTS = 5000.0
+# The sound rule's accept stop: a candidate 3 σ better than the incumbent has beaten it (if the
+# σ is calibrated, wrongly with probability 0.13 % at one look); chosen as the conventional
+# "decided" margin, not tuned (docs/results.md §5).
+DEFAULT_ACCEPT_Z = 3.0
 
 
 class Phase(enum.Enum):
@@ -141,9 +146,12 @@ class OptimizerConfig:
         min_decision_s: The sound rule's time in a setting before any stop decision (s, >= 0;
             default 60 s ≈ 1.5 × the estimator's median τ of 42 s, see SoundRule).
         a_floor: The sound rule's threshold floor in σ (>= 0; default 1.0).
-        accept_z: The sound rule's accept stop in σ (>= 0), or None (default: off): end an
-            evaluation whose candidate is already ``accept_z`` σ better than the incumbent
-            (reason ``"decided"``; not an early rejection, see SoundRule).
+        accept_z: The sound rule's accept stop in σ (>= 0; default 3), or None (off): after
+            ``min_decision_s``, end an evaluation whose candidate is already ``accept_z`` σ
+            better than the incumbent (reason ``"decided"``; not an early rejection, see
+            SoundRule). The comparison is decided the other way, so its remaining breaths are
+            better spent on the next setting (issue 17's "≥ 25 % fewer breaths" on pairs of
+            transitions where half the candidates are better; docs/results.md §5).
         gp_prior_stopping: With the sound rule, the candidate's estimate for the stop decision
             is the estimator's data-only estimate times the GP's predictive at x_t (the Bayesian
             early decision, issue 17 part 1d); the GP is still told the data-only part.
@@ -196,7 +204,7 @@ class OptimizerConfig:
     stopping: StoppingKind = StoppingKind.SOUND
     min_decision_s: float = 60.0
     a_floor: float = 1.0
-    accept_z: float | None = None
+    accept_z: float | None = DEFAULT_ACCEPT_Z
     gp_prior_stopping: bool = True
     recommend: RecommendKind | None = None
     recommend_beta: float = 1.0

@@ -303,8 +303,9 @@ class SoundRule:
       breath 1), which stops candidates that look *better* than the incumbent. With a floor
       ``a_floor ≥ 0`` a stop always needs ``μ > 0`` (and by a margin of ``a_floor``·σ).
 
-    Optionally (``accept_z``, off by default) the rule also ends an evaluation whose comparison
-    is already decided the other way: after ``min_decision_s``, stop with DECIDED if
+    Optionally (``accept_z``: off here, 3 σ in :class:`~hilbo_core.optimizer.OptimizerConfig`)
+    the rule also ends an evaluation whose comparison is already decided the other way: after
+    ``min_decision_s``, stop with DECIDED if
     ``μ < −accept_z·σ`` — the candidate is better than the incumbent by ``accept_z`` standard
     deviations, so more breaths would rarely change that it beats the incumbent. It is not a
     rejection: its estimate goes to the GP like any other (with its wider variance).

@@ -165,6 +165,20 @@ def test_the_session_protocol_and_its_expected_end_in_the_summary():
     assert "expected end about 45 min of walking after the first breath" in summarize(cfg)
 
 
+def test_the_sound_rules_accept_stop_is_on_at_3_sigma_and_can_be_turned_off():
+    sound = GOLDEN.replace('stopping = "fixed"', 'stopping = "sound"')
+    assert parse_config(sound).protocol.optimizer_config().accept_z == 3.0
+    text = summarize(parse_config(sound))
+    assert "no decision before 60 s, reject above 1 σ at least, accept at 3 σ" in text
+    off = parse_config(sound.replace("budget_breaths = 500", "budget_breaths = 500\naccept_stop = false"))
+    assert off.protocol.optimizer_config().accept_z is None
+    assert "no accept stop" in summarize(off)
+    two = parse_config(GOLDEN.replace("budget_breaths = 500", "budget_breaths = 500\naccept_z = 2.5"))
+    assert two.protocol.optimizer_config().accept_z == 2.5
+    with pytest.raises(BridgeConfigError, match="accept_z"):
+        parse_config(GOLDEN.replace("budget_breaths = 500", "budget_breaths = 500\naccept_z = -1"))
+
+
 def test_both_budgets_can_be_given():
     cfg = parse_config(GOLDEN.replace("budget_breaths = 500", "budget_breaths = 500\nbudget_min = 30"))
     assert (cfg.protocol.budget_min, cfg.protocol.budget_breaths) == (30.0, 500)
