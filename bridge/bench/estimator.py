@@ -26,8 +26,9 @@ Data:
 * synthetic (default): :func:`synthetic_people` — a small pure generator of breath trajectories
   (documented there). ``--wearer NAME`` picks a registered wearer (:data:`WEARERS`):
   ``synthetic`` or ``realistic`` (the simulated wearer of the virtual devices, issue 16 part 3).
-* ``--replay FILE --transitions t1,t2,...``: a recorded breath file (hilbo-line, or a vendor CSV
-  with ``--csv-columns TIME,VO2,VCO2``) read with the cart driver's parsers and validator;
+* ``--replay FILE --transitions t1,t2,...``: a recorded breath file (hilbo-line, a vendor export
+  ``hilbo cart inspect`` recognises, or a CSV with ``--csv-columns TIME,VO2,VCO2``) read with
+  the cart driver's parsers and validator;
   the bouts are [t_k, t_{k+1}) (the last to the end of the file), the truth of each is the mean
   of its last 60 s of breaths, and the breaths before t1 only start the chained estimator.
 """
@@ -217,7 +218,8 @@ def replay_people(path: str | Path, transitions_s: Sequence[float],
     """The transitions of a recorded breath file, as one "person".
 
     Args:
-        path: A hilbo-line recording, or a vendor CSV when ``csv_columns`` is given.
+        path: A hilbo-line recording or a vendor export (detected as ``hilbo cart inspect``
+            does), or a CSV when ``csv_columns`` is given.
         transitions_s: Setting-change times on the file's clock (s), increasing.
         csv_columns: Header names of time (s), VO2 and VCO2 (ml/min) for a CSV.
 
@@ -227,24 +229,28 @@ def replay_people(path: str | Path, transitions_s: Sequence[float],
     Raises:
         ConfigError: Unreadable file, bad transition times, or a bout without breaths.
     """
-    from drivers.cart.csvmap import CsvBreathParser, CsvMapping
-    from drivers.cart.line import HbrLineParser
-    from drivers.cart.pipeline import read_breath_file
+    from drivers.cart.csvmap import CsvMapping
+    from drivers.cart.inspect import inspect_file
     from drivers.errors import DriverError
 
     ts = [float(t) for t in transitions_s]
     if not ts or any(not math.isfinite(t) for t in ts) or any(b <= a for a, b in itertools.pairwise(ts)):
         raise ConfigError(f"--transitions {ts}: expected increasing finite times in s")
+    if csv_columns is not None and len(csv_columns) != 3:
+        raise ConfigError(f"--csv-columns {list(csv_columns)}: expected TIME,VO2,VCO2")
     try:
+        # As a session reads it (``hilbo cart inspect``): the format detected (hilbo-line or a
+        # vendor export), the breaths validated; a CSV by its column map.
         if csv_columns is not None:
-            if len(csv_columns) != 3:
-                raise ConfigError(f"--csv-columns {list(csv_columns)}: expected TIME,VO2,VCO2")
-            parser: Any = CsvBreathParser(CsvMapping(*csv_columns))
+            report = inspect_file(path, "csv", csv=CsvMapping(*csv_columns))
         else:
-            parser = HbrLineParser()
-        records = read_breath_file(path, parser)
+            report = inspect_file(path)
     except (OSError, DriverError) as err:
         raise ConfigError(f"--replay {path}: cannot read breaths: {err}") from err
+    records = report.records
+    if not records:
+        raise ConfigError(f"--replay {path}: no breaths accepted ({report.n_rejected} rejected; "
+                          "`hilbo cart inspect FILE` says why)")
     t_all = np.array([r.t_s for r in records], dtype=float)
     w_all = np.array([r.watts for r in records], dtype=float)
     edges = [-math.inf, *ts, math.inf]
@@ -516,7 +522,9 @@ def add_estimator_bench_parser(bench_subparsers: Any) -> argparse.ArgumentParser
     p.add_argument("--seed", type=int, default=0, help="seed of the synthetic data (0)")
     p.add_argument("--wearer", default="synthetic",
                    help=f"synthetic data source, from {','.join(sorted(WEARERS))} (synthetic)")
-    p.add_argument("--replay", default=None, metavar="FILE", help="a recorded breath file instead")
+    p.add_argument("--replay", default=None, metavar="FILE",
+                   help="a recorded breath file instead (hilbo-line or a vendor export, detected as "
+                        "`hilbo cart inspect` does)")
     p.add_argument("--transitions", default=None, metavar="T1,T2,...",
                    help="with --replay: setting-change times in s on the file's clock")
     p.add_argument("--csv-columns", default=None, metavar="TIME,VO2,VCO2",

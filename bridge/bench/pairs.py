@@ -328,7 +328,8 @@ def add_pairs_bench_parser(bench_subparsers: Any) -> argparse.ArgumentParser:
                     "simulated people (--wearer); reports breaths per evaluation, evaluations ended "
                     "within 30 s and truly better candidates rejected, against issue 17's targets.")
     p.add_argument("--replay", action="append", default=None, metavar="FILE",
-                   help="a recorded breath file (one person); repeat per person")
+                   help="a recorded breath file of one person (hilbo-line or a vendor export, detected "
+                        "as `hilbo cart inspect` does); repeat per person")
     p.add_argument("--transitions", action="append", default=None, metavar="T1,T2,...",
                    help="after each --replay: its setting-change times in s on the file's clock")
     p.add_argument("--csv-columns", default=None, metavar="TIME,VO2,VCO2",

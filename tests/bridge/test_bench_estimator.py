@@ -113,6 +113,15 @@ def test_replay_reads_a_recording_and_takes_the_truth_from_the_last_minute(tmp_p
         replay_people(tmp_path / "missing.hbr", [10.0])
 
 
+def test_replay_reads_a_vendor_export_as_a_session_would() -> None:
+    # A COSMED CSV export (format detected as `hilbo cart inspect` does): 4 breaths, 3–62.5 s.
+    data = Path(__file__).resolve().parents[1] / "data" / "cart" / "cosmed_k5.csv"
+    (person,) = replay_people(data, [30.0])
+    assert [b.evaluate for b in person] == [False, True]
+    assert sum(b.t_s.size for b in person) == 4
+    assert np.all(np.concatenate([b.watts for b in person]) > 0)
+
+
 def test_cli_synthetic_and_replay(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "syn"
     assert bench_main(["estimator", "--n", "2", "--seed", "3", "--out", str(out)]) == 0

@@ -152,6 +152,9 @@ def test_cli_replays_one_file_per_person(tmp_path: Path, capsys: pytest.CaptureF
     (["--accept-z", "often"], 2, "--accept-z 'often'"),
     (["--n-max", "1"], 2, "n_max=1"),
     (["--replay", "missing.hbr", "--transitions", "60,120"], 1, "cannot read breaths"),
+    # A real vendor export's format is detected, but its settings are far shorter than N.
+    (["--replay", str(Path(__file__).resolve().parents[1] / "data" / "cart" / "cosmed_k5.csv"),
+      "--transitions", "30"], 1, "no within-person pairs: every person needs at least 2 scored bouts"),
 ])
 def test_cli_errors(argv: list[str], code: int, message: str, tmp_path: Path,
                     capsys: pytest.CaptureFixture[str]) -> None:
