@@ -351,7 +351,7 @@ def add_pairs_bench_parser(bench_subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--accept-z", default=_fmt_accept(_DEFAULTS.accept_z), metavar="Z",
                    help="the sound rule's accept stop in σ, or none "
                         f"({_fmt_accept(_DEFAULTS.accept_z)})")
-    p.add_argument("--out", default="runs/bench/pairs", help="output directory")
+    p.add_argument("--out", default="runs/bench/pairs", help="output directory (runs/bench/pairs)")
     p.add_argument("--no-progress", action="store_true", help="no progress lines")
     p.set_defaults(func=_cmd_pairs)
     return p
