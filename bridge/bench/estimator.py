@@ -246,7 +246,9 @@ def replay_people(path: str | Path, transitions_s: Sequence[float],
         else:
             report = inspect_file(path)
     except (OSError, DriverError) as err:
-        raise ConfigError(f"--replay {path}: cannot read breaths: {err}") from err
+        # The driver's message speaks of the session's [cart.csv] map; here it is an option.
+        hint = "" if csv_columns is not None else " (here: --csv-columns TIME,VO2,VCO2 is the column map)"
+        raise ConfigError(f"--replay {path}: cannot read breaths: {err}{hint}") from err
     records = report.records
     if not records:
         raise ConfigError(f"--replay {path}: no breaths accepted ({report.n_rejected} rejected; "
@@ -260,7 +262,9 @@ def replay_people(path: str | Path, transitions_s: Sequence[float],
         if not sel.any():
             if k == 0:
                 continue
-            raise ConfigError(f"--replay {path}: no breaths between {edges[k]:g} s and {edges[k + 1]:g} s")
+            end = f"{edges[k + 1]:g} s" if math.isfinite(edges[k + 1]) else "the end of the file"
+            raise ConfigError(f"--replay {path}: no breaths between {edges[k]:g} s and {end} (its breaths "
+                              f"run from {t_all[0]:g} to {t_all[-1]:g} s)")
         # Time since the setting began; the warm-up bout before t1 starts at its first breath.
         t0 = edges[k] if k else float(t_all[sel][0])
         t, w = t_all[sel] - t0, w_all[sel]

@@ -296,7 +296,8 @@ def _cmd_pairs(args: argparse.Namespace) -> int:
         if not args.no_progress and n_people > 1 and (i % step == 0 or i == n_people):
             console.print(f"  {i}/{n_people} people", style="dim")
 
-    console.print(f"hilbo bench pairs: {n_people} people, N = {cfg.n_max}, sound rule "
+    who = "1 person" if n_people == 1 else f"{n_people} people"
+    console.print(f"hilbo bench pairs: {who}, N = {cfg.n_max}, sound rule "
                   f"{cfg.min_decision_s:g} s / {cfg.a_floor:g} σ / accept {_fmt_accept(cfg.accept_z)}")
     doc = run_pairs_bench(people, cfg, progress)
     doc["command"] = (f"hilbo bench pairs {source} --n-max {cfg.n_max} "

@@ -111,6 +111,12 @@ def test_replay_reads_a_recording_and_takes_the_truth_from_the_last_minute(tmp_p
         replay_people(f, [300.0, 200.0])
     with pytest.raises(ConfigError, match="cannot read"):
         replay_people(tmp_path / "missing.hbr", [10.0])
+    with pytest.raises(ConfigError, match=r"no breaths between 5000 s and the end of the file \(its breaths "
+                                          r"run from 1 to 59\d\.\d+ s\)"):
+        replay_people(f, [200.0, 5000.0])
+    f.with_suffix(".csv").write_text("time,oxygen,co2\n1,300,270\n")
+    with pytest.raises(ConfigError, match="here: --csv-columns TIME,VO2,VCO2"):
+        replay_people(f.with_suffix(".csv"), [10.0])
 
 
 def test_replay_reads_a_vendor_export_as_a_session_would() -> None:
