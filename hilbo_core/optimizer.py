@@ -149,7 +149,7 @@ class OptimizerConfig:
         accept_z: The sound rule's accept stop in σ (>= 0; default 3), or None (off): after
             ``min_decision_s``, end an evaluation whose candidate is already ``accept_z`` σ
             better than the incumbent (reason ``"decided"``; not an early rejection, see
-            SoundRule). The comparison is decided the other way, so its remaining breaths are
+            SoundRule). The candidate has beaten the incumbent, so its remaining breaths are
             better spent on the next setting (issue 17's "≥ 25 % fewer breaths" on pairs of
             transitions where half the candidates are better; docs/results.md §5).
         gp_prior_stopping: With the sound rule, the candidate's estimate for the stop decision
