@@ -383,7 +383,9 @@ def test_the_timer_flushes_pending_messages(tmp_path: Path) -> None:
         log.log_force_feedback(actuator=0, desired_n=[1.0], measured_n=[1.0])  # left to the timer
         assert path.stat().st_size == size0
         deadline = time.monotonic() + 5.0
-        while path.stat().st_size == size0 and time.monotonic() < deadline:
+        # The timer thread writes the chunk, then counts the flush (under the log's lock): a
+        # reader outside the lock can see the bytes before the count, so wait for both.
+        while (path.stat().st_size == size0 or log.stats.flushes < 2) and time.monotonic() < deadline:
             time.sleep(0.005)  # the flush timer is a wall-time thread by design: bounded poll
         assert path.stat().st_size > size0
         assert log.stats.flushes >= 2
