@@ -37,7 +37,7 @@ import argparse
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -51,14 +51,17 @@ from hilbo_core.errors import ConfigError, EstimatorError, MeasurementError
 from hilbo_core.estimation import StartState, TransitionEstimator
 from hilbo_core.optimizer import OptimizerConfig
 
-__all__ = ["PairsConfig", "PersonTraces", "add_pairs_bench_parser", "pair_stats", "person_traces",
-           "run_pairs_bench"]
+__all__ = ["GRID_A_FLOOR", "GRID_MIN_DECISION_S", "PairsConfig", "PersonTraces", "add_pairs_bench_parser",
+           "pair_stats", "person_traces", "run_pairs_bench", "sound_grid"]
 
 # Issue 17's targets for the stop statistics on within-person pairs.
 TARGET_REJECTED_BETTER = 0.10
 TARGET_BREATH_FRACTION = 0.75
 TARGET_ENDED_30S = 0.05
 _DEFAULTS = OptimizerConfig()
+# The sound rule's constants the trade-off grid covers (pairs.png, "grid" in pairs.json).
+GRID_MIN_DECISION_S = (30.0, 45.0, 60.0, 90.0)
+GRID_A_FLOOR = (0.5, 0.75, 1.0, 1.25, 1.5, 2.0)
 _COUNTS = ("n_pairs", "breaths_total", "n_early", "n_ended_30s", "n_better", "n_rejected_better",
            "n_better_above_at_n")
 
@@ -202,6 +205,22 @@ def pair_stats(people: Sequence[PersonTraces], config: PairsConfig) -> dict[str,
     return out
 
 
+def sound_grid(people: Sequence[PersonTraces], config: PairsConfig) -> list[dict[str, Any]]:
+    """The sound rule's statistics over :data:`GRID_MIN_DECISION_S` × :data:`GRID_A_FLOOR`.
+
+    The trade-off the constants make on these data (breaths against wrong rejections), with the
+    configuration's accept stop; each entry says whether it meets issue 17's three targets.
+    """
+    out = []
+    for m in GRID_MIN_DECISION_S:
+        for a in GRID_A_FLOOR:
+            st = pair_stats(people, replace(config, min_decision_s=m, a_floor=a))["sound"]
+            out.append({"min_decision_s": m, "a_floor": a, "mean_breaths": st["mean_breaths"],
+                        "pct_rejected_better": st["pct_rejected_better"],
+                        "pct_ended_30s": st["pct_ended_30s"], "meets_targets": all(st["targets"].values())})
+    return out
+
+
 def pairs_table(stats: dict[str, dict[str, Any]], n_max: int) -> str:
     """Markdown: one row per rule."""
     def pct(v: float | None) -> str:
@@ -227,10 +246,11 @@ def run_pairs_bench(people: Sequence[Sequence[Bout]], config: PairsConfig | None
         if progress is not None:
             progress(i + 1)
     stats = pair_stats(traced, cfg)
+    grid = sound_grid(traced, cfg)
     return {"benchmark": "pairs", "config": {k: getattr(cfg, k) for k in cfg.__dataclass_fields__},
             "people": len(traced), "people_with_pairs": sum(len(p.traces) >= 2 for p in traced),
             "full_length_bouts": sum(len(p.traces) for p in traced),
-            "short_bouts": sum(p.short for p in traced), "rules": stats,
+            "short_bouts": sum(p.short for p in traced), "rules": stats, "grid": grid,
             "wall_s": time.perf_counter() - t0}
 
 
@@ -309,6 +329,22 @@ def _cmd_pairs(args: argparse.Namespace) -> int:
     table = pairs_table(doc["rules"], cfg.n_max)
     (out / "pairs_table.md").write_text(table)
     console.print(table)
+    from bridge.bench.plots import plot_pairs
+
+    chosen = {"mean_breaths": doc["rules"]["sound"]["mean_breaths"],
+              "pct_rejected_better": doc["rules"]["sound"]["pct_rejected_better"]}
+    plot_pairs(doc["grid"], chosen, out / "pairs.png", n_max=cfg.n_max,
+               max_rejected_pct=100.0 * TARGET_REJECTED_BETTER, max_breath_fraction=TARGET_BREATH_FRACTION)
+    meeting = [g for g in doc["grid"] if g["meets_targets"]]
+    if meeting:
+        g = min(meeting, key=lambda g: g["mean_breaths"])
+        console.print(f"{len(meeting)} of the grid's {len(doc['grid'])} sound-rule constants meet all three "
+                      f"targets on these pairs; fewest breaths: {g['min_decision_s']:g} s / "
+                      f"{g['a_floor']:g} σ ({g['mean_breaths']:.1f} breaths, "
+                      f"{g['pct_rejected_better']:.1f} % rejected); the trade-off: pairs.png")
+    else:
+        console.print(f"none of the grid's {len(doc['grid'])} sound-rule constants meets all three targets "
+                      "on these pairs; the trade-off: pairs.png")
     if doc["short_bouts"]:
         console.print(f"{doc['short_bouts']} scored bouts had fewer than {cfg.n_max} breaths and were "
                       "left out", style="yellow")

@@ -102,3 +102,49 @@ def plot_hil(spaces: Mapping[str, Mapping[str, Mapping[str, Any]]], path: Path) 
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def plot_pairs(grid: Sequence[Mapping[str, Any]], chosen: Mapping[str, Any], path: Path, *,
+               n_max: int, max_rejected_pct: float, max_breath_fraction: float) -> Path:
+    """The sound rule's trade-off on pairs of transitions: breaths against wrong rejections.
+
+    Args:
+        grid: Entries with ``min_decision_s``, ``a_floor``, ``mean_breaths`` and
+            ``pct_rejected_better`` (None without truly better candidates: not drawn).
+        chosen: The rule the command ran (same keys), marked.
+        path: PNG to write.
+        n_max: N, for the breath target's line.
+        max_rejected_pct: The rejection target (%), a line.
+        max_breath_fraction: The breath target as a fraction of N, a line.
+
+    Returns:
+        ``path``.
+    """
+    fig, ax = plt.subplots(figsize=(6.0, 4.2))
+    times = sorted({float(g["min_decision_s"]) for g in grid})
+    for k, t in enumerate(times):
+        pts = sorted((g for g in grid if float(g["min_decision_s"]) == t
+                      and g["pct_rejected_better"] is not None), key=lambda g: float(g["a_floor"]))
+        if not pts:
+            continue
+        x = [float(g["mean_breaths"]) for g in pts]
+        y = [float(g["pct_rejected_better"]) for g in pts]
+        ax.plot(x, y, marker="o", ms=3, lw=1.0, color=f"C{k}", label=f"no decision before {t:g} s")
+        for g, xi, yi in zip(pts, x, y, strict=True):
+            ax.annotate(f"{float(g['a_floor']):g}σ", (xi, yi), fontsize=6, xytext=(2, 2),
+                        textcoords="offset points")
+    if chosen.get("pct_rejected_better") is not None:
+        ax.plot([chosen["mean_breaths"]], [chosen["pct_rejected_better"]], marker="*", ms=12,
+                color="k", ls="none", label="the rule run (table)")
+    ax.axvline(max_breath_fraction * n_max, color="grey", ls="--", lw=0.8)
+    ax.axhline(max_rejected_pct, color="grey", ls="--", lw=0.8)
+    ax.set_xlabel(f"mean breaths per evaluation (N = {n_max}); target left of the dashed line")
+    ax.set_ylabel("truly better candidates rejected (%); target below")
+    ax.set_title("sound rule on within-person pairs: threshold floor a (labels) × time floor", fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

@@ -11,7 +11,15 @@ import pytest
 
 from bridge.bench.cli import bench_main
 from bridge.bench.estimator import Bout, realistic_people, synthetic_people
-from bridge.bench.pairs import PairsConfig, PersonTraces, pair_stats, person_traces, run_pairs_bench
+from bridge.bench.pairs import (
+    GRID_A_FLOOR,
+    GRID_MIN_DECISION_S,
+    PairsConfig,
+    PersonTraces,
+    pair_stats,
+    person_traces,
+    run_pairs_bench,
+)
 from bridge.bench.tune_stopping import BreathTrace
 from drivers.cart.line import encode_line
 from hilbo_core.errors import ConfigError
@@ -109,6 +117,14 @@ def test_run_on_the_realistic_wearer_reports_every_rule() -> None:
         assert doc["rules"][rule]["n_pairs"] == 12
     assert doc["rules"]["fixed"]["mean_breaths"] == 45.0
     assert doc["rules"]["sound"]["pct_ended_30s"] == 0.0  # the 60 s time floor
+    # The trade-off grid: every (time floor, threshold floor) pair; the defaults' entry is the
+    # sound row, and a higher floor never rejects more.
+    grid = {(g["min_decision_s"], g["a_floor"]): g for g in doc["grid"]}
+    assert len(grid) == len(GRID_MIN_DECISION_S) * len(GRID_A_FLOOR)
+    assert grid[(60.0, 1.0)]["mean_breaths"] == doc["rules"]["sound"]["mean_breaths"]
+    for m in GRID_MIN_DECISION_S:
+        rej = [grid[(m, a)]["pct_rejected_better"] for a in GRID_A_FLOOR]
+        assert rej == sorted(rej, reverse=True)
 
 
 def _write_recording(path: Path, levels: list[float], seed: int) -> list[float]:
@@ -142,7 +158,9 @@ def test_cli_replays_one_file_per_person(tmp_path: Path, capsys: pytest.CaptureF
     # Steps of 15 % and more at 5 % breath noise: the sound rule rejects no better candidate.
     assert doc["rules"]["sound"]["n_rejected_better"] == 0
     assert "--replay" in doc["command"] and (out / "pairs_table.md").read_text().startswith("| rule |")
-    assert "issue 17 targets (sound)" in capsys.readouterr().out
+    assert (out / "pairs.png").read_bytes().startswith(b"\x89PNG")
+    printed = capsys.readouterr().out
+    assert "issue 17 targets (sound)" in printed and "the trade-off: pairs.png" in printed
 
 
 @pytest.mark.parametrize(("argv", "code", "message"), [
