@@ -22,6 +22,15 @@ def _style(method: str, k: int) -> tuple[str, str]:
     return _STYLE.get(method, (f"C{k + 4}", method))
 
 
+def _save(fig: Any, path: Path) -> Path:
+    """Lay out, write the PNG (creating its folder) and close the figure; returns ``path``."""
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def _arr(values: Sequence[Any]) -> np.ndarray:
     return np.array([np.nan if v is None else v for v in values], dtype=float)
 
@@ -63,11 +72,7 @@ def plot_stopping_function(settings: Sequence[Mapping[str, Any]], function: str,
         ax.set_ylim(bottom=0)
     axes[0][0].set_ylabel("y_t  (mean ± SE)")
     axes[0][0].legend(fontsize=8)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def plot_hil(spaces: Mapping[str, Mapping[str, Mapping[str, Any]]], path: Path) -> Path:
@@ -97,11 +102,7 @@ def plot_hil(spaces: Mapping[str, Mapping[str, Mapping[str, Any]]], path: Path) 
         ax.set_ylim(bottom=0)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def plot_pairs(grid: Sequence[Mapping[str, Any]], chosen: Mapping[str, Any], path: Path, *,
@@ -143,8 +144,4 @@ def plot_pairs(grid: Sequence[Mapping[str, Any]], chosen: Mapping[str, Any], pat
     ax.set_title("sound rule on within-person pairs: threshold floor a (labels) × time floor", fontsize=9)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
