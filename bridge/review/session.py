@@ -192,7 +192,7 @@ class EvaluationRow:
         duration_s: Breath time from the setting's start to its last breath, s.
         phase: exploration or optimization.
         stopped_early: Stopped by the σ-scaled rule.
-        reason: threshold, max_measurements, budget or told.
+        reason: threshold, decided (the sound rule's accept stop), max_measurements, budget or told.
         t_start_s: Session time when the setting was applied, s (None if unknown).
         t_end_s: Session time of its last breath, s (None if unknown).
         file: Index of the file it completed in.
