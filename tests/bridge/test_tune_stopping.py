@@ -137,3 +137,21 @@ def test_trajectories_from_log_and_cli(tmp_path: Path) -> None:
     res = json.loads(out.read_text())
     assert res["config"]["n_max"] == 4  # taken from the log's full-length evaluations
     assert res["n_trajectories"] >= 3
+
+
+def test_cli_tunes_the_sound_rules_floors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = tmp_path / "s.mcap"
+    _write_log(path)
+    parser = argparse.ArgumentParser()
+    add_tune_stopping_parser(parser.add_subparsers())
+    out = tmp_path / "sound.json"
+    args = parser.parse_args(["tune-stopping", str(path), "--family", "sound", "--real", "3",
+                              "--resamples", "1", "--max-reuse", "1", "--out", str(out)])
+    assert args.func(args) == 0
+    res = json.loads(out.read_text())
+    assert res["config"]["n_max"] == 4 and res["n_trajectories"] >= 3
+    assert set(res["recommended"]) == {"min_decision_s", "a_floor"}
+    assert 20.0 <= res["recommended"]["min_decision_s"] <= 120.0
+    # 4 breaths of 3 s never reach a 30 s time floor: every grid point uses all N breaths.
+    assert {g["mean_breaths"] for g in res["grid"]} == {4.0}
+    assert "the grid's best: no decision before" in capsys.readouterr().err
