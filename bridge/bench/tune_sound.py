@@ -215,7 +215,8 @@ def tune_sound(trajectories: Sequence[Any], config: TuneSoundConfig | None = Non
     N = cfg.n_max
     traces, skipped = breath_traces(trajectories, N, estimator_factory)
     if len(traces) < 3 or (truth is not None and skipped):
-        raise ConfigError(f"need >= 3 trajectories of >= {N} breaths (all of them with truth), "
+        with_truth = " (all of them, with truth given)" if truth is not None else ""
+        raise ConfigError(f"need >= 3 trajectories of >= {N} breaths{with_truth}, "
                           f"got {len(traces)} ({skipped} shorter)")
     times = [np.asarray(t, dtype=float)[:N, 0] for t in trajectories if len(t) >= N]
     groups = _exploration_groups(len(traces), cfg.n_explore, cfg.seed)
