@@ -155,3 +155,13 @@ def test_cli_tunes_the_sound_rules_floors(tmp_path: Path, capsys: pytest.Capture
     # 4 breaths of 3 s never reach a 30 s time floor: every grid point uses all N breaths.
     assert {g["mean_breaths"] for g in res["grid"]} == {4.0}
     assert "the grid's best: no decision before" in capsys.readouterr().err
+
+
+def test_cli_sound_needs_full_length_evaluations(tmp_path: Path) -> None:
+    path = tmp_path / "s.mcap"
+    _write_log(path)  # N = 4: no evaluation has 60 breaths
+    parser = argparse.ArgumentParser()
+    add_tune_stopping_parser(parser.add_subparsers())
+    args = parser.parse_args(["tune-stopping", str(path), "--family", "sound", "--n-max", "60"])
+    with pytest.raises(ConfigError, match=r"need >= 3 trajectories of >= 60 breaths, got 0 \(\d+ shorter\)$"):
+        args.func(args)
