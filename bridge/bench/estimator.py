@@ -39,7 +39,7 @@ import argparse
 import itertools
 import math
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -60,8 +60,10 @@ __all__ = [
     "WEARERS",
     "Bout",
     "add_estimator_bench_parser",
+    "chained_estimators",
     "comparison_table",
     "evaluate",
+    "parse_transitions",
     "realistic_people",
     "replay_people",
     "run_estimator_bench",
@@ -315,6 +317,34 @@ def _ls_full(t: np.ndarray, y: np.ndarray) -> tuple[float, float]:
     return float(c), math.sqrt(max(float(cov[0, 0]), 0.0))
 
 
+def chained_estimators(person: Sequence[Bout]) -> Iterator[tuple[Bout, TransitionEstimator]]:
+    """For each non-empty bout of a person, a :class:`TransitionEstimator` started where the
+    previous bout left the body, as the optimizer chains them; the caller feeds it the bout's
+    breaths before asking for the next one. Every bout (scored or not) moves the chain on."""
+    handover: StartState | None = None
+    for bout in person:
+        if bout.t_s.size == 0:
+            continue
+        est = TransitionEstimator()
+        if handover is not None:
+            est.start_from_state(handover)
+        yield bout, est
+        if est.n_updates:
+            handover = est.handover()
+
+
+def parse_transitions(text: str) -> list[float]:
+    """``--transitions t1,t2,...`` as seconds.
+
+    Raises:
+        ConfigError: A value that is not a number.
+    """
+    try:
+        return [float(x) for x in text.split(",") if x.strip()]
+    except ValueError as err:
+        raise ConfigError(f"--transitions {text!r}: expected comma-separated seconds") from err
+
+
 def _at_horizons(est: Any, bout: Bout, horizons: Sequence[float]) -> list[tuple[float, float]]:
     """Run a sequential estimator over the bout; (mean, sd) at the last breath <= each horizon."""
     out = [(math.nan, math.nan)] * len(horizons)
@@ -345,17 +375,8 @@ def evaluate(people: Iterable[list[Bout]], estimators: Sequence[str] = ESTIMATOR
     """
     rows: list[dict[str, Any]] = []
     for i, person in enumerate(people):
-        handover: StartState | None = None
-        for bout in person:
-            if bout.t_s.size == 0:
-                continue
-            # The chained estimator runs over every bout (as in the optimizer), scored or not.
-            est = TransitionEstimator()
-            if handover is not None:
-                est.start_from_state(handover)
+        for bout, est in chained_estimators(person):
             trans = _at_horizons(est, bout, horizons)
-            if est.n_updates:
-                handover = est.handover()
             if not bout.evaluate:
                 continue
             step = "large" if bout.first_distance >= _LARGE_STEP else "small"
@@ -476,11 +497,7 @@ def _cmd_estimator(args: argparse.Namespace) -> int:
         if args.replay is None and args.seed < 0:
             raise ConfigError(f"--seed {args.seed}; expected an integer >= 0")
         if args.replay is not None:
-            try:
-                trans = [float(x) for x in args.transitions.split(",") if x.strip()]
-            except ValueError as err:
-                raise ConfigError(
-                    f"--transitions {args.transitions!r}: expected comma-separated seconds") from err
+            trans = parse_transitions(args.transitions)
     if args.replay is not None:
         cols = args.csv_columns.split(",") if args.csv_columns else None
         people = replay_people(args.replay, trans, cols)

@@ -37,18 +37,17 @@ import argparse
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from bridge.bench.common import machine_info, markdown_table, round_sig, write_json
-from bridge.bench.estimator import WEARERS, Bout, replay_people
+from bridge.bench.estimator import WEARERS, Bout, chained_estimators, parse_transitions, replay_people
 from bridge.bench.tune_sound import SoundReplay
 from bridge.bench.tune_stopping import BreathTrace, _exploration_groups, _schedules
 from hilbo_core.errors import ConfigError, EstimatorError, MeasurementError
-from hilbo_core.estimation import StartState, TransitionEstimator
 from hilbo_core.optimizer import OptimizerConfig
 
 __all__ = ["GRID_A_FLOOR", "GRID_MIN_DECISION_S", "PairsConfig", "PersonTraces", "add_pairs_bench_parser",
@@ -131,13 +130,7 @@ def person_traces(person: Sequence[Bout], n_max: int) -> PersonTraces:
     times: list[np.ndarray] = []
     truth: list[float] = []
     short = 0
-    handover: StartState | None = None
-    for k, bout in enumerate(person):
-        if bout.t_s.size == 0:
-            continue
-        est = TransitionEstimator()
-        if handover is not None:
-            est.start_from_state(handover)
+    for k, (bout, est) in enumerate(chained_estimators(person)):
         means, variances = [], []
         mean = var = math.nan
         for t, w in zip(bout.t_s, bout.watts, strict=True):
@@ -147,8 +140,6 @@ def person_traces(person: Sequence[Bout], n_max: int) -> PersonTraces:
                 pass  # the previous estimate stands
             means.append(mean)
             variances.append(var)
-        if est.n_updates:
-            handover = est.handover()
         if not bout.evaluate:
             continue
         if bout.t_s.size < n_max or not np.all(np.isfinite(means[:n_max])):
@@ -160,48 +151,65 @@ def person_traces(person: Sequence[Bout], n_max: int) -> PersonTraces:
     return PersonTraces(traces, times, truth, short)
 
 
-def pair_stats(people: Sequence[PersonTraces], config: PairsConfig) -> dict[str, dict[str, Any]]:
-    """Pooled stop statistics of ``sound``, ``adaptive`` and ``fixed`` over every person's pairs.
+def _replays(people: Sequence[PersonTraces], config: PairsConfig) -> list[SoundReplay]:
+    """One replay per person with two full-length scored bouts (Algorithm 2's schedules built).
 
     Raises:
         ConfigError: No person has two full-length scored bouts.
     """
-    rules: dict[str, tuple[float, float, float | None]] = {
-        "sound": (config.min_decision_s, config.a_floor, config.accept_z),
-        "adaptive": (0.0, -math.inf, None)}
-    counts = {r: dict.fromkeys(_COUNTS, 0) for r in (*rules, "fixed")}
+    out = []
     for p in people:
         if len(p.traces) < 2:
             continue
         groups = _exploration_groups(len(p.traces), config.n_explore, config.seed)
         schedules = _schedules(p.traces, min(config.window, config.n_max - 1), groups)
-        replay = SoundReplay(p.traces, p.times, schedules, p.truth_w)
-        for rule, (min_s, floor, accept) in rules.items():
-            st = replay.stats(min_s, floor, accept_z=accept)
-            for key in _COUNTS:
-                counts[rule][key] += int(st[key])
-        # fixed: N breaths against every incumbent, no stop; the measurement's error as above.
-        st = replay.stats(math.inf, math.inf)
-        for key in _COUNTS:
-            counts["fixed"][key] += int(st[key])
-    if counts["fixed"]["n_pairs"] == 0:
+        out.append(SoundReplay(p.traces, p.times, schedules, p.truth_w))
+    if not out:
         raise ConfigError(f"no within-person pairs: every person needs at least 2 scored bouts of "
                           f">= {config.n_max} breaths")
-    out: dict[str, dict[str, Any]] = {}
-    for rule, c in counts.items():
-        n, nb = c["n_pairs"], c["n_better"]
-        out[rule] = {**c, "mean_breaths": c["breaths_total"] / n,
-                     "breath_fraction": c["breaths_total"] / n / config.n_max,
-                     "pct_fewer_breaths": 100.0 * (1.0 - c["breaths_total"] / n / config.n_max),
-                     "pct_early": 100.0 * c["n_early"] / n, "pct_ended_30s": 100.0 * c["n_ended_30s"] / n,
-                     "pct_rejected_better": 100.0 * c["n_rejected_better"] / nb if nb else None,
-                     "pct_better_above_at_n": 100.0 * c["n_better_above_at_n"] / nb if nb else None}
-    s = out["sound"]
-    s["targets"] = {
-        "rejected_better_at_most_10pct": s["pct_rejected_better"] is not None
-        and s["pct_rejected_better"] <= 100.0 * TARGET_REJECTED_BETTER,
-        "breaths_at_least_25pct_fewer": s["breath_fraction"] <= TARGET_BREATH_FRACTION,
-        "ended_30s_at_most_5pct": s["pct_ended_30s"] <= 100.0 * TARGET_ENDED_30S}
+    return out
+
+
+def _pooled(replays: Sequence[SoundReplay], n_max: int, min_decision_s: float, a_floor: float,
+            accept_z: float | None) -> dict[str, Any]:
+    """One rule's counts summed over the replays, and the rates of them."""
+    c = dict.fromkeys(_COUNTS, 0)
+    for replay in replays:
+        st = replay.stats(min_decision_s, a_floor, accept_z=accept_z)
+        for key in _COUNTS:
+            c[key] += int(st[key])
+    n, nb = c["n_pairs"], c["n_better"]
+    out: dict[str, Any] = {
+        **c, "mean_breaths": c["breaths_total"] / n, "breath_fraction": c["breaths_total"] / n / n_max,
+        "pct_fewer_breaths": 100.0 * (1.0 - c["breaths_total"] / n / n_max),
+        "pct_early": 100.0 * c["n_early"] / n, "pct_ended_30s": 100.0 * c["n_ended_30s"] / n,
+        "pct_rejected_better": 100.0 * c["n_rejected_better"] / nb if nb else None,
+        "pct_better_above_at_n": 100.0 * c["n_better_above_at_n"] / nb if nb else None}
+    return out
+
+
+def _targets(st: dict[str, Any]) -> dict[str, bool]:
+    """Issue 17's three pair targets, met or not, for pooled statistics."""
+    return {"rejected_better_at_most_10pct": st["pct_rejected_better"] is not None
+            and st["pct_rejected_better"] <= 100.0 * TARGET_REJECTED_BETTER,
+            "breaths_at_least_25pct_fewer": st["breath_fraction"] <= TARGET_BREATH_FRACTION,
+            "ended_30s_at_most_5pct": st["pct_ended_30s"] <= 100.0 * TARGET_ENDED_30S}
+
+
+def pair_stats(people: Sequence[PersonTraces], config: PairsConfig) -> dict[str, dict[str, Any]]:
+    """Pooled stop statistics of ``sound``, ``adaptive`` and ``fixed`` over every person's pairs.
+
+    ``fixed`` runs N breaths against every incumbent (no stop); its ``pct_better_above_at_n`` is
+    the measurement's own error. Only ``sound`` carries issue 17's ``targets``.
+
+    Raises:
+        ConfigError: No person has two full-length scored bouts.
+    """
+    replays = _replays(people, config)
+    out = {"sound": _pooled(replays, config.n_max, config.min_decision_s, config.a_floor, config.accept_z),
+           "adaptive": _pooled(replays, config.n_max, 0.0, -math.inf, None),
+           "fixed": _pooled(replays, config.n_max, math.inf, math.inf, None)}
+    out["sound"]["targets"] = _targets(out["sound"])
     return out
 
 
@@ -211,13 +219,14 @@ def sound_grid(people: Sequence[PersonTraces], config: PairsConfig) -> list[dict
     The trade-off the constants make on these data (breaths against wrong rejections), with the
     configuration's accept stop; each entry says whether it meets issue 17's three targets.
     """
+    replays = _replays(people, config)
     out = []
     for m in GRID_MIN_DECISION_S:
         for a in GRID_A_FLOOR:
-            st = pair_stats(people, replace(config, min_decision_s=m, a_floor=a))["sound"]
+            st = _pooled(replays, config.n_max, m, a, config.accept_z)
             out.append({"min_decision_s": m, "a_floor": a, "mean_breaths": st["mean_breaths"],
                         "pct_rejected_better": st["pct_rejected_better"],
-                        "pct_ended_30s": st["pct_ended_30s"], "meets_targets": all(st["targets"].values())})
+                        "pct_ended_30s": st["pct_ended_30s"], "meets_targets": all(_targets(st).values())})
     return out
 
 
@@ -293,12 +302,7 @@ def _cmd_pairs(args: argparse.Namespace) -> int:
                               "n >= 1, seed >= 0, bouts >= 3")
         if not replays and not (math.isfinite(args.bout_s) and args.bout_s > 0):
             raise ConfigError(f"--bout-s {args.bout_s}; expected a duration > 0 s")
-        trans: list[list[float]] = []
-        for text in transitions:
-            try:
-                trans.append([float(x) for x in text.split(",") if x.strip()])
-            except ValueError as err:
-                raise ConfigError(f"--transitions {text!r}: expected comma-separated seconds") from err
+        trans = [parse_transitions(text) for text in transitions]
     if replays:
         cols = args.csv_columns.split(",") if args.csv_columns else None
         people = [p for f, t in zip(replays, trans, strict=True) for p in replay_people(f, t, cols)]
