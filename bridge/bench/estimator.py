@@ -114,23 +114,35 @@ def _duration(rng: np.random.Generator, bout_s: float | None) -> float:
     return float(rng.uniform(45.0, 120.0) if rng.random() < 0.5 else rng.uniform(200.0, 300.0))
 
 
-def synthetic_people(n: int, seed: int, *, bouts: int = 5, bout_s: float | None = None) -> list[list[Bout]]:
+def synthetic_people(n: int, seed: int, *, bouts: int = 5, bout_s: float | None = None,
+                     step_scale: float = 1.0) -> list[list[Bout]]:
     """Synthetic breath trajectories: ``n`` people, each walking ``bouts`` settings in a row.
 
     Per person: τ ~ U(30, 60) s and a steady-state breath CV ~ U(8, 12) % (issue 16's facts of
     real data: τ 30–60 s between people, median CV ≈ 11 %), a starting level ~ U(250, 450) W.
     Per setting: the steady state c is the body's level at the setting's start divided by
-    (1 + d), d ~ U(−0.7, 0.8) (steps up to ±80 % of the distance from the new steady state;
-    c clipped to 120–1200 W); the body follows m(t) = c + (b0 − c)·e^{−t/τ} from the level b0
-    the previous setting left it at. Durations are 45–120 s (half the settings: early stops) or
-    200–300 s, or all ``bout_s`` when it is given. Breaths every U(2, 3.5) s; y = m·(1 + cv·ε)
-    with ε an AR(1) of correlation
+    (1 + d), d ~ step_scale·U(−0.7, 0.8) (steps up to ±80 % of the distance from the new steady
+    state at the default ``step_scale`` 1; c clipped to 120–1200 W); the body follows
+    m(t) = c + (b0 − c)·e^{−t/τ} from the level b0 the previous setting left it at. Durations
+    are 45–120 s (half the settings: early stops) or 200–300 s, or all ``bout_s`` when it is
+    given. Breaths every U(2, 3.5) s; y = m·(1 + cv·ε) with ε an AR(1) of correlation
     e^{−Δt/1.5 s} (≤ 0.14 beyond 3 s: issue 16's "below 0.15 beyond 3 s"), and 3 % outliers
     (swallows, coughs, talking) with an extra Student-t(2) error of scale 3·cv.
 
-    Pure: the same (n, seed, bouts, bout_s) give the same data.
+    ``step_scale`` < 1 makes the steps smaller and the pairs of ``hilbo bench pairs`` harder to
+    rank. At 0.3 the seed UKF ranks 10.6–13.9 % of truly better candidates above their
+    incumbent after 45 breaths (seeds 1–3, 40 people), near the 10.3 % that issue 17 measured on
+    its real pairs (docs/results.md §5).
+
+    Pure: the same (n, seed, bouts, bout_s, step_scale) give the same data.
+
+    Raises:
+        ConfigError: ``bout_s`` not a duration > 0, or ``step_scale`` not a finite number >= 0.
     """
     _check_bout_s(bout_s)
+    if isinstance(step_scale, bool) or not isinstance(step_scale, int | float) \
+            or not (math.isfinite(step_scale) and step_scale >= 0.0):
+        raise ConfigError(f"step_scale={step_scale!r}; expected a finite number >= 0")
     rng = np.random.default_rng([int(seed), 0xE57])
     people: list[list[Bout]] = []
     for _ in range(n):
@@ -139,7 +151,7 @@ def synthetic_people(n: int, seed: int, *, bouts: int = 5, bout_s: float | None 
         level = rng.uniform(250.0, 450.0)
         person: list[Bout] = []
         for k in range(bouts):
-            d = rng.uniform(-0.7, 0.8)
+            d = step_scale * rng.uniform(-0.7, 0.8)
             c = float(np.clip(level / (1.0 + d), 120.0, 1200.0))
             dur = _duration(rng, bout_s)
             ts: list[float] = []

@@ -37,7 +37,7 @@ import argparse
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -48,15 +48,20 @@ from bridge.bench.estimator import WEARERS, Bout, chained_estimators, parse_tran
 from bridge.bench.tune_sound import SoundReplay
 from bridge.bench.tune_stopping import BreathTrace, _exploration_groups, _schedules
 from hilbo_core.errors import ConfigError, EstimatorError, MeasurementError
+from hilbo_core.metabolic import MetabolicUKF
 from hilbo_core.optimizer import OptimizerConfig
 
-__all__ = ["GRID_A_FLOOR", "GRID_MIN_DECISION_S", "PairsConfig", "PersonTraces", "add_pairs_bench_parser",
-           "pair_stats", "person_traces", "run_pairs_bench", "sound_grid"]
+__all__ = ["GRID_A_FLOOR", "GRID_MIN_DECISION_S", "ISSUE17_REAL_SEED_UKF_PCT", "PairsConfig", "PersonTraces",
+           "add_pairs_bench_parser", "measurement_error", "pair_stats", "person_traces", "run_pairs_bench",
+           "sound_grid"]
 
 # Issue 17's targets for the stop statistics on within-person pairs.
 TARGET_REJECTED_BETTER = 0.10
 TARGET_BREATH_FRACTION = 0.75
 TARGET_ENDED_30S = 0.05
+# Issue 17: on its real pairs "the same UKF after 45 breaths" rejected 10.3 % of truly better
+# candidates: the real data's measurement error, to place simulated pairs beside it.
+ISSUE17_REAL_SEED_UKF_PCT = 10.3
 _DEFAULTS = OptimizerConfig()
 # The sound rule's constants the trade-off grid covers (pairs.png, "grid" in pairs.json).
 GRID_MIN_DECISION_S = (30.0, 45.0, 60.0, 90.0)
@@ -111,12 +116,15 @@ class PersonTraces:
         times: Per trace, the breath times since the setting began (s), shape (N,).
         truth_w: Per trace, the bout's truth (W).
         short: Scored bouts left out for having fewer than N breaths.
+        seed_ukf_w: Per trace, the seed UKF's estimate after the bout's first N breaths (W; a
+            fresh filter per bout, as seed 000 §II.C runs it), for :func:`measurement_error`.
     """
 
     traces: list[BreathTrace]
     times: list[np.ndarray]
     truth_w: list[float]
     short: int
+    seed_ukf_w: list[float] = field(default_factory=list)
 
 
 def person_traces(person: Sequence[Bout], n_max: int) -> PersonTraces:
@@ -124,11 +132,12 @@ def person_traces(person: Sequence[Bout], n_max: int) -> PersonTraces:
 
     Every bout (scored or not, long or short) moves the chained estimator on, as every setting
     a person walked moves the body; a breath the estimator rejects leaves the estimate as in the
-    optimizer.
+    optimizer. Each kept bout is also run through a fresh seed UKF (``seed_ukf_w``).
     """
     traces: list[BreathTrace] = []
     times: list[np.ndarray] = []
     truth: list[float] = []
+    ukf: list[float] = []
     short = 0
     for k, (bout, est) in enumerate(chained_estimators(person)):
         means, variances = [], []
@@ -148,7 +157,45 @@ def person_traces(person: Sequence[Bout], n_max: int) -> PersonTraces:
         traces.append(BreathTrace(np.array(means[:n_max]), np.array(variances[:n_max]), f"bout {k}"))
         times.append(np.asarray(bout.t_s[:n_max], dtype=float))
         truth.append(float(bout.truth_w))
-    return PersonTraces(traces, times, truth, short)
+        ukf.append(_seed_ukf_after(bout, n_max))
+    return PersonTraces(traces, times, truth, short, ukf)
+
+
+def _seed_ukf_after(bout: Bout, n_max: int) -> float:
+    """The seed UKF's estimate after the bout's first ``n_max`` breaths (NaN if it has none)."""
+    est = MetabolicUKF()
+    mean = math.nan
+    for t, w in zip(bout.t_s[:n_max], bout.watts[:n_max], strict=True):
+        try:
+            mean, _ = est.update(float(t), float(w))
+        except (MeasurementError, EstimatorError):
+            pass  # the previous estimate stands, as in the optimizer
+    return float(mean)
+
+
+def measurement_error(people: Sequence[PersonTraces]) -> dict[str, Any]:
+    """How hard the pairs are to rank: the share of truly better candidates (every ordered pair of
+    a person's full-length bouts) whose N-breath estimate is above the incumbent's, for the
+    chained transition estimator and for the seed UKF.
+
+    The second is the figure issue 17 gives for its real pairs (10.3 %, "the same UKF after 45
+    breaths"), so it places simulated pairs on the real data's scale of difficulty.
+    """
+    n_better = above_tr = above_ukf = 0
+    for p in people:
+        if len(p.traces) < 2:
+            continue
+        truth = np.asarray(p.truth_w, dtype=float)
+        final = np.array([tr.means[-1] for tr in p.traces])
+        ukf = np.asarray(p.seed_ukf_w, dtype=float)
+        better = truth[:, None] < truth[None, :]  # [j, k]: candidate j truly better than k
+        n_better += int(better.sum())
+        above_tr += int((better & (final[:, None] > final[None, :])).sum())
+        above_ukf += int((better & (ukf[:, None] > ukf[None, :])).sum())
+    def pct(k: int) -> float | None:
+        return 100.0 * k / n_better if n_better else None
+    return {"n_better": n_better, "pct_above_transition": pct(above_tr), "pct_above_seed_ukf": pct(above_ukf),
+            "pct_above_seed_ukf_issue17_real": ISSUE17_REAL_SEED_UKF_PCT}
 
 
 def _replays(people: Sequence[PersonTraces], config: PairsConfig) -> list[SoundReplay]:
@@ -259,7 +306,8 @@ def run_pairs_bench(people: Sequence[Sequence[Bout]], config: PairsConfig | None
     return {"benchmark": "pairs", "config": {k: getattr(cfg, k) for k in cfg.__dataclass_fields__},
             "people": len(traced), "people_with_pairs": sum(len(p.traces) >= 2 for p in traced),
             "full_length_bouts": sum(len(p.traces) for p in traced),
-            "short_bouts": sum(p.short for p in traced), "rules": stats, "grid": grid,
+            "short_bouts": sum(p.short for p in traced), "measurement_error": measurement_error(traced),
+            "rules": stats, "grid": grid,
             "wall_s": time.perf_counter() - t0}
 
 
@@ -302,6 +350,10 @@ def _cmd_pairs(args: argparse.Namespace) -> int:
                               "n >= 1, seed >= 0, bouts >= 3")
         if not replays and not (math.isfinite(args.bout_s) and args.bout_s > 0):
             raise ConfigError(f"--bout-s {args.bout_s}; expected a duration > 0 s")
+        if args.step_scale is not None and (replays or args.wearer != "synthetic"):
+            raise ConfigError(f"--step-scale {args.step_scale:g} goes with --wearer synthetic")
+        if args.step_scale is not None and not (math.isfinite(args.step_scale) and args.step_scale >= 0):
+            raise ConfigError(f"--step-scale {args.step_scale}; expected a number >= 0")
         trans = [parse_transitions(text) for text in transitions]
     if replays:
         cols = args.csv_columns.split(",") if args.csv_columns else None
@@ -310,9 +362,11 @@ def _cmd_pairs(args: argparse.Namespace) -> int:
                           for f, t in zip(replays, transitions, strict=True))
         source += f" --csv-columns {args.csv_columns}" if args.csv_columns else ""
     else:
-        people = WEARERS[args.wearer](args.n, args.seed, bouts=args.bouts, bout_s=args.bout_s)
+        scale = {} if args.step_scale is None else {"step_scale": args.step_scale}
+        people = WEARERS[args.wearer](args.n, args.seed, bouts=args.bouts, bout_s=args.bout_s, **scale)
         source = (f"--wearer {args.wearer} --n {args.n} --seed {args.seed} --bouts {args.bouts} "
                   f"--bout-s {args.bout_s:g}")
+        source += "" if args.step_scale is None else f" --step-scale {args.step_scale:g}"
     n_people = len(people)
     step = max(1, n_people // 10)
 
@@ -352,6 +406,12 @@ def _cmd_pairs(args: argparse.Namespace) -> int:
     if doc["short_bouts"]:
         console.print(f"{doc['short_bouts']} scored bouts had fewer than {cfg.n_max} breaths and were "
                       "left out", style="yellow")
+    err = doc["measurement_error"]
+    if err["n_better"]:
+        console.print(f"how hard these pairs are to rank: after {cfg.n_max} breaths the seed UKF puts "
+                      f"{err['pct_above_seed_ukf']:.1f} % of truly better candidates above their incumbent "
+                      f"(issue 17's real pairs: {ISSUE17_REAL_SEED_UKF_PCT:g} %), the transition estimator "
+                      f"{err['pct_above_transition']:.1f} %")
     met = doc["rules"]["sound"]["targets"]
     console.print("issue 17 targets (sound): " + ", ".join(
         f"{k} {'met' if v else 'NOT met'}" for k, v in met.items()))
@@ -378,6 +438,9 @@ def add_pairs_bench_parser(bench_subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--wearer", default="realistic",
                    help=f"simulated people instead, from {','.join(sorted(WEARERS))} (realistic: hip "
                         "settings, steps of 5-25 %%; synthetic: steps up to ±80 %%)")
+    p.add_argument("--step-scale", type=float, default=None, metavar="S",
+                   help="with --wearer synthetic: scale its steps by S (1); smaller steps are harder to "
+                        "rank (see the 'how hard' line)")
     p.add_argument("--n", type=int, default=20, help="simulated people (20)")
     p.add_argument("--seed", type=int, default=1, help="seed of the simulated people (1)")
     p.add_argument("--bouts", type=int, default=10,

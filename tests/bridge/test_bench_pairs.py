@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 from pathlib import Path
@@ -14,8 +15,10 @@ from bridge.bench.estimator import Bout, realistic_people, synthetic_people
 from bridge.bench.pairs import (
     GRID_A_FLOOR,
     GRID_MIN_DECISION_S,
+    ISSUE17_REAL_SEED_UKF_PCT,
     PairsConfig,
     PersonTraces,
+    measurement_error,
     pair_stats,
     person_traces,
     run_pairs_bench,
@@ -87,6 +90,45 @@ def test_pair_stats_count_a_wrong_rejection_and_the_measurements_own_error() -> 
     acc = pair_stats([_person([400.0, 500.0], [400.0, 500.0])],
                      PairsConfig(n_max=4, min_decision_s=30.0, a_floor=1.0, accept_z=3.0))["sound"]
     assert acc["breaths_total"] == 2 + 2 and acc["n_rejected_better"] == 0
+
+
+def test_measurement_error_counts_truly_better_candidates_ranked_above_per_estimator() -> None:
+    # Truth 400 < 410 < 420: three truly better ordered pairs. The transition estimator's
+    # finals (430, 405, 415) misrank (400 vs 410) and (400 vs 420); the seed UKF's misrank
+    # only (410 vs 420).
+    p = _person([430.0, 405.0, 415.0], [400.0, 410.0, 420.0])
+    p = PersonTraces(p.traces, p.times, p.truth_w, 0, [400.0, 425.0, 420.0])
+    err = measurement_error([p, _person([450.0], [450.0])])  # a person without pairs adds none
+    assert err["n_better"] == 3
+    assert err["pct_above_transition"] == pytest.approx(200.0 / 3)
+    assert err["pct_above_seed_ukf"] == pytest.approx(100.0 / 3)
+    assert err["pct_above_seed_ukf_issue17_real"] == ISSUE17_REAL_SEED_UKF_PCT
+    # The transition estimator's figure is the fixed rule's own-error column.
+    stats = pair_stats([p], PairsConfig(n_max=4))
+    assert stats["fixed"]["pct_better_above_at_n"] == pytest.approx(err["pct_above_transition"])
+
+
+def test_person_traces_run_a_fresh_seed_ukf_per_kept_bout() -> None:
+    p = person_traces([_bout(300.0, 30, evaluate=False), _bout(400.0, 50), _bout(350.0, 10),
+                       _bout(450.0, 45)], 45)
+    assert len(p.seed_ukf_w) == len(p.traces) == 2
+    assert p.seed_ukf_w[0] == pytest.approx(400.0, rel=0.05)
+    assert p.seed_ukf_w[1] == pytest.approx(450.0, rel=0.05)
+
+
+def test_synthetic_step_scale_shrinks_the_steps() -> None:
+    def steps(scale: float) -> np.ndarray:
+        people = synthetic_people(3, 4, bouts=6, bout_s=180.0, step_scale=scale)
+        return np.array([abs(b.truth_w / a.truth_w - 1.0)
+                         for p in people for a, b in itertools.pairwise(p)])
+    # No step at 0: every setting of a person costs the same.
+    assert np.all(steps(0.0) == 0.0)
+    big, small = steps(1.0), steps(0.2)
+    assert np.median(small) < 0.5 * np.median(big)
+    assert np.max(small) < 0.25  # |d| <= 0.2·0.8, so a cost ratio of at most 1/(1 - 0.14)
+    for bad in (-0.1, math.nan, True):
+        with pytest.raises(ConfigError, match="step_scale"):
+            synthetic_people(1, 0, step_scale=bad)
 
 
 @pytest.mark.parametrize("bad", [{"n_max": 1}, {"min_decision_s": -1.0}, {"a_floor": math.nan},
@@ -161,6 +203,8 @@ def test_cli_replays_one_file_per_person(tmp_path: Path, capsys: pytest.CaptureF
     assert (out / "pairs.png").read_bytes().startswith(b"\x89PNG")
     printed = capsys.readouterr().out
     assert "issue 17 targets (sound)" in printed and "the trade-off: pairs.png" in printed
+    assert "how hard these pairs are to rank" in printed
+    assert doc["measurement_error"]["n_better"] == doc["rules"]["fixed"]["n_better"]
 
 
 @pytest.mark.parametrize(("argv", "code", "message"), [
@@ -169,6 +213,8 @@ def test_cli_replays_one_file_per_person(tmp_path: Path, capsys: pytest.CaptureF
     (["--wearer", "robot"], 2, "--wearer 'robot'"),
     (["--accept-z", "often"], 2, "--accept-z 'often'"),
     (["--n-max", "1"], 2, "n_max=1"),
+    (["--step-scale", "0.3"], 2, "--step-scale 0.3 goes with --wearer synthetic"),
+    (["--wearer", "synthetic", "--step-scale", "-1"], 2, "--step-scale -1.0; expected a number >= 0"),
     (["--replay", "missing.hbr", "--transitions", "60,120"], 1, "cannot read breaths"),
     # A real vendor export's format is detected, but its settings are far shorter than N.
     (["--replay", str(Path(__file__).resolve().parents[1] / "data" / "cart" / "cosmed_k5.csv"),
