@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import logging
+import math
 import os
 import sys
 from collections.abc import Sequence
@@ -108,6 +109,21 @@ def _print_done(console: Any, summary: dict[str, Any]) -> None:
     console.print(line)
 
 
+def _ended_text(s: dict[str, Any]) -> str:
+    """The last line of ``hilbo run``: evaluations, the best setting's estimate, minutes walked."""
+    text = f"session ended: {s['n_evaluations']} evaluations ({s['n_early_stops']} early stops)"
+    if s.get("best_mean") is not None:
+        var = s.get("best_var")
+        sd = f" ± {math.sqrt(var):.1f}" if isinstance(var, int | float) and var >= 0 else ""
+        text += f"; best {s['best_mean']:.1f}{sd} W"
+    walking = s.get("walking") or {}
+    if "session_s" in walking:
+        text += f"; {walking['session_s'] / 60:.1f} min walked"
+        if walking.get("optimization_s"):
+            text += f", {walking['optimization_s'] / 60:.1f} of them in the optimisation bout"
+    return text
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
     import asyncio
     import dataclasses
@@ -140,10 +156,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
                       "--auto-resume S or set [watchdog] auto_resume_s")
     result = asyncio.run(run_session(cfg, resume=resume, out_dir=Path(args.out) if args.out else None,
                                      operator_view=not args.no_view, auto_resume_s=args.auto_resume))
-    s = result.summary
-    console.print(f"session ended: {s['n_evaluations']} evaluations ({s['n_early_stops']} early stops); "
-                  f"best {s['best_mean']} W" if s.get("best_mean") is not None else
-                  f"session ended: {s['n_evaluations']} evaluations")
+    console.print(_ended_text(result.summary))
     print(result.log_path)
     print(result.summary_path)
     return 0

@@ -24,3 +24,13 @@ def test_errors_of_the_packages_are_exit_1_with_one_line(capsys: pytest.CaptureF
     assert cli.main(["vcan-setup", "no such iface!"]) == 1
     err = capsys.readouterr().err
     assert err.startswith("hilbo vcan-setup: error:") and len(err.strip().splitlines()) == 1
+
+
+def test_the_last_line_of_hilbo_run_gives_the_best_estimate_and_the_minutes_walked() -> None:
+    summary = {"n_evaluations": 32, "n_early_stops": 15, "best_mean": 344.0799, "best_var": 20.25,
+               "walking": {"session_s": 4009.26, "optimization_s": 2400.99}}
+    assert cli._ended_text(summary) == ("session ended: 32 evaluations (15 early stops); best 344.1 ± 4.5 W; "
+                                    "66.8 min walked, 40.0 of them in the optimisation bout")
+    # A session stopped before any evaluation or any breath.
+    assert cli._ended_text({"n_evaluations": 0, "n_early_stops": 0, "best_mean": None, "walking": {}}) \
+        == "session ended: 0 evaluations (0 early stops)"

@@ -338,6 +338,9 @@ async def test_hilbo_run_with_the_example_config_drives_the_device_processes(
     assert log_path.parent == tmp_path / "sessions"
     s = json.loads(summary_path.read_text())
     assert s["n_evaluations"] > 2
+    # The last line says what the session did, walked minutes included (issue 17 part 4).
+    assert f"session ended: {s['n_evaluations']} evaluations" in err.decode()
+    assert f"{s['walking']['session_s'] / 60:.1f} min walked" in err.decode()
     log = read_log(log_path)
     assert_log_and_summary_agree(log, s)
     kinds = [e["kind"] for e in log.data("/events")]
