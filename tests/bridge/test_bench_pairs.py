@@ -103,6 +103,8 @@ def test_measurement_error_counts_truly_better_candidates_ranked_above_per_estim
     assert err["pct_above_transition"] == pytest.approx(200.0 / 3)
     assert err["pct_above_seed_ukf"] == pytest.approx(100.0 / 3)
     assert err["pct_above_seed_ukf_issue17_real"] == ISSUE17_REAL_SEED_UKF_PCT
+    # Traces without seed-UKF estimates (built by hand) give no UKF figure, not a wrong one.
+    assert measurement_error([_person([430.0, 405.0], [400.0, 410.0])])["pct_above_seed_ukf"] is None
     # The transition estimator's figure is the fixed rule's own-error column.
     stats = pair_stats([p], PairsConfig(n_max=4))
     assert stats["fixed"]["pct_better_above_at_n"] == pytest.approx(err["pct_above_transition"])
