@@ -338,6 +338,11 @@ class ProtocolConfig:
             None (:class:`hilbo_core.protocol.SessionProtocolConfig`'s ``budget_s``).
         budget_breaths: Optimisation-bout budget in breaths, or None (at least one budget is set;
             with both, the first spent ends the bout).
+        session_min: The whole session's length in minutes of walking from its first breath
+            (both bouts, their warm-ups, setting changes and pauses: "a lab has the hour it
+            has", issue 17), or None (default: the session ends with the optimisation budget).
+            With it, the session ends at the first breath past ``session_min`` or when the
+            budget is spent, whichever comes first.
         stopping: ``sound`` (default: the σ-scaled rule with a time and a threshold floor and
             the GP-posterior incumbent, issue 17), ``adaptive`` (Algorithm 2 + the seed's
             σ-scaled rule) or ``fixed`` (always N breaths).
@@ -379,6 +384,7 @@ class ProtocolConfig:
     window: int = OptimizerConfig.window
     budget_min: float | None = _DEFAULT_BUDGET_MIN
     budget_breaths: int | None = SessionProtocolConfig.budget_breaths
+    session_min: float | None = number(None, lo=0.0, hi=1440.0, lo_open=True, optional=True)
     stopping: StoppingKind = choice(StoppingKind, OptimizerConfig.stopping)
     min_decision_s: float = number(OptimizerConfig.min_decision_s, lo=0.0, hi=600.0)
     a_floor: float = number(OptimizerConfig.a_floor, lo=0.0, hi=10.0)
@@ -400,17 +406,12 @@ class ProtocolConfig:
         """The time budget in seconds, or None."""
         return None if self.budget_min is None else 60.0 * self.budget_min
 
-    def session_protocol_config(self, *, session_s: float | None = None) -> SessionProtocolConfig:
-        """The :class:`hilbo_core.protocol.SessionProtocolConfig` of this protocol.
-
-        Args:
-            session_s: A whole-session limit in seconds of walking as well (``hilbo sim``'s
-                minutes), or None.
-        """
+    def session_protocol_config(self) -> SessionProtocolConfig:
+        """The :class:`hilbo_core.protocol.SessionProtocolConfig` of this protocol."""
         return SessionProtocolConfig(
             warmup_s=self.warmup_s, n_explore=self.n_explore, max_breaths=self.max_breaths,
-            session_s=session_s, budget_s=self.budget_s, budget_breaths=self.budget_breaths,
-            pause_between_bouts=self.pause_between_bouts,
+            session_s=None if self.session_min is None else 60.0 * self.session_min, budget_s=self.budget_s,
+            budget_breaths=self.budget_breaths, pause_between_bouts=self.pause_between_bouts,
         )
 
     def optimizer_config(self, *, with_budget: bool = True) -> OptimizerConfig:
@@ -1108,6 +1109,9 @@ def _expected_end_text(pr: ProtocolConfig) -> str:
     """When the session should end, in minutes of walking after its first breath."""
     end_s = expected_end_s(pr.session_protocol_config(), breath_interval_s=DEFAULT_BREATH_INTERVAL_S)
     explore_min = pr.n_explore * pr.max_breaths * DEFAULT_BREATH_INTERVAL_S / 60.0
+    if pr.session_min is not None and end_s >= 60.0 * pr.session_min:
+        return (f"at the first breath past {pr.session_min:g} min of walking after the first breath "
+                f"(session_min; pauses count), unless the optimisation budget is spent first")
     return (f"about {end_s / 60:.0f} min of walking after the first breath (2 warm-ups of "
             f"{pr.warmup_s / 60:g} min, exploration ~{explore_min:.0f} min at "
             f"{DEFAULT_BREATH_INTERVAL_S:g} s per breath, then the optimisation budget"

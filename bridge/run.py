@@ -14,7 +14,7 @@ import datetime as dt
 import json
 import logging
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -30,7 +30,7 @@ from bridge.runtime import BridgeSession, Command, RuntimeSettings
 from drivers.cart import BreathStream
 from drivers.exosuit import CanEndpoint
 from drivers.signals import stop_signal_handlers
-from hilbo_core import HILOptimizer
+from hilbo_core import Evaluation, HILOptimizer
 from hilbo_core.protocol import SessionProtocol
 
 __all__ = ["RunResult", "run_session", "runtime_settings", "write_json_atomic"]
@@ -102,6 +102,15 @@ def _log_path(cfg: HilboConfig, out_dir: Path | None) -> Path:
     return path
 
 
+def _walked_lower_bound(evaluations: Sequence[Evaluation], warmup_s: float) -> float:
+    """What a crashed session walked, as far as its log's evaluations show (s, a lower bound):
+    their breath time, and the warm-up of each bout that has one (pauses, setting changes and
+    an unfinished setting are not known). It counts against ``[protocol] session_min``."""
+    walked = sum(e.duration_s for e in evaluations)
+    bouts = {e.phase for e in evaluations}
+    return float(walked + warmup_s * len(bouts))
+
+
 async def run_session(
     cfg: HilboConfig,
     *,
@@ -111,7 +120,6 @@ async def run_session(
     auto_resume_s: float | None = None,
     operator_view: bool = True,
     n_actuators: int = 2,
-    session_s: float | None = None,
     on_session: Callable[[BridgeSession], None] | None = None,
 ) -> RunResult:
     """Run one session from a config to its end.
@@ -126,7 +134,6 @@ async def run_session(
             cart (wall s; simulations, and ``hilbo run --auto-resume`` without a keyboard).
         operator_view: Show the live terminal view (when stderr is a terminal).
         n_actuators: Actuators whose heartbeat the watchdog requires.
-        session_s: A whole-session limit in walking seconds as well (``hilbo sim --minutes``).
         on_session: Called with the session before it runs (tests, simulation wiring).
 
     Returns:
@@ -141,8 +148,9 @@ async def run_session(
         # breath time of its evaluations (the log's optimizer state), a lower bound.
         used = opt.budget_used
         protocol = SessionProtocol.resumed(
-            cfg.protocol.session_protocol_config(session_s=session_s),
+            cfg.protocol.session_protocol_config(),
             n_explored=min(len(opt.evaluations), cfg.protocol.n_explore),
+            session_used_s=_walked_lower_bound(opt.evaluations, cfg.protocol.warmup_s),
             optimization_used_s=float(used["seconds"]), optimization_used_breaths=int(used["breaths"]))
         logger.info("resuming %s: %d evaluations recovered", resume, info.n_evaluations)
         if cfg.prior.priors:
@@ -152,7 +160,7 @@ async def run_session(
         # The protocol ends the session on walking time; the optimizer keeps no budget.
         opt = HILOptimizer(space, config=cfg.protocol.optimizer_config(with_budget=False),
                            prior_observations=cfg.prior.priors)
-        protocol = SessionProtocol(cfg.protocol.session_protocol_config(session_s=session_s))
+        protocol = SessionProtocol(cfg.protocol.session_protocol_config())
         session_id = new_session_id()
     path = Path(log_path) if log_path is not None else _log_path(cfg, out_dir)
     summary_path = path.with_suffix(".summary.json")

@@ -499,7 +499,7 @@ async def _simulated_operator(session: BridgeSession, *, period_s: float = 0.1) 
 
 
 async def _run_supervised(hcfg: Any, devices: DeviceProcesses, *, log_path: Path, operator_view: bool,
-                          n_actuators: int, session_s: float,
+                          n_actuators: int,
                           on_session: Callable[[BridgeSession], None] | None) -> RunResult:
     """run_session with a simulated operator, ended (and turned into a DeviceProcessError) when a
     child exits."""
@@ -527,7 +527,7 @@ async def _run_supervised(hcfg: Any, devices: DeviceProcesses, *, log_path: Path
     try:
         result = await run_session(hcfg, log_path=log_path, auto_resume_s=0.0,
                                    operator_view=operator_view, n_actuators=n_actuators,
-                                   session_s=session_s, on_session=hook)
+                                   on_session=hook)
     except DriverError as err:
         gone = died[0] if died else devices.exited()
         if gone is not None:
@@ -580,8 +580,7 @@ async def run_process_sim(cfg: VirtualSimConfig, out: Path, *, bus: str = "auto"
         hcfg = dataclasses.replace(hcfg, cart=devices.cart,
                                    can=dataclasses.replace(hcfg.can, bus=devices.can))
         result = await _run_supervised(hcfg, devices, log_path=log_path, operator_view=operator_view,
-                                       n_actuators=len(SUIT_JOINTS[cfg.preset]), session_s=60.0 * cfg.minutes,
-                                       on_session=on_session)
+                                       n_actuators=len(SUIT_JOINTS[cfg.preset]), on_session=on_session)
     # The rebuilt wearer has not walked: the session's end is the last evaluation's end (session
     # time, within a breath of the cart's breath clock), for the adaptation at the end.
     end_s = max((float(e["t_end"]) for e in result.summary.get("evaluations") or ()), default=0.0)

@@ -131,8 +131,9 @@ warmup_s = {cfg.warmup_s}
 n_explore = {cfg.n_explore}
 max_breaths = {cfg.max_breaths}
 window = {cfg.window}
-# The session ends after `minutes` of walking (run_session(session_s=...)); the bout budget
-# is only an upper bound here (its check: VirtualSimConfig.budget_min).
+# The session ends at the first breath past `minutes` of walking (session_min, as a lab sets
+# it); the bout budget is only an upper bound here (its check: VirtualSimConfig.budget_min).
+session_min = {cfg.minutes}
 budget_min = {max(cfg.budget_min, cfg.minutes)}
 stopping = "{cfg.stopping}"
 seed = {cfg.seed}
@@ -209,8 +210,7 @@ async def run_virtual_sim(cfg: VirtualSimConfig, out: Path, *, operator_view: bo
                 on_exosuit(exo)
             result: RunResult = await run_session(
                 hcfg, log_path=log_path, auto_resume_s=0.0, operator_view=operator_view,
-                n_actuators=len(SUIT_JOINTS[cfg.preset]), session_s=60.0 * cfg.minutes,
-                on_session=on_session)
+                n_actuators=len(SUIT_JOINTS[cfg.preset]), on_session=on_session)
     summary = add_simulation_truth(result.summary, wearer)
     summary["sim"] = {**dataclasses.asdict(cfg), "speed": speed}
     summary["wall_time_s"] = time.perf_counter() - wall0

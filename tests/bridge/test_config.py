@@ -184,6 +184,21 @@ def test_both_budgets_can_be_given():
     assert (cfg.protocol.budget_min, cfg.protocol.budget_breaths) == (30.0, 500)
 
 
+def test_session_min_limits_the_whole_session_and_the_summary_says_so():
+    cfg = parse_config(GOLDEN.replace("budget_breaths = 500", "budget_breaths = 500\nsession_min = 30"))
+    assert cfg.protocol.session_min == 30.0
+    assert cfg.protocol.session_protocol_config().session_s == 1800.0
+    # 30 min ends before the budget would (45 min, above): the summary gives the session's end.
+    assert "expected end at the first breath past 30 min of walking after the first breath" in summarize(cfg)
+    # A budget that ends first keeps the budget's expected end.
+    long = parse_config(GOLDEN.replace("budget_breaths = 500", "budget_breaths = 500\nsession_min = 90"))
+    assert "expected end about 45 min of walking" in summarize(long)
+    assert parse_config(GOLDEN).protocol.session_protocol_config().session_s is None  # absent: no limit
+    for bad in ("0", "-5", '"60"', "2000"):
+        with pytest.raises(BridgeConfigError, match=r"protocol\.session_min = "):
+            parse_config(GOLDEN.replace("budget_breaths = 500", f"budget_breaths = 500\nsession_min = {bad}"))
+
+
 def test_the_example_config_loads_and_is_what_the_command_prints():
     cfg = load_config(EXAMPLE)
     assert isinstance(cfg, HilboConfig) and cfg.source == str(EXAMPLE)

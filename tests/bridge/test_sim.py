@@ -57,6 +57,10 @@ def test_session_log_and_summary_agree(tmp_path) -> None:
     assert s["true_cost_of_best"] >= s["true_optimum"]["cost_w"] - 1e-9
     kinds = [e["kind"] for e in log.data("/events")]
     assert kinds[0] == "session_start" and "session_end" in kinds
+    # The session's minutes are `[protocol] session_min`, as a lab sets them: it ends at the
+    # first breath past 8 walked minutes (breaths come every 2-3.5 s).
+    assert on_disk["end_reason"] == "session"
+    assert 480.0 <= on_disk["walking"]["session_s"] < 480.0 + 3.5
     # The event-loop stall monitor (issue 15): in the summary and in the session-end record.
     loop = on_disk["loop"]
     assert loop["half_heartbeat_ms"] == 50.0 and loop["wakeups"] > 100
