@@ -1112,10 +1112,12 @@ def _expected_end_text(pr: ProtocolConfig) -> str:
     if pr.session_min is not None and end_s >= 60.0 * pr.session_min:
         return (f"at the first breath past {pr.session_min:g} min of walking after the first breath "
                 f"(session_min; pauses count), unless the optimisation budget is spent first")
+    latest = ("" if pr.session_min is None else
+              f"; at the latest at the first breath past {pr.session_min:g} min (session_min)")
     return (f"about {end_s / 60:.0f} min of walking after the first breath (2 warm-ups of "
             f"{pr.warmup_s / 60:g} min, exploration ~{explore_min:.0f} min at "
             f"{DEFAULT_BREATH_INTERVAL_S:g} s per breath, then the optimisation budget"
-            f"{', plus the pause between the bouts' if pr.pause_between_bouts else ''})")
+            f"{', plus the pause between the bouts' if pr.pause_between_bouts else ''}){latest}")
 
 
 def _sound_text(pr: ProtocolConfig) -> str:

@@ -193,6 +193,7 @@ def test_session_min_limits_the_whole_session_and_the_summary_says_so():
     # A budget that ends first keeps the budget's expected end.
     long = parse_config(GOLDEN.replace("budget_breaths = 500", "budget_breaths = 500\nsession_min = 90"))
     assert "expected end about 45 min of walking" in summarize(long)
+    assert "at the latest at the first breath past 90 min (session_min)" in summarize(long)
     assert parse_config(GOLDEN).protocol.session_protocol_config().session_s is None  # absent: no limit
     for bad in ("0", "-5", '"60"', "2000"):
         with pytest.raises(BridgeConfigError, match=r"protocol\.session_min = "):
