@@ -120,11 +120,15 @@ def assert_log_and_summary_agree(log: LogContents, s: dict[str, Any]) -> None:
     assert len(log.data("/breaths")) == s["n_breaths"]
     acks = log.data("/acks")
     failed = [a for a in acks if not a["accepted"]]
-    # The device refused no push. A push may still fail for want of an ack in time: inside
-    # user-mode Linux beside a CPU burner the event loop stalled for up to 200 ms and one push got
-    # no ack in its 4 attempts of 0.25 s. That is the protocol's failure path, and the session
-    # must take it: pause (assistance off), re-measure the setting, resume by the policy.
-    assert all(a["reason"] == "none" and "no ack" in a["error"] for a in failed), failed
+    # A push may fail on a busy host, and then the session must take the protocol's failure
+    # path: pause (assistance off), re-measure the setting, resume by the policy. Two ways were
+    # seen inside user-mode Linux beside a CPU burner: no ack in 4 attempts of 0.25 s (the event
+    # loop stalled for up to 200 ms), and "busy" nacks after a 690 ms stall had let the device's
+    # heartbeat watchdog (DEVICE_HEARTBEAT_TIMEOUT_S) latch heartbeat_lost: a device with a
+    # latched fault refuses every commit until the fault is cleared (PROTOCOL.md). The device
+    # refused nothing else (no bad CRC, missing segment or out-of-limits table).
+    assert all((a["reason"] == "none" and "no ack" in a["error"]) or a["reason"] == "busy"
+               for a in failed), failed
     assert len(acks) - len(failed) >= s["n_evaluations"]
     events = log.data("/events")
     kinds = [e["kind"] for e in events]
