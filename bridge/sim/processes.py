@@ -499,8 +499,7 @@ async def _simulated_operator(session: BridgeSession, *, period_s: float = 0.1) 
 
 
 async def _run_supervised(hcfg: Any, devices: DeviceProcesses, *, log_path: Path, operator_view: bool,
-                          n_actuators: int,
-                          on_session: Callable[[BridgeSession], None] | None) -> RunResult:
+                          n_actuators: int, on_session: Callable[[BridgeSession], None] | None) -> RunResult:
     """run_session with a simulated operator, ended (and turned into a DeviceProcessError) when a
     child exits."""
     sessions: list[BridgeSession] = []
