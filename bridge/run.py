@@ -14,6 +14,7 @@ import datetime as dt
 import json
 import logging
 import os
+import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -48,11 +49,13 @@ class RunResult:
 
 
 def runtime_settings(cfg: HilboConfig, *, auto_resume_s: float | None = None,
-                     n_actuators: int = 2, feedback_log_period_s: float = 0.1) -> RuntimeSettings:
+                     n_actuators: int = 2, feedback_log_period_s: float = 0.1,
+                     operator_present: bool = False) -> RuntimeSettings:
     """The runtime's settings from a validated config."""
     return RuntimeSettings(
         auto_resume_s=cfg.watchdog.auto_resume_s if auto_resume_s is None else auto_resume_s,
         max_auto_resumes=cfg.watchdog.max_auto_resumes,
+        operator_present=operator_present,
         device_timeout_s=cfg.watchdog.device_heartbeat_timeout_ms / 1000.0,
         cart_timeout_s=cfg.watchdog.cart_data_timeout_s,
         push_timeout_s=cfg.can.push_timeout_ms / 1000.0,
@@ -164,7 +167,10 @@ async def run_session(
         session_id = new_session_id()
     path = Path(log_path) if log_path is not None else _log_path(cfg, out_dir)
     summary_path = path.with_suffix(".summary.json")
-    settings = runtime_settings(cfg, auto_resume_s=auto_resume_s, n_actuators=n_actuators)
+    # A person can press r only where the operator view reads the keyboard (bridge/operator_view.py).
+    operator_present = operator_view and sys.stdin.isatty() and sys.stderr.isatty()
+    settings = runtime_settings(cfg, auto_resume_s=auto_resume_s, n_actuators=n_actuators,
+                                operator_present=operator_present)
     loop = asyncio.get_running_loop()
     stream = BreathStream.from_config(cfg.cart)
     live = LiveServer(host=cfg.live.host, port=cfg.live.port) if cfg.live.enabled else None

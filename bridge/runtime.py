@@ -46,11 +46,14 @@ from drivers.exosuit import (
     CLEARABLE_FAULTS,
     DEFAULT_PACE_S,
     HEARTBEAT_WATCHDOG_S,
+    PERSON_FAULTS,
+    POLICY_CLEARABLE_FAULTS,
     AssistanceOffReason,
     CanEndpoint,
     DeviceFault,
     DeviceMode,
     DeviceStatus,
+    FaultRecovery,
     ForceFeedback,
     describe_faults,
     fault_names,
@@ -107,6 +110,10 @@ class RuntimeSettings:
             only the operator resumes.
         max_auto_resumes: Automatic resumes per session at most; the next pause that would
             need one stops the session (a headless run never waits for nobody).
+        operator_present: A person at the PC can press ``r`` (the operator view reads the
+            keyboard). After a fault that only a person may resume from (the emergency stop;
+            drivers/exosuit/faults.py, ``FaultRecovery.PERSON``) the resume policy waits for
+            that person, or, with nobody to press ``r``, stops the session.
         device_timeout_s: Device status silence that triggers assistance-off (wall s).
         watchdog_period_s: How often the watchdog looks at the device and the cart (wall s).
         cart_timeout_s: Breath silence after which estimation pauses (wall s).
@@ -124,6 +131,7 @@ class RuntimeSettings:
 
     auto_resume_s: float | None = None
     max_auto_resumes: int = 10
+    operator_present: bool = False
     device_timeout_s: float = 0.25
     watchdog_period_s: float = 0.01
     cart_timeout_s: float = 20.0
@@ -883,11 +891,22 @@ class BridgeSession:
                 faults = self.device.faults(s.n_actuators)
                 self.status.device = "ok" if not faults else \
                     "faults: " + "; ".join(describe_faults(faults))
-                if faults and self.supervisor.assisting:
-                    # The device latched a fault (its own heartbeat watchdog, a limit) while it
-                    # assisted: it is slack, so the setting being measured is not what the wearer
-                    # feels. Pause; the resume clears what a request may clear (_resume). A fault
-                    # while nothing assists (a warm-up, the start) is cleared before the next push.
+                person = faults & PERSON_FAULTS
+                if person:
+                    # An emergency stop (or another fault only a person may resume from) pauses
+                    # the session whatever it is doing, a warm-up included, and the pause keeps
+                    # needing the person after the fault is gone (ISO 13850: releasing the
+                    # button must not restart the machine).
+                    text = f"device faults: {', '.join(fault_names(person))}"
+                    if not self.supervisor.has_cause(text):
+                        await self.supervisor.pause(AssistanceOffReason.INTERNAL_ERROR, text,
+                                                    recovery=FaultRecovery.PERSON)
+                elif faults and self.supervisor.assisting:
+                    # The device latched a fault (its own heartbeat watchdog, overheating) while
+                    # it assisted: it is slack, so the setting being measured is not what the
+                    # wearer feels. Pause; the resume clears what the policy may clear. Such a
+                    # fault while nothing assists (a warm-up, the start) is cleared before the
+                    # next push.
                     await self.supervisor.pause(
                         AssistanceOffReason.DEVICE_HEARTBEAT_LOST if faults & DeviceFault.HEARTBEAT_LOST
                         else AssistanceOffReason.INTERNAL_ERROR,
@@ -909,10 +928,25 @@ class BridgeSession:
         while not sup.stopped:
             await sup.wait_paused()
             healthy_since: float | None = None
+            told_person = False
             while sup.paused and not sup.stopped:
-                if not sup.by_operator:
+                if sup.needs_person and not sup.by_operator:
+                    # A fault only a person may resume from: never this policy. With nobody at
+                    # the keyboard the session stops (assistance stays off; --resume continues).
+                    causes = "; ".join(sup.person_causes)
+                    if not s.operator_present:
+                        text = (f"only a person at the PC may resume after {causes}, and this run "
+                                "has no operator keyboard: stopping (hilbo run --resume continues)")
+                        self._event("person_required", text)
+                        await sup.stop(AssistanceOffReason.SESSION_END, text)
+                        return
+                    if not told_person:
+                        told_person = True
+                        self._event("person_required", "assistance stays off until a person "
+                                    f"presses r once it is safe ({causes})")
+                elif not sup.needs_person:
                     now = self._clock()
-                    if self._health(clearable_ok=True) is not None:
+                    if self._health(clearable=POLICY_CLEARABLE_FAULTS) is not None:
                         healthy_since = None
                     elif healthy_since is None:
                         healthy_since = now
@@ -951,48 +985,56 @@ class BridgeSession:
             if cmd is Command.PAUSE:
                 await self.supervisor.pause(AssistanceOffReason.OPERATOR_STOP, "operator pause")
             elif cmd is Command.RESUME:
-                await self._resume("operator")
+                await self._resume("operator", by_person=True)
             elif cmd is Command.STOP:
                 await self.supervisor.stop(AssistanceOffReason.OPERATOR_STOP, "operator stop")
                 raise _Stopped
 
     # ------------------------------------------------------------------ helpers
-    def _health(self, *, clearable_ok: bool = False) -> str | None:
+    def _health(self, *, clearable: DeviceFault | int = 0) -> str | None:
         """Why the session may not resume now, or None (the supervisor's resume condition).
 
         Args:
-            clearable_ok: Latched device faults that a ClearFaults request may clear do not
-                count (the resume clears them first: :meth:`_resume`).
+            clearable: Latched device faults that do not count, because the resume clears them
+                first (:meth:`_resume`): the policy's own, or every clearable one for a person.
         """
         s = self.settings
         silent = self.device.silent_for(self._clock(), s.n_actuators)
         if silent > s.device_timeout_s:
             return f"device heartbeat lost ({silent * 1e3:.0f} ms)" if math.isfinite(silent) \
                 else "no device status yet"
-        faults = self.device.faults(s.n_actuators)
-        if clearable_ok:
-            faults &= ~CLEARABLE_FAULTS
+        faults = self.device.faults(s.n_actuators) & ~clearable
         if faults:
             return "device faults: " + "; ".join(describe_faults(faults))
         if self.status.cart == "SILENT":
             return "no breaths from the cart"
         return None
 
-    async def _resume(self, source: str) -> bool:
-        """Resume the session: clear the device's latched faults first, then ask the supervisor."""
-        if self.supervisor.paused and self._health(clearable_ok=True) is None:
-            await self._clear_device_faults()
-        return self.supervisor.resume(source) is None
+    async def _resume(self, source: str, *, by_person: bool = False) -> bool:
+        """Resume the session: clear the device's latched faults first, then ask the supervisor.
 
-    async def _clear_device_faults(self) -> None:
-        """Ask the device to clear the latched faults that a request may clear (PROTOCOL.md,
-        "Clearing a latched fault": it clears one only once its cause is gone) and wait, briefly,
-        for a status that shows them gone."""
+        Only a person's resume (the operator's ``r``) clears the faults of class ``PERSON``
+        (drivers/exosuit/faults.py); the policy's clears only its own, and the supervisor
+        refuses it while the pause needs a person.
+        """
+        sup = self.supervisor
+        if sup.needs_person and not by_person:
+            return False
+        mask = CLEARABLE_FAULTS if by_person else POLICY_CLEARABLE_FAULTS
+        if sup.paused and self._health(clearable=mask) is None:
+            await self._clear_device_faults(mask)
+        return sup.resume(source, by_person=by_person) is None
+
+    async def _clear_device_faults(self, mask: DeviceFault = POLICY_CLEARABLE_FAULTS) -> None:
+        """Ask the device to clear the latched faults in ``mask`` (PROTOCOL.md, "Clearing a
+        latched fault": it clears one only once its cause is gone) and wait, briefly, for a
+        status that shows them gone. The bridge passes every clearable fault only when a person
+        resumes; on its own (before a push) only the policy's (``POLICY_CLEARABLE_FAULTS``)."""
         s = self.settings
         faults = self.device.faults(s.n_actuators)
-        if faults & CLEARABLE_FAULTS:
+        if faults & mask:
             try:
-                result = await self.endpoint.clear_faults(faults & CLEARABLE_FAULTS,
+                result = await self.endpoint.clear_faults(faults & mask,
                                                           n_actuators=s.n_actuators)
             except DriverError as err:
                 self._event("clear_faults_failed", f"clearing {', '.join(fault_names(faults))} failed: {err}")
@@ -1002,7 +1044,7 @@ class BridgeSession:
                                    f"{', '.join(fault_names(result.cleared)) or 'none'}")
             # The cleared bits show in the next DeviceStatus (every 20 ms).
             deadline = self._clock() + 0.2
-            while self.device.faults(s.n_actuators) & CLEARABLE_FAULTS and self._clock() < deadline:
+            while self.device.faults(s.n_actuators) & mask and self._clock() < deadline:
                 await asyncio.sleep(s.watchdog_period_s)
 
     def _expected_end_s(self) -> float | None:

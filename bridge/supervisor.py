@@ -34,7 +34,7 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 from drivers.errors import DriverError
-from drivers.exosuit import AssistanceOffReason, BridgeState
+from drivers.exosuit import AssistanceOffReason, BridgeState, FaultRecovery
 
 __all__ = ["PushRefused", "PushStage", "PushTicket", "Supervisor", "SupervisorState"]
 
@@ -119,6 +119,10 @@ class Supervisor:
         self._acked_once = False
         #: The reasons of the current pause, oldest first, with their assistance-off reasons.
         self._causes: dict[str, AssistanceOffReason] = {}
+        #: The causes of the current pause after which only a person may resume: kept here, not
+        #: re-read from the device, so a fault that disappears by itself (an emergency stop
+        #: released, a device that unlatches) still needs the person's ``r``.
+        self._person_causes: list[str] = []
         self._last_reason = ""
         #: Counts of what the supervisor refused or saw: pushes refused at begin, first segments
         #: and commits refused (an aborted push), acks overtaken by a pause, resumes refused.
@@ -160,6 +164,21 @@ class Supervisor:
         return AssistanceOffReason.OPERATOR_STOP in self._causes.values()
 
     @property
+    def needs_person(self) -> bool:
+        """True while the current pause has a cause after which only a person may resume: the
+        operator's own pause, or a fault of class ``PERSON`` (drivers/exosuit/faults.py)."""
+        return bool(self._person_causes)
+
+    def has_cause(self, text: str) -> bool:
+        """True while the current pause (or the stop) has ``text`` among its causes."""
+        return text in self._causes
+
+    @property
+    def person_causes(self) -> tuple[str, ...]:
+        """The causes of the current pause that need a person, oldest first."""
+        return tuple(self._person_causes)
+
+    @property
     def epoch(self) -> int:
         """Advances at every pause, stop and assistance-off; a ticket of an older epoch is void."""
         return self._epoch
@@ -180,14 +199,29 @@ class Supervisor:
         await self._stopped.wait()
 
     # ---------------------------------------------------------------- events
-    async def pause(self, reason: AssistanceOffReason, text: str) -> None:
-        """Pause the session and command assistance-off now (idempotent for the same reason)."""
+    async def pause(self, reason: AssistanceOffReason, text: str, *,
+                    recovery: FaultRecovery = FaultRecovery.POLICY) -> None:
+        """Pause the session and command assistance-off now (idempotent for the same reason).
+
+        Args:
+            reason: The AssistanceOff reason sent to the device.
+            text: The cause, for the operator and the log.
+            recovery: Who may end this pause. ``PERSON`` (always for the operator's own pause):
+                only :meth:`resume` with ``by_person=True``. ``END`` stops the session.
+        """
+        recovery = FaultRecovery(recovery)
+        if recovery is FaultRecovery.END:
+            await self.stop(reason, text)
+            return
         if text not in self._causes:
             # A pause during a pause adds its reason (the operator sees "between bouts" as well
             # as the heartbeat loss before it); one resume ends them all.
             self._causes[text] = AssistanceOffReason(reason)
             self._paused.set()
             self._on_event("pause", text)
+        if ((recovery is FaultRecovery.PERSON or reason == AssistanceOffReason.OPERATOR_STOP)
+                and text not in self._person_causes):
+            self._person_causes.append(text)
         await self._off(reason, text)
 
     async def stop(self, reason: AssistanceOffReason, text: str) -> None:
@@ -202,11 +236,13 @@ class Supervisor:
         """Assistance off without pausing (warm-ups, the session's end)."""
         await self._off(reason, text)
 
-    def resume(self, source: str) -> str | None:
-        """End a pause if the session is healthy.
+    def resume(self, source: str, *, by_person: bool = False) -> str | None:
+        """End a pause if the session is healthy and whoever resumes may end it.
 
         Args:
-            source: Who resumes ("operator", "auto-resume"), for the event.
+            source: Who resumes ("operator", "resume policy (1 of 10)"), for the event.
+            by_person: A person at the PC asked for it (the operator's ``r``). A pause with a
+                cause of class ``PERSON`` (:attr:`needs_person`) ends only so.
 
         Returns:
             None when resumed (or not paused), else why the resume was refused.
@@ -215,6 +251,11 @@ class Supervisor:
             return "the session is stopped"
         if not self._paused.is_set():
             return None
+        if self._person_causes and not by_person:
+            why = ("only a person at the PC may resume after "
+                   + "; ".join(self._person_causes) + " (press r once it is safe)")
+            self.counters["resume_refused"] += 1
+            return why
         why = self._health()
         if why is not None:
             self.counters["resume_refused"] += 1
@@ -222,6 +263,7 @@ class Supervisor:
             return why
         self._last_reason = self.pause_reason
         self._causes.clear()
+        self._person_causes.clear()
         self._paused.clear()
         self._on_event("resume", f"resumed by the {source}")
         return None

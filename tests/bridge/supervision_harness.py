@@ -34,11 +34,16 @@ from bridge.safety import ProfileLimits, SafeProfileGate
 from drivers.cart.validate import BreathValidator
 from drivers.errors import ProfilePushAborted, TransportError
 from drivers.exosuit import (
+    FAULT_INFO,
     AssistanceOffReason,
     BridgeState,
+    ClearFaultsAck,
+    ClearFaultsResult,
     DeviceFault,
     DeviceMode,
     DeviceStatus,
+    NackReason,
+    ProfileNackError,
     PushResult,
 )
 from hilbo_core import HILOptimizer, OptimizerConfig
@@ -71,6 +76,10 @@ class FakeExosuit:
         self.pending_version = 0
         self.latched_off = True
         self.silent = False
+        #: Latched fault bits (reported in every status) and the bits whose cause is present
+        #: (a held emergency stop): a ClearFaults clears a latched bit only once its cause is gone.
+        self.latched = DeviceFault(0)
+        self.cause = DeviceFault(0)
         self.is_paused: Callable[[], bool] = lambda: False
         self._failed = asyncio.Event()
         self._error: BaseException | None = None
@@ -94,6 +103,21 @@ class FakeExosuit:
     def times_of(self, what: str, detail: Any) -> list[float]:
         return [t for t, w, d in self.transcript if w == what and d == detail]
 
+    def raise_fault(self, bit: DeviceFault, duration_s: float) -> None:
+        """The fault's cause is present for ``duration_s`` (loop time): the bit latches and the
+        device goes slack at once, as a real device does (PROTOCOL.md, "Faults")."""
+        self.cause |= bit
+        self.latched |= bit
+        self.latched_off = True
+        self._record("fault", bit)
+        asyncio.get_running_loop().call_later(duration_s, self._cause_gone, bit)
+
+    def _cause_gone(self, bit: DeviceFault) -> None:
+        self.cause &= ~bit
+        if bit & DeviceFault.BUS_ERROR:  # the node clears it itself once error-active again
+            self.latched &= ~DeviceFault.BUS_ERROR
+        self._record("fault_cause_gone", bit)
+
     def fail(self, err: BaseException) -> None:
         self._error = err
         self._failed.set()
@@ -115,7 +139,7 @@ class FakeExosuit:
                 continue
             mode = DeviceMode.ASSISTANCE_OFF if self.latched_off else DeviceMode.ASSIST
             for a in range(self.n_actuators):
-                self._publish(DeviceStatus(actuator=a, mode=mode, faults=DeviceFault(0),
+                self._publish(DeviceStatus(actuator=a, mode=mode, faults=self.latched,
                                            gait_phase_pct=None,
                                            profile_version_active=self.active_version,
                                            profile_version_pending=self.pending_version,
@@ -158,6 +182,15 @@ class FakeExosuit:
         self.latched_off = True
         await asyncio.sleep(0)
 
+    async def clear_faults(self, mask: DeviceFault | int, *, n_actuators: int) -> ClearFaultsResult:
+        self._record("clear_faults", DeviceFault(int(mask)))
+        cleared = self.latched & DeviceFault(int(mask)) & ~self.cause
+        self.latched &= ~cleared
+        await asyncio.sleep(0.002)
+        ack = {a: ClearFaultsAck(actuator=a, sequence=0, cleared=cleared, held=self.latched)
+               for a in range(n_actuators)}
+        return ClearFaultsResult(sequence=0, mask=DeviceFault(int(mask)), answers=ack)
+
     async def push_profile(self, forces_n: np.ndarray, version: int, *, timeout_s: float,
                            retries: int, pace_s: float,
                            permit: Callable[[str], bool] | None = None) -> PushResult:
@@ -171,6 +204,9 @@ class FakeExosuit:
             raise ProfilePushAborted(version, "commit", 1, 0)
         if self.is_paused():
             self.violations.append(f"commit of v{version} while paused")
+        if self.latched:
+            self._record("commit_refused", version)
+            raise ProfileNackError(version, NackReason.BUSY, 0, 1)
         self._record("commit", version)
         if self.bridge_state == BridgeState.RUNNING:
             self.latched_off = False
@@ -310,14 +346,18 @@ class Outcome:
     log: Path
 
 
-FAULTS = ("pause", "stop", "heartbeat_loss", "bus_error")
+#: What ``run_session(fault=...)`` can inject; ``"device:<name>"`` latches that device fault bit
+#: (drivers/exosuit/faults.py names) with its cause present for ``fault_s``.
+FAULTS = ("pause", "stop", "heartbeat_loss", "bus_error", "device:<fault name>")
 _RUNS = itertools.count()
+_FAULT_BITS = {info.name: bit for bit, info in FAULT_INFO.items()}
 
 
 def run_session(tmp: Path, *, at: int | None = None, at_time_s: float | None = None,
                 fault: str = "pause", n_evaluations: int = 4, resume_after_s: float = 5.0,
                 end_after_s: float | None = None, cart_restart_at_s: float | None = None,
-                worker_start_s: float = 0.0, **settings_kw: Any) -> Outcome:
+                worker_start_s: float = 0.0, fault_s: float = 0.5,
+                operator_r_s: tuple[float, ...] = (), **settings_kw: Any) -> Outcome:
     """One short session (warm-ups 0, 2 exploration points of 3 breaths, then optimisation).
 
     Args:
@@ -332,6 +372,8 @@ def run_session(tmp: Path, *, at: int | None = None, at_time_s: float | None = N
             session runs to its budget's end).
         cart_restart_at_s: The cart's clock restarts near 0 at this loop time.
         worker_start_s: The proposal worker answers its first call after this long (loop time).
+        fault_s: How long a ``device:<name>`` fault's cause lasts (loop time).
+        operator_r_s: The operator presses "r" at these loop times as well.
         settings_kw: :class:`RuntimeSettings` fields to override, and ``pause_between_bouts``
             (the protocol's).
     """
@@ -367,6 +409,9 @@ def run_session(tmp: Path, *, at: int | None = None, at_time_s: float | None = N
             loop.call_later(1.0 + resume_after_s, s.command, Command.RESUME)
         elif fault == "bus_error":
             device.fail(TransportError("injected bus error"))
+        elif fault.startswith("device:"):
+            device.raise_fault(_FAULT_BITS[fault.removeprefix("device:")], fault_s)
+            loop.call_later(fault_s + resume_after_s, s.command, Command.RESUME)
         else:
             raise ValueError(f"fault={fault!r}: expected one of {FAULTS}")
         if end_after_s is not None:
@@ -389,6 +434,8 @@ def run_session(tmp: Path, *, at: int | None = None, at_time_s: float | None = N
             device.is_paused = lambda: session.supervisor.paused
             if at_time_s is not None:
                 loop.call_at(at_time_s, fire)
+            for t in operator_r_s:
+                loop.call_at(t, session.command, Command.RESUME)
             return await session.run()
 
     loop = looptime.new_event_loop(start=0.0, noop_cycles=1)

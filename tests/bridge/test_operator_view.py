@@ -42,7 +42,8 @@ def test_describe_faults_groups_by_fault_and_names_unknown_bits() -> None:
     assert lines == [
         "overtemperature on actuators 0, 1: cleared by the bridge once motor and driver have cooled "
         "below their limit",
-        "emergency_stop on actuator 1: cleared by the bridge once the emergency stop is released",
+        "emergency_stop on actuator 1: cleared by the bridge, when the operator resumes, once the "
+        "emergency stop is released",
     ]
     assert describe_faults({0: 0}) == []
     assert describe_faults({0: 1 << 9}) == ["bit9 on actuator 0: not defined by the protocol"]

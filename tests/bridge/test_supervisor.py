@@ -8,7 +8,7 @@ import pytest
 
 from bridge.supervisor import PushRefused, PushStage, Supervisor, SupervisorState
 from drivers.errors import TransportError
-from drivers.exosuit import AssistanceOffReason, BridgeState
+from drivers.exosuit import AssistanceOffReason, BridgeState, FaultRecovery
 
 
 class Endpoint:
@@ -123,6 +123,39 @@ async def test_a_pause_during_a_pause_adds_its_reason_and_one_resume_ends_both()
     assert sup.describe() == "paused: device heartbeat lost for 260 ms; between bouts"
     assert [k for k, _ in events].count("pause") == 2 and not sup.by_operator
     await sup.pause(AssistanceOffReason.OPERATOR_STOP, "operator pause")
-    assert sup.by_operator
-    assert sup.resume("operator") is None and not sup.paused and not sup.by_operator
+    assert sup.by_operator and sup.needs_person
+    # The operator's own pause ends only by a person.
+    assert sup.resume("resume policy") is not None and sup.paused
+    assert sup.resume("operator", by_person=True) is None and not sup.paused
+    assert not sup.by_operator and not sup.needs_person
     assert sup.pause_reason == "device heartbeat lost for 260 ms; between bouts; operator pause"
+
+
+@pytest.mark.parametrize("recovery", list(FaultRecovery))
+async def test_each_recovery_class_decides_who_may_end_the_pause(recovery: FaultRecovery) -> None:
+    sup, ep, _, events = make()
+    await sup.pause(AssistanceOffReason.INTERNAL_ERROR, "device faults: x", recovery=recovery)
+    assert sup.paused and ep.bridge_state != BridgeState.RUNNING
+    if recovery is FaultRecovery.END:
+        assert sup.stopped and sup.resume("operator", by_person=True) == "the session is stopped"
+        return
+    policy = sup.resume("resume policy (1 of 10)")
+    if recovery is FaultRecovery.PERSON:
+        assert policy is not None and "only a person" in policy and sup.paused
+        assert sup.resume("operator", by_person=True) is None
+    else:
+        assert policy is None
+    assert not sup.paused and events[-1][0] == "resume"
+
+
+async def test_a_person_cause_outlives_its_fault_and_later_causes() -> None:
+    """The emergency stop's pause keeps needing the person after the device dropped the bit and
+    after a policy-class cause joined it: the health check alone would let the policy resume."""
+    sup, _, _, _ = make()
+    await sup.pause(AssistanceOffReason.INTERNAL_ERROR, "device faults: emergency_stop",
+                    recovery=FaultRecovery.PERSON)
+    await sup.pause(AssistanceOffReason.DEVICE_HEARTBEAT_LOST, "device heartbeat lost for 120 ms")
+    assert sup.person_causes == ("device faults: emergency_stop",)
+    assert sup.has_cause("device heartbeat lost for 120 ms")
+    assert sup.resume("resume policy (1 of 10)") is not None and sup.paused
+    assert sup.resume("operator", by_person=True) is None and not sup.needs_person
