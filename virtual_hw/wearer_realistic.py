@@ -105,7 +105,7 @@ from hilbo_core.errors import ConfigError, MeasurementError
 from hilbo_core.profiles import ForceProfile, build_profile
 from hilbo_core.space import ParameterSpace
 from hilbo_core.types import BreathRecord
-from virtual_hw.wearer import (
+from virtual_hw.wearer_common import (
     _BROCKWAY_CO2,
     _BROCKWAY_O2,
     _G,

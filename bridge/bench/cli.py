@@ -11,19 +11,18 @@ as Optuna); 130 when interrupted.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import logging
 import sys
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 from rich.console import Console
 
 from bridge.bench.bridge_perf import BridgeProtocol
-from bridge.bench.common import choices, machine_info, numbers, round_sig, write_json
+from bridge.bench.common import choices, machine_info, numbers, options, round_sig, write_json
 from bridge.collector import GcMode
 from bridge.errors import BridgeError, UsageError
 from bridge.sim.devices import WEARER_CHOICES, WearerKind
@@ -61,19 +60,6 @@ def _executor(args: argparse.Namespace) -> Any:
             raise ConfigError(f"--workers {args.workers}; expected an integer >= 1")
     # A scheduler that cannot be reached is a runtime failure (exit status 1), not a usage error.
     return make_executor(args.workers, args.scheduler, progress=False if args.no_progress else None)
-
-
-@contextlib.contextmanager
-def options() -> Iterator[None]:
-    """Checks of the command line's values before any work: their ConfigError is a usage error
-    (exit status 2). A missing optional dependency (a ConfigError from an ImportError) is not:
-    the command line is right, the installation is not (exit status 1)."""
-    try:
-        yield
-    except ConfigError as err:
-        if isinstance(err.__cause__, ImportError):
-            raise
-        raise UsageError(str(err)) from err
 
 
 def _console() -> Console:

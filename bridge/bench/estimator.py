@@ -492,8 +492,7 @@ def run_estimator_bench(people: Sequence[list[Bout]], estimators: Sequence[str] 
 def _cmd_estimator(args: argparse.Namespace) -> int:
     from rich.console import Console
 
-    from bridge.bench.cli import options
-    from bridge.bench.common import choices
+    from bridge.bench.common import choices, options
 
     console = Console(highlight=False, soft_wrap=True)
     with options():  # the command line's values (exit status 2); the replay file's are 1

@@ -51,8 +51,8 @@ import numpy as np
 
 from bridge.bench.common import machine_info, markdown_table, round_sig, write_json
 from bridge.bench.estimator import WEARERS, Bout, chained_estimators, parse_transitions, replay_people
+from bridge.bench.traces import BreathTrace, exploration_groups, threshold_schedules
 from bridge.bench.tune_sound import SoundReplay
-from bridge.bench.tune_stopping import BreathTrace, _exploration_groups, _schedules
 from hilbo_core.errors import ConfigError, EstimatorError, MeasurementError
 from hilbo_core.metabolic import MetabolicUKF
 from hilbo_core.optimizer import OptimizerConfig
@@ -219,8 +219,8 @@ def _replays(people: Sequence[PersonTraces], config: PairsConfig) -> list[SoundR
     for p in people:
         if len(p.traces) < 2:
             continue
-        groups = _exploration_groups(len(p.traces), config.n_explore, config.seed)
-        schedules = _schedules(p.traces, min(config.window, config.n_max - 1), groups)
+        groups = exploration_groups(len(p.traces), config.n_explore, config.seed)
+        schedules = threshold_schedules(p.traces, min(config.window, config.n_max - 1), groups)
         out.append(SoundReplay(p.traces, p.times, schedules, p.truth_w))
     if not out:
         raise ConfigError(f"no within-person pairs: every person needs at least 2 scored bouts of "
@@ -339,7 +339,7 @@ def _accept_z(text: str) -> float | None:
 def _cmd_pairs(args: argparse.Namespace) -> int:
     from rich.console import Console
 
-    from bridge.bench.cli import options
+    from bridge.bench.common import options
 
     console = Console(highlight=False, soft_wrap=True)
     replays = args.replay or []

@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from bridge.bench.tune_stopping import BreathTrace, _exploration_groups, _schedules, breath_traces
+from bridge.bench.traces import BreathTrace, breath_traces, exploration_groups, threshold_schedules
 from hilbo_core.errors import ConfigError
 from hilbo_core.estimation import TransitionEstimator
 from hilbo_core.metabolic import Estimator, brockway_watts
@@ -100,7 +100,7 @@ class SoundReplay:
     """The sound rule replayed on every ordered pair of full-length traces.
 
     Args:
-        traces: Full-length running estimates (:func:`bridge.bench.tune_stopping.breath_traces`).
+        traces: Full-length running estimates (:func:`bridge.bench.traces.breath_traces`).
         times: Per trace, the breath times since the setting began (s), shape (N,).
         schedules: Algorithm 2's schedule per trace, shape (n, N).
         truth: True cost per trace (W), or None to judge "better" by the final estimates.
@@ -219,8 +219,8 @@ def tune_sound(trajectories: Sequence[Any], config: TuneSoundConfig | None = Non
         raise ConfigError(f"need >= 3 trajectories of >= {N} breaths{with_truth}, "
                           f"got {len(traces)} ({skipped} shorter)")
     times = [np.asarray(t, dtype=float)[:N, 0] for t in trajectories if len(t) >= N]
-    groups = _exploration_groups(len(traces), cfg.n_explore, cfg.seed)
-    replay = SoundReplay(traces, times, _schedules(traces, min(cfg.window, N - 1), groups), truth)
+    groups = exploration_groups(len(traces), cfg.n_explore, cfg.seed)
+    replay = SoundReplay(traces, times, threshold_schedules(traces, min(cfg.window, N - 1), groups), truth)
     space = ParameterSpace([Parameter("min_decision_s", *cfg.min_decision_bounds, "s", "no decision before"),
                             Parameter("a_floor", *cfg.a_floor_bounds, "σ", "threshold floor")],
                            name="sound_rule")

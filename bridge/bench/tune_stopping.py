@@ -54,11 +54,11 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from hilbo_core.errors import ConfigError, MeasurementError
+from bridge.bench.traces import BreathTrace, breath_traces, exploration_groups, threshold_schedules
+from hilbo_core.errors import ConfigError
 from hilbo_core.metabolic import Estimator, MetabolicUKF
 from hilbo_core.resample import ResampleConfig, Trajectory, bo_resample
 from hilbo_core.space import Parameter, ParameterSpace
-from hilbo_core.stopping import threshold_schedule
 
 if TYPE_CHECKING:
     from bridge.log.records import Evaluation
@@ -139,74 +139,6 @@ class TuneStoppingConfig:
             raise ConfigError(f"error_weight={self.error_weight!r}; expected a number >= 0")
 
 
-@dataclass(frozen=True)
-class BreathTrace:
-    """The running estimate of one full-length evaluation.
-
-    Attributes:
-        means: Estimated steady-state cost after each breath (W), shape (N,).
-        vars: Its variance (W²), shape (N,).
-        source: Where the breaths came from.
-    """
-
-    means: np.ndarray
-    vars: np.ndarray
-    source: str = ""
-
-    @property
-    def final_mean(self) -> float:
-        """μ_N."""
-        return float(self.means[-1])
-
-    @property
-    def final_var(self) -> float:
-        """σ_N²."""
-        return float(self.vars[-1])
-
-
-def breath_traces(trajectories: Sequence[Any], n_max: int,
-                  estimator_factory: Callable[[], Estimator] = MetabolicUKF,
-                  sources: Sequence[str] | None = None) -> tuple[list[BreathTrace], int]:
-    """Run the estimator over breath trajectories.
-
-    Args:
-        trajectories: Each an array-like of shape (n, 2): per breath ``(t_s, watts)`` with
-            ``t_s`` the time since the setting began.
-        n_max: N; trajectories with fewer breaths are skipped, longer ones use their first N.
-        estimator_factory: A fresh estimator per trajectory (default the UKF of seed 000 §II.C).
-        sources: Labels of the trajectories (for errors and the result).
-
-    Returns:
-        (traces, number of trajectories skipped as too short).
-
-    Raises:
-        MeasurementError: A trajectory with non-finite values or times that do not increase
-            (naming its index).
-    """
-    traces: list[BreathTrace] = []
-    skipped = 0
-    for i, traj in enumerate(trajectories):
-        label = sources[i] if sources is not None else f"trajectory {i}"
-        a = np.asarray(traj, dtype=float)
-        if a.ndim != 2 or a.shape[1] != 2:
-            raise MeasurementError(f"{label}: expected shape (n, 2) of (t_s, watts), got {a.shape}")
-        if a.shape[0] < n_max:
-            skipped += 1
-            continue
-        a = a[:n_max]
-        if not np.all(np.isfinite(a)):
-            raise MeasurementError(f"{label}: contains non-finite breaths")
-        est = estimator_factory()
-        means, variances = np.empty(n_max), np.empty(n_max)
-        try:
-            for b, (t, w) in enumerate(a):
-                means[b], variances[b] = est.update(float(t), float(w))
-        except MeasurementError as err:
-            raise MeasurementError(f"{label}, breath {b}: {err}") from err
-        traces.append(BreathTrace(means, variances, label))
-    return traces, skipped
-
-
 def _stop_step(trace: BreathTrace, thresholds: np.ndarray, mu_star: float, var_star: float) -> int:
     """Breaths used by the σ-scaled rule on a trace against an incumbent (N if never early)."""
     sigma = np.sqrt(trace.vars + var_star)
@@ -247,20 +179,6 @@ def evaluate_schedule(traces: Sequence[BreathTrace], thresholds: np.ndarray,
             "early_stop_rate": float(np.mean(early)), "wrong_stop_rate": wr}
 
 
-def _exploration_groups(n: int, size: int, seed: int) -> np.ndarray:
-    """For each trace j, ``size`` other traces standing in for its session's exploration bout."""
-    rng = np.random.default_rng([seed, 0x57])
-    size = min(size, n - 1)
-    return np.array([rng.choice(np.delete(np.arange(n), j), size, replace=False) for j in range(n)])
-
-
-def _schedules(traces: Sequence[BreathTrace], window: int, groups: np.ndarray) -> np.ndarray:
-    """Algorithm 2's schedule for each trace j from its group's traces: (n, N)."""
-    M = np.array([t.means for t in traces])
-    S = np.array([t.vars for t in traces])
-    return np.array([threshold_schedule(M[g], S[g], window) for g in groups])
-
-
 def _thresholds_fn(cfg: TuneStoppingConfig, traces: Sequence[BreathTrace], groups: np.ndarray
                    ) -> tuple[ParameterSpace, Callable[[Mapping[str, float]], np.ndarray]]:
     """The search space and params → per-trace threshold schedules (n, N)."""
@@ -271,7 +189,7 @@ def _thresholds_fn(cfg: TuneStoppingConfig, traces: Sequence[BreathTrace], group
                                name="stopping_k")
         return space, lambda p: np.full((n, N), float(p["k"]))
     w_max = min(cfg.max_window, N - 1)
-    schedules = [_schedules(traces, w, groups) for w in range(w_max + 1)]
+    schedules = [threshold_schedules(traces, w, groups) for w in range(w_max + 1)]
     space = ParameterSpace([Parameter("window", -0.5, w_max + 0.5, "breaths", "Algorithm 2 window W")],
                            name="stopping_window")
     return space, lambda p: schedules[int(np.clip(round(p["window"]), 0, w_max))]
@@ -303,7 +221,7 @@ def tune_stopping(trajectories: Sequence[Any], config: TuneStoppingConfig | None
             f"need at least 3 trajectories of >= {cfg.n_max} breaths, got {len(traces)} "
             f"({skipped} shorter ones skipped)"
         )
-    groups = _exploration_groups(len(traces), cfg.n_explore, cfg.seed)
+    groups = exploration_groups(len(traces), cfg.n_explore, cfg.seed)
     space, thresholds = _thresholds_fn(cfg, traces, groups)
     N = cfg.n_max
     lam = cfg.error_weight
@@ -347,7 +265,7 @@ def tune_stopping(trajectories: Sequence[Any], config: TuneStoppingConfig | None
         grid_values = list(range(min(cfg.max_window, N - 1) + 1))
         key = "window"
     grid = [{key: v, **evaluate_schedule(traces, thresholds({key: v}), lam)} for v in grid_values]
-    alg2 = _schedules(traces, min(cfg.reference_window, N - 1), groups)
+    alg2 = threshold_schedules(traces, min(cfg.reference_window, N - 1), groups)
     if key == "window":
         recommended: dict[str, float] = {key: int(np.clip(round(best[key]), 0, min(cfg.max_window, N - 1)))}
     else:

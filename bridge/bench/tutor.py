@@ -282,7 +282,7 @@ def _plot(fig: dict[str, Any], figure: str, cfg: TutorBenchConfig, path: Path) -
 def _cmd_bench_tutor(args: argparse.Namespace) -> int:
     from rich.console import Console
 
-    from bridge.bench.cli import options
+    from bridge.bench.common import options
 
     console = Console(stderr=True)
     with options():  # a bad value on the command line: exit status 2
