@@ -4,7 +4,7 @@
   devices as children, over SocketCAN vcan0 (marked ``vcan``: natively, or inside user-mode
   Linux, tests/conftest.py) and over python-can-remote on this host.
 * ``hilbo run`` with the example config (``hilbo config example``) as a process of its own, the
-  devices started with the commands the README gives.
+  devices started with the commands docs/simulation.md gives.
 
 Did the cart's wearer feel the profile the exosuit applied? The simulated wearer is
 deterministic from its seed, and its breath times and noise do not depend on the assistance, so
