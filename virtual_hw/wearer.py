@@ -24,7 +24,7 @@ force, so the best magnitude is interior (``f = a·h`` is best at ``a = F_a <h, 
 best timing puts the force where the window is, and force at the wrong time is penalised
 quadratically. The best profile of a given shape reaches ``φ = cos²`` of the angle between the
 shape and the window, so node ratios, which only bend the shape slightly, matter much less than
-timing and peak force (as in the hip-assistance literature, seed 000 ref. [18]). Very poorly
+timing and peak force (as in the hip-assistance literature, Kim et al. 2019 ref. [18]). Very poorly
 timed assistance would make ``φ`` hugely negative; real wearers are hampered but not crippled, so
 negative scores saturate smoothly (C¹ at 0): ``S(φ) = φ`` for ``φ >= 0`` and
 ``-L·tanh(-φ/L)`` below, with ``L = penalty_cap``. The steady-state cost is::
@@ -33,8 +33,8 @@ negative scores saturate smoothly (C¹ at 0): ``S(φ) = φ`` for ``φ >= 0`` and
 
 with ``β_a`` the actuator's largest possible fractional saving.
 
-**Dynamics** (seed 000 §II.C; Selinger & Donelan 2014, seed ref. [20]): after a change of the
-applied assistance at ``t_c`` the metabolic rate relaxes first-order towards the new steady
+**Dynamics** (Kim et al. 2019 §II.C; Selinger & Donelan 2014, their ref. [20]): after a change
+of the applied assistance at ``t_c`` the metabolic rate relaxes first-order towards the new steady
 state, ``m(t) = c_new + (m(t_c) - c_new)·exp(-(t - t_c)/τ)``. At ``t = 0`` the wearer walks at
 the unassisted steady state (the protocol's warm-up is over).
 
@@ -50,32 +50,32 @@ equation ``P[W] = 16.58·VO2[ml/s] + 4.51·VCO2[ml/s]`` with ``VCO2 = RER·VO2``
 Constants (:class:`WearerConfig`; a range means "drawn uniformly per subject")
 ------------------------------------------------------------------------------
 * ``gross_cost_w_per_kg = (4.7, 5.8)`` W/kg: unassisted gross (Brockway) power of treadmill
-  walking at 1.25 m/s, the seed's protocol speed (§IV.A.3): ≈ 350-435 W at 75 kg, the range
+  walking at 1.25 m/s, Kim et al. 2019's protocol speed (§IV.A.3): ≈ 350-435 W at 75 kg, the range
   the project specifies for a 75 kg adult (350-450 W).
 * ``tau_s = (30, 50)`` s: time constant of the first-order response; Selinger & Donelan (2014)
-  report about 40 s (seed §II.C models the response with this first-order form).
+  report about 40 s (Kim et al. 2019 §II.C models the response with this first-order form).
 * ``breath_interval_s = (2.7, 3.3)`` s mean, ``breath_interval_cv = 0.25``,
   ``min_breath_interval_s = 1.0`` s: ≈ 18-22 breaths/min while walking, irregular.
 * ``noise_frac = (0.10, 0.15)``, ``noise_ar1 = 0.3``: breath-by-breath carts scatter by 10-15 %
   of the level (≈ 110-170 ml/min of VO2 at ≈ 1.1 l/min), with some carry-over between breaths;
-  this is the noise the UKF of §II.C must see through (seed §III.1: 3 % error after 20 breaths).
+  this is the noise the UKF of §II.C must see through (Kim et al. 2019 §III.1: 3 % error after 20 breaths).
 * ``rer = (0.85, 0.90)``, ``rer_sd = 0.02``: moderate walking on a mixed diet.
 * ``ve_per_vco2 = 28``: ventilatory equivalent for CO2 at moderate exercise (≈ 25-30).
 * ``hr_rest_bpm = (60, 75)``, ``hr_gain_bpm_per_w = 0.15``, ``resting_w_per_kg = 1.3``,
   ``hr_sd_bpm = 2``: gives ≈ 100-125 bpm while walking, a plausible value; HR is
   informational only (the estimator uses VO2/VCO2).
 * Hip window (``HIP_PRIOR``, %GC from maximum hip flexion): centre ``(20, 28)``, width
-  ``(7, 11)``, ideal force ``(0.22, 0.32)`` body weight, ``β = (0.10, 0.20)``. The seed's optimal
+  ``(7, 11)``, ideal force ``(0.22, 0.32)`` body weight, ``β = (0.10, 0.20)``. Kim et al. 2019's optimal
   hip peaks are at 24 and 27 %GC with 223 N (85 kg, 0.27 BW) and 174 N (74 kg, 0.24 BW) (Fig. 4)
   and at 21-26 %GC in Table II. Over 40 seeds the best hip-only saving (``hip_6d``) is
-  ≈ 10-20 %, inside the seed's 7-35 % (§IV.A.4) and the project's 5-25 %.
+  ≈ 10-20 %, inside Kim et al. 2019's 7-35 % (§IV.A.4) and the project's 5-25 %.
 * Ankle window (``ANKLE_PRIOR``, %GC from heel strike): centre ``(52, 60)``, width ``(5, 8)``,
   ideal force ``(0.50, 0.75)`` BW, ``β = (0.05, 0.10)``: plantarflexion assistance helps around
-  push-off (≈ 50-60 %GC_HS; Table II's optimal ankle peaks 56-60 %); the seed applies 60 % BW.
+  push-off (≈ 50-60 %GC_HS; Table II's optimal ankle peaks 56-60 %); Kim et al. 2019 apply 60 % BW.
   With the hip's fixed 40 % BW, the best ``hip_ankle_4d`` saving is ≈ 10-21 % over 40 seeds
-  (the seed's Table II reports more, 33-39 %, for two experienced subjects).
+  (Kim et al. 2019's Table II reports more, 33-39 %, for two experienced subjects).
 * ``penalty_cap = 0.5``: badly timed assistance costs at most half of what a well-timed one can
-  save per actuator (the seed's generic profile cost one subject 4 % where the optimum saved 7 %).
+  save per actuator (Kim et al. 2019's generic profile cost one subject 4 % where the optimum saved 7 %).
 * ``n_optimum_candidates = 128``, ``n_optimum_starts = 2``: the numerical search for the true
   optimum (scrambled Sobol candidates, then SLSQP under the linear constraints). Over 20 seeds
   per preset, 64-256 candidates and 2-3 starts all found the same optimum, better than the best
@@ -148,7 +148,7 @@ __all__ = [
 # ---------------------------------------------------------------------------- pure functions
 def relaxed_rate_w(t_s: float, t_change_s: float, rate_at_change_w: float, target_w: float,
                    tau_s: float) -> float:
-    """First-order response after a change (seed 000 §II.C; Selinger & Donelan 2014).
+    """First-order response after a change (Kim et al. 2019 §II.C; Selinger & Donelan 2014).
 
     ``m(t) = c + (m(t_c) - c)·exp(-(t - t_c)/τ)`` for ``t >= t_c``.
     """
@@ -544,7 +544,7 @@ class WearerKind(enum.Enum):
 
     * ``REALISTIC`` (the default of ``hilbo sim`` and ``hilbo bench hil``):
       :class:`virtual_hw.wearer_realistic.RealisticWearer` — breath noise and outliers as in real
-      data, per-person τ 30-60 s, slow adaptation, two landscape families (issue 16).
+      data, per-person τ 30-60 s, slow adaptation, two landscape families.
     * ``LEGACY``: :class:`SimulatedWearer` — one landscape family, AR(1) Gaussian noise, no
       adaptation; kept for the results and tests that were measured on it.
     """
