@@ -1,17 +1,17 @@
 """``hilbo tune-stopping LOG.mcap…``: tune the estimator stopping rule offline with BO-RESAMPLE.
 
-The σ-scaled offset rule of seed 000 §II.D is itself an optimal-stopping policy: after breath i
+The σ-scaled offset rule of Kim et al. 2019 §II.D is itself an optimal-stopping policy: after breath i
 of a setting it stops when ``μ_i − μ* > A_i·σ_i`` (σ_i² = var_i + σ*²). Its hyperparameter is
 either a constant K (``A_i = K``; family ``k``) or Algorithm 2's window W (``A`` = the threshold
 schedule of the given traces with window W; family ``window``). Every full-length breath
 trajectory — an exploration bout, or an optimisation-phase evaluation that ran all N breaths —
-can replay *any* rule that stops at or before N (seed 003 §4.2), so BO-RESAMPLE
+can replay *any* rule that stops at or before N (Antonova 2016 §4.2), so BO-RESAMPLE
 (:func:`hilbo_core.resample.bo_resample`) can search the hyperparameter with few "real"
 episodes and many off-policy resamples.
 
 An **episode** is one full-length trajectory j (drawn in random order, as a new evaluation's
 breaths would arrive) compared, as the optimizer compares a new setting with its best one, with
-every other trajectory k as the incumbent: the rule watches j's running UKF estimate (seed 000
+every other trajectory k as the incumbent: the rule watches j's running UKF estimate (Kim et al. 2019
 §II.C) against k's final estimate (μ*, σ*²) and stops after s_k breaths. Its cost, in units of
 one full evaluation's walking time, is the mean over k of
 
@@ -375,7 +375,7 @@ def _cmd_tune_stopping(args: argparse.Namespace) -> int:
     return 0
 
 
-# The sound rule (issue 17) is tuned by bridge.bench.tune_sound: its two constants, not K or W.
+# The sound rule (hilbo's default) is tuned by bridge.bench.tune_sound: its two constants, not K or W.
 SOUND_FAMILY = "sound"
 
 
@@ -422,7 +422,7 @@ def add_tune_stopping_parser(subparsers: Any) -> argparse.ArgumentParser:
         description="Replay the full-length breath trajectories of session logs and tune the "
                     "σ-scaled stopping rule (constant K, or Algorithm 2's window W; compared with "
                     "Algorithm 2's schedule) or the sound rule's time and threshold floors (--family "
-                    "sound; with an exhaustive grid beside it) with BO-RESAMPLE (seed 003 §4.2).")
+                    "sound; with an exhaustive grid beside it) with BO-RESAMPLE (Antonova 2016 §4.2).")
     p.add_argument("logs", nargs="+", metavar="LOG.mcap", help="session logs")
     p.add_argument("--family", choices=[*(f.value for f in StoppingFamily), SOUND_FAMILY], default="k",
                    help="tune a constant K (default), the window W, or the sound rule's "
@@ -431,7 +431,7 @@ def add_tune_stopping_parser(subparsers: Any) -> argparse.ArgumentParser:
                    help="N, breaths of a full evaluation (default: from the logs, else 45)")
     p.add_argument("--error-weight", type=float, default=2.0,
                    help="λ: cost of a wrong early stop in evaluations' time (default 2; not for "
-                        "sound, whose cost is issue 17's targets)")
+                        "sound, whose cost is the project's targets for the rule)")
     p.add_argument("--window", type=int, default=2, help="W of the Algorithm 2 reference (default 2)")
     p.add_argument("--real", type=int, default=60, help="real episodes (default 60)")
     p.add_argument("--resamples", type=int, default=3, help="resamples per real episode (default 3)")

@@ -239,7 +239,7 @@ def build_parser() -> argparse.ArgumentParser:
                           "legacy (the earlier one)")
     sim.add_argument("--stopping", default="sound", choices=["sound", "adaptive", "fixed"],
                      help="stopping rule in the optimisation phase: sound (default), adaptive "
-                          "(seed 000's Algorithm 1/2 with the σ-scaled rule) or fixed (N breaths)")
+                          "(Kim et al. 2019's Algorithm 1/2 with the σ-scaled rule) or fixed (N breaths)")
     sim.add_argument("--engine", default="bridge", choices=["bridge", "core"],
                      help="bridge (default): the whole system over real transports; core: the "
                           "optimizer and the wearer only")

@@ -240,7 +240,7 @@ class Estimate(_Record, kw_only=True):
 
 
 class StopDecision(_Record, kw_only=True):
-    """The stopping rule's decision after a breath (optimisation phase, seed 000 §II.D)."""
+    """The stopping rule's decision after a breath (optimisation phase, Kim et al. 2019 §II.D)."""
 
     index: Index
     breath: BreathIndex

@@ -204,7 +204,7 @@ def test_cli_replays_one_file_per_person(tmp_path: Path, capsys: pytest.CaptureF
     assert "--replay" in doc["command"] and (out / "pairs_table.md").read_text().startswith("| rule |")
     assert (out / "pairs.png").read_bytes().startswith(b"\x89PNG")
     printed = capsys.readouterr().out
-    assert "issue 17 targets (sound)" in printed and "the trade-off: pairs.png" in printed
+    assert "targets (sound)" in printed and "the trade-off: pairs.png" in printed
     assert "how hard these pairs are to rank" in printed
     assert doc["measurement_error"]["n_better"] == doc["rules"]["fixed"]["n_better"]
 
