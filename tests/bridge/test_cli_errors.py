@@ -1,5 +1,5 @@
-"""Bad input gets a clear error and the right exit status; the README's commands are whole
-(issue 19 part 3, issue 15 part 4)."""
+"""Bad input gets a clear error and the right exit status; the documented commands are whole
+(every variable they use set, every job they start stopped)."""
 
 from __future__ import annotations
 

@@ -5,7 +5,7 @@ python-can-remote server on 127.0.0.1, ``hilbo virtual-exosuit --interface remot
 ``hilbo virtual-cart --can-interface remote``, then ``hilbo run my_session.toml`` with the
 config of ``hilbo config example`` and ``[can] interface = "remote"``. Only the protocol is
 shrunk (and the ports are free ones), so a session takes seconds; the pause between the bouts
-stays on. Issue 15 part 2 asks that this dry run passes the bout pause
+stays on. A pause must end, so this dry run must pass the bout pause
 
 * headless, by the resume policy: ``hilbo run CONFIG --no-view --auto-resume 1``;
 * by the operator's ``r``: ``hilbo run CONFIG`` in a terminal (a tmux pane, read with
@@ -314,7 +314,7 @@ def test_r_in_the_live_view_passes_the_bout_pause(tmp_path: Path, devices: Devic
 
     The example config as printed keeps the device watchdog at 100 ms, which a loaded
     PC trips (the view then shows "paused: device heartbeat lost ..."): an operator presses `r`
-    there too. What must hold is issue 15's: the pause between the bouts shows, the operator's
+    there too. What must hold: the pause between the bouts shows, the operator's
     first `r` there ends it, and the session reaches its end in the optimisation bout.
     """
     tmux = Tmux(tmp_path / "tmux.sock")
