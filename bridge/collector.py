@@ -8,7 +8,7 @@ commands). CPython starts one by itself whenever enough objects have survived yo
 collections, and 2000 CAN frames/s of force feedback allocate enough for one every few minutes,
 at a moment nothing chooses: an instrumented ``scripts/loop_lag_probe.py`` run found a 53.6 ms
 event-loop stall that was a 52.4 ms collection. A stall of that length stretches a paced
-profile transfer (issue 6: stop decision → commit on the bus within 100 ms) and delays the
+profile transfer (the target: stop decision → commit on the bus within 100 ms) and delays the
 watchdog's assistance-off by as much.
 
 :attr:`GcMode.FREEZE` (the default) moves the collections to moments where they cost nothing:
@@ -23,7 +23,7 @@ watchdog's assistance-off by as much.
   what one evaluation allocated;
 * **never a whole-heap walk while a device is connected**: :meth:`Collector.full` (unfreeze and
   collect everything) took 113-176 ms between the bouts, longer than the device's 100 ms
-  heartbeat watchdog, which then latched ``heartbeat_lost`` (issue 15), so the session no
+  heartbeat watchdog, which then latched ``heartbeat_lost``, so the session no
   longer calls it; the pause between the bouts is a quiet point like the others. Frozen
   objects are still freed by reference counting the moment nothing uses them; only a
   reference *cycle* among objects that were frozen while alive waits for the session's end;

@@ -314,14 +314,14 @@ class RefitMode(enum.Enum):
     AT_PROPOSAL = "at_proposal"
 
 
-# seed 000 §IV.A.3: a 40-minute optimisation bout (SessionProtocolConfig.budget_s)
+# Kim et al. 2019 §IV.A.3: a 40-minute optimisation bout (SessionProtocolConfig.budget_s)
 _DEFAULT_BUDGET_S = SessionProtocolConfig.budget_s
 _DEFAULT_BUDGET_MIN = None if _DEFAULT_BUDGET_S is None else _DEFAULT_BUDGET_S / 60.0
 
 
 @dataclass(frozen=True)
 class ProtocolConfig:
-    """``[protocol]``: the walking protocol and the optimizer (seed 000 §IV.A.3, Algorithm 1).
+    """``[protocol]``: the walking protocol and the optimizer (Kim et al. 2019 §IV.A.3, Algorithm 1).
 
     Two bouts: the exploration bout (``n_explore`` settings of ``max_breaths`` breaths each), then
     the optimisation bout until the budget is spent; each starts with ``warmup_s`` of walking
@@ -334,17 +334,17 @@ class ProtocolConfig:
         max_breaths: Breaths per evaluation at most (N), 2–1000.
         window: Algorithm 2's window W in breaths, 0..N−1.
         budget_min: Optimisation-bout budget in minutes of walking from the end of the bout's
-            warm-up (setting changes, pauses and the warm-ups after a pause count: issue 17), or
+            warm-up (setting changes, pauses and the warm-ups after a pause count: walked time), or
             None (:class:`hilbo_core.protocol.SessionProtocolConfig`'s ``budget_s``).
         budget_breaths: Optimisation-bout budget in breaths, or None (at least one budget is set;
             with both, the first spent ends the bout).
         session_min: The whole session's length in minutes of walking from its first breath
             (both bouts, their warm-ups, setting changes and pauses: "a lab has the hour it
-            has", issue 17), or None (default: the session ends with the optimisation budget).
+            has"), or None (default: the session ends with the optimisation budget).
             With it, the session ends at the first breath past ``session_min`` or when the
             budget is spent, whichever comes first.
         stopping: ``sound`` (default: the σ-scaled rule with a time and a threshold floor and
-            the GP-posterior incumbent, issue 17), ``adaptive`` (Algorithm 2 + the seed's
+            the GP-posterior incumbent), ``adaptive`` (Algorithm 2 + Kim et al. 2019's
             σ-scaled rule) or ``fixed`` (always N breaths).
         min_decision_s: The sound rule's seconds in a setting before any stop decision, 0–600.
         a_floor: The sound rule's threshold floor in σ, 0–10.
@@ -354,10 +354,10 @@ class ProtocolConfig:
         accept_z: Its margin in σ, 0–10 (default 3).
         design: The exploration bout's settings: ``sobol`` (the centre, then scrambled Sobol
             points) or ``maximin`` (the centre, then points at the boundary); absent:
-            ``sobol`` with the sound rule, ``maximin`` with the seed's rules
+            ``sobol`` with the sound rule, ``maximin`` with Kim et al. 2019's rules
             (:class:`hilbo_core.space.DesignKind`).
         seed: The optimizer's random seed (>= 0).
-        xi: Expected Improvement's ξ (seed 000 §II.B sign convention).
+        xi: Expected Improvement's ξ (Kim et al. 2019 §II.B sign convention).
         kernel: ``matern52`` or ``se``.
         n_candidates: Feasible Sobol candidates per acquisition maximisation.
         n_local: Candidates refined locally per acquisition maximisation.
@@ -366,7 +366,7 @@ class ProtocolConfig:
             evaluations while the next setting is measured, so the proposal after a stop
             decision only conditions the GP on every observation and maximises EI; the
             hyperparameters lag the data by one evaluation) or ``at_proposal`` (inside every
-            proposal, as seed 000 describes it; adds 10–60 ms to each stop -> push).
+            proposal, as Kim et al. 2019 describes it; adds 10–60 ms to each stop -> push).
         proposal_worker: Where proposals and fits run: ``process`` (default: a worker process,
             off the CAN traffic's GIL) or ``thread``.
         gc: When full garbage collections may stop the event loop: ``freeze`` (default: at
@@ -443,7 +443,7 @@ def _parse_protocol(data: object) -> ProtocolConfig:
     d = ProtocolConfig  # the defaults
     declared = read_fields(ProtocolConfig, t, skip=("window", "budget_min", "budget_breaths"))
     if not (t.has("budget_min") or t.has("budget_breaths")):
-        budget_min: float | None = d.budget_min  # seed 000 §IV.A.3: a 40-minute optimisation bout
+        budget_min: float | None = d.budget_min  # Kim et al. 2019 §IV.A.3: a 40-minute optimisation bout
         budget_breaths: int | None = d.budget_breaths
     else:
         budget_min = t.number("budget_min", lo=0.0, hi=1440.0, lo_open=True) if t.has("budget_min") else None
@@ -595,7 +595,7 @@ class WatchdogConfig:
         cart_data_timeout_s: No valid breath for this long (wall clock) → assistance-off and pause;
             shorter gaps only pause estimation. 2–300 s (breaths come every 2–6 s).
         bus_error: :class:`BusErrorPolicy`.
-        auto_resume_s: The resume policy of headless runs (issue 15): a pause that the operator
+        auto_resume_s: The resume policy of headless runs (nobody to press r): a pause that the operator
             did not ask for (the pause between the bouts, a lost device heartbeat, silent cart,
             a failed push) ends by itself once the device and the cart have been healthy for
             this long (wall s, 0-3600; device faults that the bridge may clear are cleared
@@ -628,7 +628,7 @@ def _parse_watchdog(data: object) -> WatchdogConfig:
 
 @dataclass(frozen=True)
 class PriorConfig:
-    """``[prior]``: fast-prior observations (seed 003 §3.3), read and validated on load.
+    """``[prior]``: fast-prior observations (Antonova 2016 §3.3), read and validated on load.
 
     Three sources, all optional, all entering the GP with inflated noise
     (:func:`hilbo_core.priors.inflate_variance`: ``var = factor · var_source + extra_var_w2``, per
@@ -1121,7 +1121,7 @@ def _expected_end_text(pr: ProtocolConfig) -> str:
 
 
 def _sound_text(pr: ProtocolConfig) -> str:
-    """The sound rule's constants for the summary ("" for the seed's rules)."""
+    """The sound rule's constants for the summary ("" for Kim et al. 2019's rules)."""
     if pr.stopping is not StoppingKind.SOUND:
         return ""
     accept = f"accept at {pr.accept_z:g} σ" if pr.accept_stop else "no accept stop"

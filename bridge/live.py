@@ -1,4 +1,4 @@
-"""Live view: the session's log channels streamed to Foxglove over a WebSocket (issue 19 item 2).
+"""Live view: the session's log channels streamed to Foxglove over a WebSocket.
 
 A :class:`LiveServer` wraps the Foxglove SDK's WebSocket server (``foxglove-sdk``, subprotocol
 ``foxglove.sdk.v1``). The session log mirrors every record it writes with :meth:`LiveServer.publish`:

@@ -1,4 +1,4 @@
-"""How long the session's event loop stops: a stall monitor (issue 15 part 2).
+"""How long the session's event loop stops: a stall monitor.
 
 Why: the bridge heartbeat is sent by an event-loop task (drivers/exosuit/endpoint.py,
 ``CanEndpoint.start_heartbeat``, on purpose: a hung bridge must look hung to the device), so

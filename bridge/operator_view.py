@@ -3,7 +3,7 @@
 Keys (when stdin is a terminal): ``p`` pause (assistance off), ``r`` resume, ``q`` stop.
 Without a terminal (CI, a pipe) the view prints nothing live; signals still stop the session.
 
-Issue 19.2: device faults are shown by name with what clears them (:func:`describe_faults`, from
+Read at a glance: device faults are shown by name with what clears them (:func:`describe_faults`, from
 drivers/exosuit/faults.py),
 the session's expected end (``SessionStatus.expected_end_s``, walking time, else the optimisation budget), and
 "best so far" is what ``HILOptimizer.best()`` returns, the same quantity as the summary's best.

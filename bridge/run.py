@@ -159,7 +159,7 @@ async def run_session(
         if cfg.prior.priors:
             logger.info("[prior] not re-applied on resume: the rebuilt optimizer holds its own priors")
     else:
-        # Fast prior (seed 003 §3.3): validated and inflated when the config was loaded.
+        # Fast prior (Antonova 2016 §3.3): validated and inflated when the config was loaded.
         # The protocol ends the session on walking time; the optimizer keeps no budget.
         opt = HILOptimizer(space, config=cfg.protocol.optimizer_config(with_budget=False),
                            prior_observations=cfg.prior.priors)
@@ -209,7 +209,7 @@ async def run_session(
                 view = asyncio.create_task(run_operator_view(session), name="operator-view") \
                     if operator_view else None
                 if not operator_view:
-                    # Headless (issue 15): one line per evaluation and per pause, resume or refusal.
+                    # Headless (no keyboard): one line per evaluation and per pause, resume or refusal.
                     session.status.listeners.append(_headless_line(session))
                 try:
                     summary = await session.run()

@@ -209,7 +209,7 @@ class SessionStatus:
     device: str = "unknown"
     cart: str = "waiting"
     events: list[str] = field(default_factory=list)
-    # Issue 19.2 (operator view): best_mean_w is opt.best()'s mean, as in the summary.
+    # The operator view's best_mean_w is opt.best()'s mean: the same quantity as the summary's.
     best_params: dict[str, float] | None = None  # opt.best()'s setting
     best_sd_w: float | None = None  # sqrt of opt.best()'s variance, W
     device_faults: dict[int, int] = field(default_factory=dict)  # actuator -> DeviceFault bits
@@ -318,7 +318,7 @@ class BridgeSession:
         self._auto_resumes = 0
         # Wall time from the decision to change the setting to the device's ack of the commit:
         # every push (the first of a bout counts from the end of its warm-up) and the pushes that
-        # follow a stop decision (issue 6: stop decision -> new profile committed on the bus).
+        # follow a stop decision (the latency target: stop decision -> new profile committed on the bus).
         self.latencies_s: list[float] = []
         self.stop_latencies_s: list[float] = []
         self._t_stop: float | None = None  # wall time of the last stop decision not yet pushed
@@ -326,7 +326,7 @@ class BridgeSession:
         #: The garbage-collection policy; its ``stats`` hold the collections' pauses.
         self.collector = Collector(self.settings.gc)
         #: Every stall of the event loop (it sends the heartbeat), counted once a device has
-        #: reported: none may exceed half the device's heartbeat watchdog (issue 15).
+        #: reported: none may exceed half the device's heartbeat watchdog (drivers/PROTOCOL.md).
         self.loop_monitor = LoopMonitor(HEARTBEAT_WATCHDOG_S / 2, self._on_loop_stall,
                                         connected=lambda: bool(self.device.status),
                                         period_s=self.settings.loop_monitor_period_s)
@@ -437,7 +437,7 @@ class BridgeSession:
             "best_params": None, "best_mean": None, "best_var": None,
             "push_latency_ms": _quantiles_ms(self.latencies_s),
             "stop_to_ack_ms": _quantiles_ms(self.stop_latencies_s),
-            # Session time is walking time (issue 17): where every walked second went.
+            # Session time is walking time (a lab has the hour it has): where every walked second went.
             "walking": self.protocol.walking.to_json(),
             "end_reason": None if self.protocol.end_reason is None else self.protocol.end_reason.value,
             "loop": self.loop_monitor.stats.to_json(),
@@ -634,7 +634,7 @@ class BridgeSession:
     def _start_fit_ahead(self) -> None:
         """Fit the GP hyperparameters on the completed evaluations while this one is measured
         (``refit_lag`` >= 1), so the proposal after the stop decision only conditions the GP
-        and maximises EI: the fit is off the stop -> push path (issue 6's latency)."""
+        and maximises EI: the fit is off the stop -> push path (its latency target)."""
         if not self.opt.config.refit_lag or self._fit_ahead is not None:
             return
         fit = self.opt.hyperparameter_fit()
@@ -761,7 +761,7 @@ class BridgeSession:
         policy resumes. Returns END when the session's time runs out during it."""
         self._event("bout_pause", "exploration bout complete; pausing until the operator resumes")
         await self.supervisor.pause(AssistanceOffReason.SESSION_END, "between bouts")
-        # Not a full collection (113-176 ms measured, issue 15): the device's 100 ms heartbeat
+        # Not a full collection (113-176 ms measured between the bouts): the device's 100 ms heartbeat
         # watchdog would latch heartbeat_lost. What was allocated since the last freeze only.
         self.collector.quiet_point()
         return await self._wait_resumed()
@@ -921,7 +921,7 @@ class BridgeSession:
     async def _resume_policy_task(self) -> None:
         """Headless runs: end a pause the operator did not ask for once the device and the cart
         have been healthy for ``auto_resume_s``, at most ``max_auto_resumes`` times; then stop
-        (issue 15 part 2: ``hilbo sim`` waited forever for an ``r`` that never came)."""
+        (without it ``hilbo sim`` once waited forever for an ``r`` that never came)."""
         s, sup = self.settings, self.supervisor
         if s.auto_resume_s is None:
             return

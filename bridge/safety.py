@@ -212,7 +212,7 @@ def _check_actuator_values(values: Mapping[str, object], where: str) -> dict[str
 class ActuatorLimits:
     """Hardware limits of one actuator's force table.
 
-    Defaults fit the seed's hip exosuit (seed 000 §IV.A.2: peak force 50–250 N, offset at most
+    Defaults fit Kim et al. 2019's hip exosuit (Kim et al. 2019 §IV.A.2: peak force 50–250 N, offset at most
     55 %GC_MHF): every profile of the ``hip_6d`` preset passes them (its steepest table, 250 N
     reached in 15 %GC, rises at 31 N/%GC), with a margin.
 

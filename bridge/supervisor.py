@@ -1,4 +1,4 @@
-"""The one owner of a session's supervision state (issue 15; shared/DESIGN.md, safety invariants).
+"""The one owner of a session's supervision state (shared/DESIGN.md, safety invariants).
 
 A person wears the exosuit, so *a pause holds*: nothing is committed or assisting while the
 session is paused, whatever task was in the middle of a push. Before this module the state that

@@ -1,6 +1,6 @@
 """hilbo_core: the pure algorithms of hilbo (no I/O, no asyncio, no clocks).
 
-Seed 000 (the estimator stopping process): parameter spaces and presets, force profiles, the
+Kim et al. 2019 (the estimator stopping process): parameter spaces and presets, force profiles, the
 Gaussian process, Expected Improvement, Brockway's equation and the UKF metabolic estimator, the
 stopping rules (Algorithm 2 and the σ-scaled offset rule) and :class:`HILOptimizer`
 (Algorithm 1 as an ask/tell state machine).

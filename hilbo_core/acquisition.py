@@ -1,4 +1,4 @@
-"""Expected Improvement for minimisation (seed 000 §II.B), computed stably, and its maximiser.
+"""Expected Improvement for minimisation (Kim et al. 2019 §II.B), computed stably, and its maximiser.
 
     EI(x) = σ̄(x) · (z Φ(z) + φ(z)),   z = (min(S) − μ̄(x) + ξ) / σ̄(x).
 
@@ -112,7 +112,7 @@ def log_expected_improvement(
         mean: Posterior mean μ̄ (cost units), broadcastable.
         std: Posterior standard deviation σ̄ >= 0 (cost units), broadcastable.
         best: Incumbent min(S) (cost units), broadcastable.
-        xi: The seed's ξ (see :func:`expected_improvement` for its sign).
+        xi: Kim et al. 2019's ξ (see :func:`expected_improvement` for its sign).
 
     Returns:
         log EI, broadcast shape; −inf only where std = 0 and best − mean + ξ <= 0.
@@ -134,11 +134,11 @@ def expected_improvement(
     best: np.ndarray | float,
     xi: float = 0.0,
 ) -> np.ndarray:
-    """Expected Improvement for MINIMISATION, exactly seed 000 §II.B.
+    """Expected Improvement for MINIMISATION, exactly Kim et al. 2019 §II.B.
 
     EI = σ̄ (z Φ(z) + φ(z)),  z = (best − μ̄ + ξ) / σ̄;  for σ̄ = 0, EI = max(best − μ̄ + ξ, 0).
 
-    Sign of ξ: the seed *adds* ξ to the incumbent, so ξ > 0 raises the target and moves EI
+    Sign of ξ: Kim et al. 2019 *add* ξ to the incumbent, so ξ > 0 raises the target and moves EI
     toward exploitation (points whose mean is slightly worse than the best still score). Callers
     wanting the usual exploration margin ("improve by at least ξ") pass a negative ξ.
 
@@ -214,7 +214,7 @@ def maximize_ei(
     n_local: int = 4,
     predict_grad: PredictGradFn | None = None,
 ) -> tuple[np.ndarray, float]:
-    """Maximise EI over {u ∈ [0, 1]^d : A_ub u <= b_ub} (Algorithm 1 line 10 of seed 000).
+    """Maximise EI over {u ∈ [0, 1]^d : A_ub u <= b_ub} (Algorithm 1 line 10 of Kim et al. 2019).
 
     Log EI is evaluated on every candidate; the ``n_local`` best are refined by SLSQP on −log EI
     with the box and the linear constraints. A refined point replaces the incumbent only if it
@@ -228,7 +228,7 @@ def maximize_ei(
         A_ub: Constraint matrix in unit-cube coordinates, shape (k, d) (k may be 0), or None.
         b_ub: Right-hand sides, shape (k,), or None.
         rng: Breaks ties between equally good candidates.
-        xi: The seed's ξ (see :func:`expected_improvement`).
+        xi: Kim et al. 2019's ξ (see :func:`expected_improvement`).
         n_local: Number of candidates refined locally (0 = candidates only).
         predict_grad: Optional U (m, d) → (mean, var, dmean (m, d), dvar (m, d)) (e.g.
             ``gp.predict_with_grad``) for analytic SLSQP gradients; finite differences otherwise.

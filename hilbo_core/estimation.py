@@ -1,12 +1,12 @@
 """A breath-by-breath estimate of the steady-state cost whose variance describes its errors.
 
-:class:`TransitionEstimator` is the default estimator of the optimizer (issue 16). Per breath it
+:class:`TransitionEstimator` is the default estimator of the optimizer. Per breath it
 makes a small Bayesian fit of the first-order transition of one setting,
 
     m(t) = c + (b0 − c)·e^{−t/τ},   y_i = m(t_i)·(1 + ε_i),
 
 where t is the time since the setting began, b0 the level the body is at when the setting begins
-and c the steady-state cost wanted. It is the model of seed 000 §II.C with c0 = b0 and τ0 = τ
+and c the steady-state cost wanted. It is the model of Kim et al. 2019 §II.C with c0 = b0 and τ0 = τ
 (the body's level at the start *is* c0; one response time for both terms, as the lab's
 first-order fit assumes).
 
@@ -15,17 +15,18 @@ model is linear in (c, b0), so the posterior of (c, b0) given τ and the noise s
 2×2 Gaussian, and τ is one-dimensional, so its posterior can be marginalised numerically on a
 grid. The UKF linearises the strongly non-linear trade-off between c and τ early in a large
 transition (where the data cannot yet tell a large c reached slowly from a smaller one reached
-quickly); that is where issue 16 measured it overconfident (z-score SD 3.3 after large steps).
+quickly); that is where it was measured overconfident on real breath-by-breath recordings (156
+walking and running transitions of 24 people: z-score SD 3.3 after large steps).
 The grid mixture carries that trade-off into the reported variance instead. It also makes the
-other three requirements of issue 16 direct:
+other three requirements of an estimate that holds on real breaths direct:
 
 * **The transition starts from the body's level.** b0 ~ N(level, var + inflation²), the previous
   setting's fitted level at its last breath with its variance (:meth:`TransitionEstimator.start_from`).
 * **τ has a physiological prior:** log-normal, median 42 s (Selinger & Donelan 2014's step
-  response in walking), log-SD 0.2 (95 % of the prior in ≈ 28–62 s: issue 16 and
+  response in walking), log-SD 0.2 (95 % of the prior in ≈ 28–62 s: those recordings and
   shared/DESIGN.md give 30–60 s as the range of time constants between people), on a log grid
   12–150 s (wide enough that a person outside the range is still found). τ is a trait of the
-  person (issue 16: it varies *between people*), so the settings of one person share it
+  person (in those recordings it varies *between people*), so the settings of one person share it
   hierarchically: each setting's τ is the person's τ times e^δ, δ ~ N(0, 0.1²) (an assumed
   ≈ 10 % within-person variation between transitions, e.g. up- vs down-steps), and each setting
   hands on the accumulated likelihood of the person's τ (its data's τ evidence, convolved with
@@ -35,10 +36,10 @@ other three requirements of issue 16 direct:
   setting to setting, tried first, drifted away on long runs of early-stopped settings.)
 * **Robust, online breath noise.** ε_i is Student-t (ν = 4) with a relative scale (the CV)
   estimated from the breaths by iteratively reweighted least squares (the EM of the t model), with
-  a scaled-inverse-χ² prior of median CV 11 % (issue 16's median steady-state CV of real breaths)
+  a scaled-inverse-χ² prior of median CV 11 % (the median steady-state CV of those real breaths)
   and ν0 = 10 pseudo-breaths, so the first few breaths cannot collapse it. Swallows and coughs get
-  small weights instead of dragging c. Breaths are treated as independent (issue 16: the
-  autocorrelation of real breaths is below 0.15 beyond 3 s, i.e. beyond one breath).
+  small weights instead of dragging c. Breaths are treated as independent (the
+  autocorrelation of those real breaths is below 0.15 beyond 3 s, i.e. beyond one breath).
 
 The reported variance of c is that of the τ mixture, with two corrections that make it describe
 the errors rather than the model's conditional spread: a sandwich factor for the t weights (for
@@ -47,7 +48,7 @@ a known factor, computed below by quadrature) and the Student-t inflation ν/(ν
 estimated CV (ν = ν0 + effective residual breaths).
 
 c has only a weak prior (N(level, (1.0·level)²)); it keeps the first breaths' posterior proper.
-:meth:`TransitionEstimator.data_only` divides it out for the GP (issue 16 part 2).
+:meth:`TransitionEstimator.data_only` divides it out for the GP (shared/DESIGN.md: data-only observations).
 
 Cost: every breath refits all breaths of the setting (n ≤ a few hundred) on a 25-point τ grid
 with two reweighting passes, vectorised over the grid: ≈ 100–300 µs per breath.
@@ -77,8 +78,8 @@ __all__ = [
 class EstimatorKind(enum.Enum):
     """Which breath-by-breath estimator the optimizer uses."""
 
-    TRANSITION = "transition"  # TransitionEstimator (issue 16; the default)
-    SEED_UKF = "seed_ukf"  # MetabolicUKF (seed 000 §II.C)
+    TRANSITION = "transition"  # TransitionEstimator (the default)
+    SEED_UKF = "seed_ukf"  # MetabolicUKF (Kim et al. 2019 §II.C)
 
 
 def _t_constants(nu: float) -> tuple[float, float]:
@@ -145,12 +146,12 @@ class TransitionConfig:
 
     Attributes:
         tau_median_s: Median of the log-normal prior of τ in s (Selinger & Donelan 2014: ≈ 42 s).
-        tau_log_sd: Its log-SD; 0.2 puts 95 % of the prior in ≈ 28–62 s (issue 16: 30–60 s
-            between people).
+        tau_log_sd: Its log-SD; 0.2 puts 95 % of the prior in ≈ 28–62 s (real recordings:
+            30–60 s between people).
         tau_min_s: Smallest τ of the grid in s.
         tau_max_s: Largest τ of the grid in s.
         n_tau: Grid points (log-spaced).
-        noise_cv: Prior median of the breath noise CV (issue 16: median 11 % on real breaths).
+        noise_cv: Prior median of the breath noise CV (median 11 % on real breaths).
         noise_prior_breaths: Weight ν0 of that prior in pseudo-breaths.
         t_dof: Degrees of freedom ν of the Student-t breath noise (4: heavy enough that a swallow
             at 5 SD gets a fifth of a normal breath's weight).

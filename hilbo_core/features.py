@@ -1,6 +1,6 @@
-"""Feature kernels (seed 003 §3.4.2): k(φ(x_i), φ(x_j)) over a map φ of the parameters.
+"""Feature kernels (Antonova 2016 §3.4.2): k(φ(x_i), φ(x_j)) over a map φ of the parameters.
 
-Seed 003 replaced the Euclidean distance between 16-D controller parameters by the distance
+Antonova 2016 replaced the Euclidean distance between 16-D controller parameters by the distance
 between "Determinants of Gait" scores φ(x) that short simulations had precomputed for 100 000
 Sobol points, looked up during BO, with "a hashmap to store DoG scores of the points sampled
 during optimization". The GP (:class:`hilbo_core.gp.GaussianProcess`, argument ``feature_map``)
@@ -8,7 +8,7 @@ already applies any φ: (n, d) → (n, k) to its unit-cube inputs before the ARD
 provides the maps:
 
 * :class:`CallableFeatureMap` — φ computed point by point by any callable, with a bounded cache
-  of points already seen (the seed's hashmap).
+  of points already seen (Antonova 2016's hashmap).
 * :class:`TableFeatureMap` — φ precomputed on a Sobol set of the space (:meth:`TableFeatureMap.precompute`)
   or read from a table (:meth:`TableFeatureMap.from_rows`) and looked up by nearest neighbour
   (``scipy.spatial.cKDTree``) or interpolated (``scipy.interpolate.RBFInterpolator`` over the
@@ -275,7 +275,7 @@ class Lookup(enum.Enum):
 
 
 class TableFeatureMap:
-    """φ precomputed at table points and looked up (seed 003 §3.4.2).
+    """φ precomputed at table points and looked up (Antonova 2016 §3.4.2).
 
     Args:
         points: Table points in the unit cube, shape (m, d).

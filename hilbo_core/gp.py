@@ -1,9 +1,9 @@
 """Gaussian-process regression with per-observation noise for HIL Bayesian optimisation.
 
-The surrogate of seed 000 §II.B: a zero-mean GP on standardised targets with an ARD
-squared-exponential or Matérn-5/2 kernel. Unlike the seed's single σ_n², every observation carries
+The surrogate of Kim et al. 2019 §II.B: a zero-mean GP on standardised targets with an ARD
+squared-exponential or Matérn-5/2 kernel. Unlike Kim et al. 2019's single σ_n², every observation carries
 its own noise variance (an early-stopped estimate is noisier than a full one, a fast-prior point of
-seed 003 noisier still), and a learned homoscedastic term is added on top:
+Antonova 2016 noisier still), and a learned homoscedastic term is added on top:
 
     K_y = K(X, X) + diag(noise_var_i / std_y²) + σ_n² I.
 
@@ -13,7 +13,7 @@ that 6–10 points do not produce absurd length-scales. Posterior mean and varia
 Rasmussen & Williams eq. 2.25–2.26 (Algorithm 2.1, Cholesky based).
 
 Inputs live in the unit cube [0, 1]^d (the parameter space normalises them). A ``feature_map``
-hook applies φ(x) before the kernel, k(φ(x_i), φ(x_j)), for the feature kernels of seed 003
+hook applies φ(x) before the kernel, k(φ(x_i), φ(x_j)), for the feature kernels of Antonova 2016
 §3.4.2.
 """
 
@@ -116,7 +116,7 @@ def _matern52_from_r2(r2: np.ndarray, signal_var: float) -> np.ndarray:
 def se_kernel(
     X1: np.ndarray, X2: np.ndarray, lengthscales: np.ndarray, signal_var: float
 ) -> np.ndarray:
-    """ARD squared-exponential kernel of seed 000 §II.B.
+    """ARD squared-exponential kernel of Kim et al. 2019 §II.B.
 
     k(x, x') = σ_f² · exp(−½ Σ_k (x_k − x'_k)² / l_k²).
 
@@ -453,13 +453,13 @@ class GaussianProcess:
     """GP surrogate with per-observation noise; hyperparameters by maximum a-posteriori MLL.
 
     Args:
-        kernel: Kernel kind (Matérn-5/2 by default; SE is the seed's choice).
+        kernel: Kernel kind (Matérn-5/2 by default; SE is Kim et al. 2019's choice).
         lengthscale_bounds: (low, high) of every length-scale, unit-cube units.
         signal_var_bounds: (low, high) of σ_f² of the standardised targets.
         noise_var_bounds: (low, high) of the learned σ_n², standardised-y units.
         n_restarts: Random L-BFGS-B starts drawn from the priors, in addition to ``init`` (or the
             prior medians when no ``init`` is given).
-        feature_map: Optional φ: (n, d) → (n, k) applied to inputs before the kernel (seed 003
+        feature_map: Optional φ: (n, d) → (n, k) applied to inputs before the kernel (Antonova 2016
             §3.4.2 feature kernels); length-scales then live in feature space.
         lengthscale_prior: Log-normal prior on each length-scale; None → median √k/4, log-sd 1.
         signal_var_prior: Log-normal prior on σ_f² (default median 1, log-sd 1).

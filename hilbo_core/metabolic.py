@@ -1,10 +1,10 @@
 """Metabolic power from gas exchange and breath-by-breath estimation of the steady-state cost.
 
 * :func:`brockway_watts` turns VO2/VCO2 into watts (Brockway's equation).
-* :class:`MetabolicUKF` is the Unscented Kalman Filter of seed 000 §II.C: it fits the first-order
+* :class:`MetabolicUKF` is the Unscented Kalman Filter of Kim et al. 2019 §II.C: it fits the first-order
   model ``m_t = c(1 - e^{-t/τ}) + c0·e^{-t/τ0}`` to the breaths of one assistance setting and
   reports, after every breath, the mean and variance of the steady-state cost ``c``.
-* :class:`GaussianProductEstimator` is the measurement model of the simulation study (seed 000
+* :class:`GaussianProductEstimator` is the measurement model of the simulation study (Kim et al. 2019
   §III.2): a Gaussian state fused with each measurement by the product of Gaussians.
   :class:`PooledNoiseEstimator` is the same with the measurement variance learnt from the run's
   data (:class:`MeasurementNoisePool`), the assumed σ_z² being only its prior.
@@ -12,9 +12,9 @@
 All satisfy the :class:`Estimator` protocol. The optimizer takes an *estimator factory* (a
 callable returning a fresh estimator for each setting) so benchmarks can swap the model. The
 default estimator, :class:`~hilbo_core.estimation.TransitionEstimator`, lives in
-``hilbo_core.estimation`` (issue 16).
+``hilbo_core.estimation``.
 
-Data-only observations (issue 16 part 2, shared/DESIGN.md "Observations to the GP are
+Data-only observations (shared/DESIGN.md "Observations to the GP are
 data-only"): every estimator here starts from a prior on c, and the GP has its own prior, so the
 observation handed to the GP is the posterior with the estimator's prior on c divided out
 (:func:`divide_gaussian`, each estimator's ``data_only()``). The stopping rule keeps using the
@@ -58,7 +58,7 @@ _BROCKWAY_O2_J_PER_ML = 16.58
 _BROCKWAY_CO2_J_PER_ML = 4.51
 _S_PER_MIN = 60.0
 
-# State layout of the UKF (seed 000 §II.C, with the time constants as logs).
+# State layout of the UKF (Kim et al. 2019 §II.C, with the time constants as logs).
 _I_C0, _I_C, _I_LOG_TAU0, _I_LOG_TAU = 0, 1, 2, 3
 _DIM_X = 4
 # Numerical guard only: time constants are clipped to [0.1 s, 1e5 s] inside the measurement
@@ -309,7 +309,7 @@ class UKFConfig:
 
 
 def _hx(state: npt.NDArray[np.float64], t_s: float) -> npt.NDArray[np.float64]:
-    """Measurement model of seed 000 §II.C: m_t = c(1 - e^{-t/τ}) + c0·e^{-t/τ0}.
+    """Measurement model of Kim et al. 2019 §II.C: m_t = c(1 - e^{-t/τ}) + c0·e^{-t/τ0}.
 
     Args:
         state: Shape (4,): [c0 (W), c (W), log τ0 (log s), log τ (log s)].
@@ -331,7 +331,7 @@ def _fx(state: npt.NDArray[np.float64], dt: float) -> npt.NDArray[np.float64]:
 
 
 class MetabolicUKF:
-    """UKF estimate of the steady-state metabolic cost of one setting (seed 000 §II.C).
+    """UKF estimate of the steady-state metabolic cost of one setting (Kim et al. 2019 §II.C).
 
     The state is o = [c0, c, log τ0, log τ]; the process is a random walk o' = o + v (the
     parameters are constant up to slow drift) and a breath at time t measures
@@ -501,7 +501,7 @@ class MetabolicUKF:
 
 
 class GaussianProductEstimator:
-    """Gaussian state fused with each measurement by the product of Gaussians (seed 000 §III.2).
+    """Gaussian state fused with each measurement by the product of Gaussians (Kim et al. 2019 §III.2).
 
     Starting from (prior_mean, prior_var), a measurement z with variance ``meas_var`` gives
     ``var' = 1/(1/var + 1/meas_var)`` and ``mean' = var'·(mean/var + z/meas_var)``.
@@ -579,7 +579,7 @@ class GaussianProductEstimator:
 class MeasurementNoisePool:
     """One measurement variance shared by the estimators of one run, learnt from their data.
 
-    Seed 000 §III.2 gives every measurement the variance σ_z² the study assumes. When that
+    Kim et al. 2019 §III.2 gives every measurement the variance σ_z² the study assumes. When that
     assumption is wrong (the study's ``assumed`` reading, or a person whose breaths are noisier
     than expected), every estimate's variance is off by the same factor, and the stopping rule
     trusts (or distrusts) single measurements accordingly. Here σ_z² is only the prior: a
@@ -591,7 +591,7 @@ class MeasurementNoisePool:
 
     The default weight is the weakest proper one, ν0 = 3 (the smallest with a finite Student-t
     variance below). The TransitionEstimator's ν0 = 10 belongs to a prior measured on real
-    breaths (issue 16's median CV); an assumed σ_z² may be 10× off, and a run pools hundreds of
+    breaths (their median CV); an assumed σ_z² may be 10× off, and a run pools hundreds of
     measurements, so the prior only has to carry the first breaths. With ν0 = 10 a prior 10×
     too high still weighed 100 measurements' worth after exploration (docs/results.md §1,
     "Learning the measurement variance").

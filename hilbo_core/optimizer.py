@@ -1,6 +1,6 @@
-"""HILOptimizer: Algorithm 1 of seed 000 as an ask/tell state machine driven one breath at a time.
+"""HILOptimizer: Algorithm 1 of Kim et al. 2019 as an ask/tell state machine driven one breath at a time.
 
-Phases (seed 000 §II.A, Algorithm 1):
+Phases (Kim et al. 2019 §II.A, Algorithm 1):
 
 1. **Exploration** — ``n_explore`` space-filling points, each measured for the full
    ``max_breaths`` (N) breaths; their estimate traces (M, Σ) are kept.
@@ -8,21 +8,21 @@ Phases (seed 000 §II.A, Algorithm 1):
 3. **Optimisation** — until the budget is spent: fit the GP to every evaluation's (μ, σ²), take
    x_t = argmax EI, then after every breath compare the running estimate with the incumbent x*
    and stop early when μ − μ* > A_i·σ (the σ-scaled offset rule, §II.D), or at N breaths.
-   The default ``stopping = "sound"`` (issue 17) makes three changes: the incumbent's (μ*, σ*²) is
+   The default ``stopping = "sound"`` (hilbo's rule) makes three changes: the incumbent's (μ*, σ*²) is
    the GP posterior at x* (not its raw, optimistically biased estimate), no decision is made
    before ``min_decision_s`` in the setting, and the threshold is floored at ``a_floor`` ≥ 0
    (:class:`~hilbo_core.stopping.SoundRule`); the candidate's estimate starts from the GP's
-   predictive at x_t (``gp_prior_stopping``). ``"adaptive"`` is the seed's rule unchanged.
+   predictive at x_t (``gp_prior_stopping``). ``"adaptive"`` is Kim et al. 2019's rule unchanged.
 
 The GP is told each evaluation's estimator mean *and* variance: an early-stopped estimate is
 noisier, and the model must know (shared/DESIGN.md). It is told the *data-only* part
 (``Evaluation.obs_mean``/``obs_var``: the estimator's posterior with its own prior on c divided
-out, issue 16 part 2), because the GP has its own prior and must not count the estimator's a
+out), because the GP has its own prior and must not count the estimator's a
 second time. The stopping rule and :meth:`HILOptimizer.best` keep the posterior
 (``Evaluation.mean``/``var``): they compare what the estimator believes.
 
 Estimators: ``OptimizerConfig.estimator`` picks the default
-:class:`~hilbo_core.estimation.TransitionEstimator` (issue 16) or the seed's
+:class:`~hilbo_core.estimation.TransitionEstimator` (its docstring says why) or Kim et al. 2019's
 :class:`~hilbo_core.metabolic.MetabolicUKF`; an explicit ``estimator_factory`` overrides both.
 Each setting's estimator starts from the body level the previous setting's estimator ended at
 (when both support it: ``handover()`` / ``start_from_state()``: the level, the noise CV and the
@@ -33,14 +33,14 @@ exploration bout is a separate walking bout). It may be given in breaths, in sec
 time, or both; it is checked after every breath, and an evaluation still running when the budget
 runs out is closed with the estimate it has (reason ``"budget"``). This budget counts breath
 time *inside* evaluations only; a session's walking time (setting changes, pauses and warm-ups
-included, issue 17) is :class:`hilbo_core.protocol.SessionProtocol`'s, which ends a session with
-:meth:`HILOptimizer.close_current` on an optimizer without a budget of its own.
+included: a lab has the hour it has) is :class:`hilbo_core.protocol.SessionProtocol`'s, which
+ends a session with :meth:`HILOptimizer.close_current` on an optimizer without a budget of its own.
 
 Hyperparameter refits: by default the GP's hyperparameters are refitted (multi-start L-BFGS-B
 on the marginal likelihood) at every proposal. With ``refit_growth`` G > 1 they are refitted only
 once the number of training observations has grown by the factor G since the last fit; in between,
 the GP is re-conditioned on all observations with the last hyperparameters. A session of hundreds
-of one-measurement evaluations (seed 000 §III.2 at high noise) then costs a few dozen fits instead
+of one-measurement evaluations (Kim et al. 2019 §III.2 at high noise) then costs a few dozen fits instead
 of one per evaluation, and each new observation still enters the posterior at once. With
 ``refit_lag`` L >= 1 a proposal reuses hyperparameters fitted on up to L fewer observations; the
 caller fits them *ahead*, off the proposal's critical path: :meth:`HILOptimizer.hyperparameter_fit`
@@ -115,18 +115,18 @@ class Phase(enum.Enum):
 class StoppingKind(enum.Enum):
     """Which rule ends an evaluation in the optimisation phase."""
 
-    SOUND = "sound"  # the default: SoundRule, GP-posterior incumbent (issue 17 part 1)
-    ADAPTIVE = "adaptive"  # Algorithm 2 thresholds + σ-scaled offset rule (seed 000 §II.D)
-    FIXED = "fixed"  # always N breaths (fixed-interval BO, the seed's baseline)
+    SOUND = "sound"  # the default: SoundRule, GP-posterior incumbent (hilbo_core.stopping)
+    ADAPTIVE = "adaptive"  # Algorithm 2 thresholds + σ-scaled offset rule (Kim et al. 2019 §II.D)
+    FIXED = "fixed"  # always N breaths (fixed-interval BO, Kim et al. 2019's baseline)
 
 
 class RecommendKind(enum.Enum):
     """How :meth:`HILOptimizer.best` picks the recommended setting."""
 
-    # The default (issue 17 part 2): among the evaluated settings, the lowest GP posterior mean
+    # The default: among the evaluated settings, the lowest GP posterior mean
     # plus recommend_beta posterior SDs, reported with the GP posterior there.
     POSTERIOR = "posterior"
-    # The seed's: the lowest GP posterior mean, reported with that evaluation's own estimate.
+    # Kim et al. 2019's: the lowest GP posterior mean, reported with that evaluation's own estimate.
     SEED = "seed"
 
 
@@ -141,7 +141,7 @@ class OptimizerConfig:
         budget_s: Optimisation-phase budget in seconds of breath time, or None.
         budget_breaths: Optimisation-phase budget in breaths, or None.
         stopping: ``"sound"`` (the default, :class:`~hilbo_core.stopping.SoundRule` with the
-            incumbent from the GP posterior), ``"adaptive"`` (seed 000's Algorithm 1/2) or
+            incumbent from the GP posterior), ``"adaptive"`` (Kim et al. 2019's Algorithm 1/2) or
             ``"fixed"``.
         min_decision_s: The sound rule's time in a setting before any stop decision (s, >= 0;
             default 60 s ≈ 1.5 × the estimator's median τ of 42 s, see SoundRule).
@@ -150,26 +150,27 @@ class OptimizerConfig:
             ``min_decision_s``, end an evaluation whose candidate is already ``accept_z`` σ
             better than the incumbent (reason ``"decided"``; not an early rejection, see
             SoundRule). The candidate has beaten the incumbent, so its remaining breaths are
-            better spent on the next setting (issue 17's "≥ 25 % fewer breaths" on pairs of
-            transitions where half the candidates are better; docs/results.md §5).
+            better spent on the next setting (the project's target is ≥ 25 % fewer breaths than N
+            on pairs of transitions where half the candidates are better; docs/results.md).
         gp_prior_stopping: With the sound rule, the candidate's estimate for the stop decision
             is the estimator's data-only estimate times the GP's predictive at x_t (the Bayesian
-            early decision, issue 17 part 1d); the GP is still told the data-only part.
+            early decision); the GP is still told the data-only part.
         recommend: ``"posterior"`` or ``"seed"``, see :class:`RecommendKind`; None (default)
-            means ``"posterior"`` with the sound rule and ``"seed"`` with the seed's rules.
+            means ``"posterior"`` with the sound rule and ``"seed"`` with Kim et al. 2019's rules.
         recommend_beta: The posterior recommendation's penalty in posterior SDs (>= 0): a
             setting measured for a few breaths only has a wide posterior and is not recommended
             on the strength of a lucky estimate.
         remeasure_best_s: With a time budget: once at most this many seconds of it remain,
             measure the recommended setting again (once, for up to N breaths, no early stop) if
             it has fewer than N breaths in total; None (default) never does.
-        drift_hours: Adaptation drift (issue 17 part 3): with a number, the GP gets the
+        drift_hours: Adaptation drift (the cost of every setting falls slowly over the hour as the
+            wearer adapts; virtual_hw/wearer_realistic.py): with a number, the GP gets the
             session time of each evaluation as an extra input, with a length-scale prior of
             median ``drift_hours`` h (long relative to the session: the cost drifts slowly), and
             predicts every setting (x*, the recommendation, EI) *now*; None (default) ignores
             time. The clock is the optimizer's: breath time of all evaluations so far.
         seed: Seed of the run's random generator.
-        xi: EI's ξ (seed 000 §II.B sign convention).
+        xi: EI's ξ (Kim et al. 2019 §II.B sign convention).
         kernel: ``"matern52"`` or ``"se"``.
         n_candidates: Feasible Sobol candidates per EI maximisation.
         n_local: Candidates refined locally per EI maximisation.
@@ -186,13 +187,13 @@ class OptimizerConfig:
             setting is measured, so no proposal waits for a fit). 0, the default, leaves refits to
             ``refit_growth``. The two are exclusive: L >= 1 needs ``refit_growth`` = 1.
         estimator: ``"transition"`` (the default, :class:`~hilbo_core.estimation.TransitionEstimator`)
-            or ``"seed_ukf"`` (seed 000's :class:`~hilbo_core.metabolic.MetabolicUKF`). Ignored
+            or ``"seed_ukf"`` (Kim et al. 2019's :class:`~hilbo_core.metabolic.MetabolicUKF`). Ignored
             when the optimizer is given an ``estimator_factory``.
         design: The exploration bout's settings (:class:`~hilbo_core.space.DesignKind`):
             ``"sobol"`` (the centre, then scrambled Sobol points) or ``"maximin"`` (the centre,
-            then greedy maximin: the design before issue 17, which pushes the other points to
+            then greedy maximin: the design of earlier versions, which pushes the other points to
             the boundary of the feasible set). None (default): ``sobol`` with the sound rule,
-            ``maximin`` with the seed's rules, so ``adaptive`` and ``fixed`` stay the methods
+            ``maximin`` with Kim et al. 2019's rules, so ``adaptive`` and ``fixed`` stay the methods
             they were (like ``recommend``).
     """
 
@@ -232,8 +233,8 @@ class OptimizerConfig:
     def __post_init__(self) -> None:
         self._enum("estimator", EstimatorKind)
         self._enum("stopping", StoppingKind)
-        # The sound rule comes with the posterior recommendation and the Sobol design; the
-        # seed's rules keep the seed's recommendation and the maximin design, so "adaptive" and
+        # The sound rule comes with the posterior recommendation and the Sobol design; Kim et
+        # al. 2019's rules keep their recommendation and the maximin design, so "adaptive" and
         # "fixed" stay the methods they were.
         sound = self.stopping is StoppingKind.SOUND
         if self.recommend is None:
@@ -323,7 +324,7 @@ def _int_at_least(name: str, value: object, low: int) -> None:
 
 @dataclass(frozen=True)
 class PriorObservation:
-    """A cheap observation that enters the GP with its own (inflated) noise (seed 003 §3.3).
+    """A cheap observation that enters the GP with its own (inflated) noise (Antonova 2016 §3.3).
 
     Attributes:
         params: The point, ``{name: value}``.
@@ -355,7 +356,7 @@ class Evaluation:
             stop), ``"budget"`` or ``"told"``.
         obs_mean: The data-only mean the GP is told (W): the posterior with the estimator's
             prior on c divided out; None means ``mean`` (estimators without ``data_only()``,
-            :meth:`HILOptimizer.tell`, states written before issue 16).
+            :meth:`HILOptimizer.tell`, states written before the data-only observations existed).
         obs_var: Its variance (W²); None means ``var``.
     """
 
@@ -472,7 +473,7 @@ class HILOptimizer:
         config: A whole :class:`OptimizerConfig` instead of the keywords.
         estimator_factory: Returns a fresh estimator per evaluation (default: the one
             ``config.estimator`` names). Benchmarks pass the Gaussian-product model of §III.2.
-        prior_observations: Fast-prior observations (seed 003 §3.3) added to the GP.
+        prior_observations: Fast-prior observations (Antonova 2016 §3.3) added to the GP.
 
     Example:
         >>> opt = HILOptimizer(presets.hip_6d(), n_explore=6, max_breaths=45, budget_s=2400)
@@ -504,7 +505,7 @@ class HILOptimizer:
         self._estimator_factory: Callable[[], Estimator] = (
             estimator_factory if estimator_factory is not None else _ESTIMATORS[config.estimator])
         # What the last setting's estimator handed over (body level, noise CV, τ), which the
-        # next setting's transition starts from (issue 16).
+        # next setting's transition starts from (the body does not reset between settings).
         self._handover: StartState | None = None
         self._priors: list[PriorObservation] = []
         for p in prior_observations:
@@ -583,13 +584,13 @@ class HILOptimizer:
     def best(self) -> tuple[dict[str, float], float, float]:
         """The recommended setting and its estimated cost ``(params, mean_w, var_w2)``.
 
-        ``recommend = "posterior"`` (the default, issue 17 part 2): among the evaluated settings,
+        ``recommend = "posterior"`` (the default): among the evaluated settings,
         the one with the lowest GP posterior mean + ``recommend_beta`` posterior SDs, reported
         with the GP posterior (mean, variance of the latent cost) there. A raw estimate is
         optimistically biased for the setting that looks best (the winner's curse), and a
         setting measured for a few breaths has a wide posterior, so it is not recommended on
         the strength of one lucky estimate. ``recommend = "seed"``: the GP's estimated minimum
-        among the evaluated points (seed 000 §III.2: "x_t be the GP's estimated minimum
+        among the evaluated points (Kim et al. 2019 §III.2: "x_t be the GP's estimated minimum
         point"), reported with that evaluation's own estimate. Before any GP can be fitted,
         the lowest estimated mean.
         """
@@ -721,7 +722,7 @@ class HILOptimizer:
         return ev
 
     def add_prior(self, prior: PriorObservation) -> None:
-        """Add a fast-prior observation (seed 003 §3.3); validated against the space."""
+        """Add a fast-prior observation (Antonova 2016 §3.3); validated against the space."""
         try:
             self.space.check(prior.params)
         except ValueError as err:
@@ -875,7 +876,7 @@ class HILOptimizer:
 
         With ``gp_prior_stopping`` and an estimator that can say what its breaths alone carry:
         the data-only estimate times the GP's predictive at x_t (a Gaussian product; the
-        Bayesian early decision, issue 17 part 1d). The estimator's own weak prior on c is
+        Bayesian early decision). The estimator's own weak prior on c is
         divided out first, so no prior is counted twice; the GP is told the data-only part
         (:meth:`_step`) as always. Otherwise the estimator's posterior.
         """
@@ -925,7 +926,7 @@ class HILOptimizer:
             ends_h = np.cumsum([e.duration_s for e in self._evaluations]) / 3600.0
             t_h = np.concatenate([ends_h, np.zeros(len(self._priors))])
             U = np.column_stack([U, self._time_column(t_h)])
-        # Data-only observations (issue 16 part 2): the GP has its own prior.
+        # Data-only observations: the GP has its own prior.
         obs = [e.gp_observation for e in self._evaluations]
         y = [m for m, _ in obs] + [p.mean for p in self._priors]
         v = [s for _, s in obs] + [p.var for p in self._priors]
@@ -989,7 +990,7 @@ class HILOptimizer:
         """The sound rule's x*: the evaluated setting of lowest posterior mean, with the GP
         posterior of its cost (mean, variance; the model's noise accounted for), not the raw
         estimate (which is optimistically biased for the setting that looks best: the winner's
-        curse, issue 17)."""
+        curse)."""
         post_mean, post_var = gp.predict(self._now(self._evaluation_units()))
         k = int(np.argmin(post_mean))
         return dict(self._evaluations[k].params), float(post_mean[k]), float(post_var[k])
@@ -1013,7 +1014,7 @@ class HILOptimizer:
     def _propose(self) -> np.ndarray:
         gp = self._fit_gp(self._rng, store=True)
         # x* for the stopping rule: the GP's best evaluated setting with its own estimate
-        # (seed 000 §II.D: "the best parameter setting found thus far as defined by the GP").
+        # (Kim et al. 2019 §II.D: "the best parameter setting found thus far as defined by the GP").
         sound = self.config.stopping is StoppingKind.SOUND
         self._incumbent = self._gp_incumbent(gp) if sound else self._gp_best(gp)
         again = self._remeasure_due(gp)
@@ -1022,7 +1023,7 @@ class HILOptimizer:
             x = self.space.from_dict(again)
             self._pending = (None, True)
             return x
-        best_observed = min(e.mean for e in self._evaluations)  # min(S), seed 000 §II.B
+        best_observed = min(e.mean for e in self._evaluations)  # min(S), Kim et al. 2019 §II.B
         A_u, b_u = self.space.unit_constraints()
         cand = self.space.sample_unit(self.config.n_candidates, self._rng)
         d = self.space.dim
@@ -1095,9 +1096,9 @@ class HILOptimizer:
         try:
             space = ParameterSpace.from_json(data["space"])
             config_data = dict(data["config"])
-            # States written before issue 16 come from sessions that ran the seed's UKF.
+            # States written before the transition estimator come from sessions that ran Kim et al.'s UKF.
             config_data.setdefault("estimator", EstimatorKind.SEED_UKF.value)
-            # ... and states written before issue 17 recommended the seed's way.
+            # ... and states written before the posterior recommendation recommended Kim et al.'s way.
             config_data.setdefault("recommend", RecommendKind.SEED.value)
             # States written before the exploration design became a choice used maximin.
             config_data.setdefault("design", DesignKind.MAXIMIN.value)
@@ -1120,10 +1121,10 @@ class HILOptimizer:
             if data["incumbent"] is not None:
                 p, m, v = data["incumbent"]
                 opt._incumbent = (dict(p), float(m), float(v))
-            opt._remeasured = bool(data.get("remeasured", False))  # absent before issue 17
+            opt._remeasured = bool(data.get("remeasured", False))  # absent before re-measurement existed
             opt._opt_breaths = int(data["opt_breaths"])
             opt._opt_seconds = float(data["opt_seconds"])
-            handover = data.get("handover")  # absent in states written before issue 16
+            handover = data.get("handover")  # absent in states written before the hand-over existed
             if handover is not None:
                 opt._handover = StartState.from_json(handover)
             cur = data["current"]

@@ -1,4 +1,4 @@
-"""Parameter-space presets of the seed's two human studies (seed 000 §IV.A.2 and §IV.B.2)."""
+"""Parameter-space presets of Kim et al. 2019's two human studies (Kim et al. 2019 §IV.A.2 and §IV.B.2)."""
 
 from __future__ import annotations
 
@@ -8,12 +8,12 @@ __all__ = ["PRESETS", "hip_6d", "hip_ankle_4d", "preset"]
 
 
 def hip_6d() -> ParameterSpace:
-    """Single-joint hip-extension assistance, six parameters (seed 000 §IV.A.2, Fig. 3a).
+    """Single-joint hip-extension assistance, six parameters (Kim et al. 2019 §IV.A.2, Fig. 3a).
 
     Parameters: onset ``t_on``, peak ``t_p`` and offset ``t_off`` timings in % of the gait cycle
     (from maximum hip flexion, %GC_MHF), peak force ``F_p`` in N, and the rising and falling
     node forces ``F_r``, ``F_f`` as ratios of ``F_p`` (the nodes sit midway through the rising
-    and falling phases). Constraints, as printed in the seed::
+    and falling phases). Constraints, as printed in Kim et al. 2019::
 
         0 <= t_on <= t_p - 15,   t_p + 15 <= t_off <= 55,   50 N <= F_p <= 250 N,
         0.3 F_p <= F_r <= 0.7 F_p,   0.3 F_p <= F_f <= 0.7 F_p
@@ -36,7 +36,7 @@ def hip_6d() -> ParameterSpace:
 
 
 def hip_ankle_4d() -> ParameterSpace:
-    """Multi-joint hip + ankle assistance, four parameters (seed 000 §IV.B.2, Fig. 3b).
+    """Multi-joint hip + ankle assistance, four parameters (Kim et al. 2019 §IV.B.2, Fig. 3b).
 
     Hip extension: peak timing ``hip_t_peak`` in [15, 50] %GC_MHF and offset timing
     ``hip_t_offset`` in [30, 65] %GC_MHF (peak force fixed at 40 % body weight). Ankle
@@ -44,7 +44,7 @@ def hip_ankle_4d() -> ParameterSpace:
     ``ankle_t2`` in [50, 60] %GC_HS with ``ankle_t1 + 10 <= ankle_t2``; the release onset is the
     derived ``ankle_t3 = ankle_t2 + 10`` (peak force 60 % body weight).
 
-    Deliberate difference from the seed: it prints the hip constraint as
+    Deliberate difference from Kim et al. 2019: it prints the hip constraint as
     ``T_offset + 15 <= T_peak``. With the bounds above that leaves only a sliver
     (T_peak >= 45, T_offset <= 35) and contradicts its own Table II (peak 21-26 %, offset
     41-45 %), so this preset uses ``hip_t_peak + 15 <= hip_t_offset`` (shared/DESIGN.md).

@@ -1,6 +1,6 @@
-"""Fast priors (seed 003 §3.3): cheap observations that enter the GP with inflated noise.
+"""Fast priors (Antonova 2016 §3.3): cheap observations that enter the GP with inflated noise.
 
-Seed 003 initialised BO with 100 policies evaluated in short, simplified simulations and "set
+Antonova 2016 initialised BO with 100 policies evaluated in short, simplified simulations and "set
 higher noise variance level for points collected for the prior, indicating that while the values
 obtained during short simulations have some useful indication of the cost, the actual costs …
 are expected to differ". In a lab the cheap sources are:
@@ -19,7 +19,7 @@ are expected to differ". In a lab the cheap sources are:
 
 (the multiplicative factor says "this estimate is less trustworthy than it claims"; the additive
 term is the variance between the source's conditions and today's, which remains even for a
-perfectly measured source). :data:`DEFAULT_PRIOR_NOISE` gives one choice per source; the seed
+perfectly measured source). :data:`DEFAULT_PRIOR_NOISE` gives one choice per source; Antonova 2016
 prints no numbers, so these are ours, stated with their reasons, and a config can override
 them (``[priors]`` table of ``hilbo run``).
 
@@ -52,7 +52,7 @@ __all__ = [
 
 
 class PriorSource(enum.Enum):
-    """Kinds of cheap observations (seed 003 §3.3 adapted to HIL sessions)."""
+    """Kinds of cheap observations (Antonova 2016 §3.3 adapted to HIL sessions)."""
 
     SHORT_BOUT = "short_bout"
     PREVIOUS_SESSION = "previous_session"
@@ -98,7 +98,7 @@ DEFAULT_PRIOR_NOISE: Mapping[PriorSource, PriorNoise] = MappingProxyType({
     # such rows mostly tell the GP where the landscape is low, not how low.
     PriorSource.POPULATION: PriorNoise(factor=1.0, extra_var_w2=30.0**2),
 })
-"""Default inflation per source (our choices; the seed gives none)."""
+"""Default inflation per source (our choices; Antonova 2016 gives none)."""
 
 
 def inflate_variance(var_w2: float, noise: PriorNoise) -> float:

@@ -74,7 +74,7 @@ def hip_spline_profile(
     t_on: float, t_p: float, t_off: float, F_p: float, F_r: float, F_f: float,
     n_points: int = N_POINTS,
 ) -> ForceProfile:
-    """Hip-extension force: two cubic splines (seed 000 §IV.A.2, Fig. 3a).
+    """Hip-extension force: two cubic splines (Kim et al. 2019 §IV.A.2, Fig. 3a).
 
     The rising spline passes through onset (t_on, 0), the rising node
     ((t_on + t_p)/2, F_r·F_p) and the peak (t_p, F_p); the falling spline through the peak, the
@@ -116,10 +116,10 @@ def hip_spline_profile(
 def hip_ankle_profiles(
     params: Mapping[str, float], body_mass_kg: float = 75.0, n_points: int = N_POINTS,
 ) -> tuple[ForceProfile, ForceProfile]:
-    """Hip and ankle force tables for the multi-joint preset (seed 000 §IV.B, Fig. 3b).
+    """Hip and ankle force tables for the multi-joint preset (Kim et al. 2019 §IV.B, Fig. 3b).
 
     Hip: a piecewise-sinusoidal extension force rising from 0 %GC to ``hip_t_peak`` and falling
-    to zero at ``hip_t_offset``, peak fixed at 40 % of body weight. Ankle: the seed drives the
+    to zero at ``hip_t_offset``, peak fixed at 40 % of body weight. Ankle: Kim et al. 2019 drive the
     ankle with a piecewise-linear *position* profile under force-based position control and a
     target peak force of 60 % body weight; this table is the force that profile is meant to
     produce: zero until ``ankle_t1``, a linear ramp to the peak at ``ankle_t2``, held until

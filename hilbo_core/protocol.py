@@ -1,6 +1,6 @@
 """SessionProtocol: the walking protocol of a HIL session, a pure state machine driven by breaths.
 
-Seed 000 §IV.A.3: "two separate walking bouts: a 20-min (approx.) bout initializing the algorithm
+Kim et al. 2019 §IV.A.3: "two separate walking bouts: a 20-min (approx.) bout initializing the algorithm
 with an evenly distributed pseudo-random set of parameters and a 40-min (approx.) bout to run
 actual Bayesian optimization ... including 3-min warm-up periods in the beginning of each bout".
 The phases (:class:`SessionPhase`)::
@@ -21,7 +21,7 @@ through the same states, and :func:`drive` runs a whole session synchronously.
 session start, or the resume) ends with the first breath at t >= t_w + ``warmup_s``; that breath
 is the warm-up's, and the first setting of the bout is applied at its time.
 
-**Session time is walking time** (issue 17 part 4). Every second of the breath clock counts,
+**Session time is walking time** (a lab has the hour it has). Every second of the breath clock counts,
 whatever the session is doing (warm-ups, setting changes, measurements, pauses):
 
 * ``session_s`` — the whole session from its start (both bouts, both warm-ups and the pause
@@ -78,7 +78,7 @@ class ProtocolStateError(HilboError, RuntimeError):
 
 
 class SessionPhase(enum.Enum):
-    """Where the session is (seed 000 §IV.A.3)."""
+    """Where the session is (Kim et al. 2019 §IV.A.3)."""
 
     WARM_UP_EXPLORATION = "warm_up_exploration"
     EXPLORATION = "exploration"
@@ -111,7 +111,7 @@ class EndReason(enum.Enum):
 
 @dataclass(frozen=True)
 class SessionProtocolConfig:
-    """The walking protocol. The defaults are the seed's (§IV.A.3) and the optimizer's own.
+    """The walking protocol. The defaults are Kim et al. 2019's (§IV.A.3) and the optimizer's own.
 
     Attributes:
         warmup_s: Unassisted walking at the start of each bout, in breath time (s, >= 0).
@@ -119,7 +119,7 @@ class SessionProtocolConfig:
         max_breaths: The optimizer's N; used only to estimate the exploration bout's length.
         session_s: The whole session, from its start, in seconds of walking; or None.
         budget_s: The optimisation bout, from the end of its first warm-up, in seconds of walking
-            (default: the seed's 40-minute bout); or None.
+            (default: Kim et al. 2019's 40-minute bout); or None.
         budget_breaths: The optimisation bout in breaths (all of them, from the same moment); or
             None. At least one of the three budgets is set; the first spent ends the session.
         pause_between_bouts: Pause (assistance off) after the exploration bout until the driver

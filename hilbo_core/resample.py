@@ -1,4 +1,4 @@
-"""BO-RESAMPLE (seed 003 §4.2, Algorithm 1): Bayesian optimisation of optimal-stopping policies
+"""BO-RESAMPLE (Antonova 2016 §4.2, Algorithm 1): Bayesian optimisation of optimal-stopping policies
 with off-policy re-evaluation of stored trajectories.
 
 An optimal-stopping policy watches a sequence of observations o_1, o_2, … and decides before each
@@ -8,7 +8,7 @@ other policy would have got *if that policy halts at some step t' <= t on the sa
 replay the stored prefix and ask the new policy at every step (:func:`replay_halt_step`). A
 policy that would continue beyond ``t`` cannot be evaluated on that trajectory.
 
-Algorithm 1 (seed 003 §4.2)::
+Algorithm 1 (Antonova 2016 §4.2)::
 
     for j = 1 … J:
         π_j ← NextBOPoint(GP);  τ_j ← ExecuteInRealWorld(π_j);  UpdateGP(GetObjectVal(τ_j))
@@ -17,7 +17,7 @@ Algorithm 1 (seed 003 §4.2)::
             τ_k ← SelectRandLimited(τ_1 … τ_j)           # each trajectory reused a bounded number of times
             τ'_k ← SimulatePolicyExec(π_k, τ_k);  UpdateGP(GetObjectVal(τ'_k))
 
-Details the seed leaves open, as implemented here:
+Details Antonova 2016 leaves open, as implemented here:
 
 * ``SelectRandLimited`` draws uniformly among the stored trajectories that have been resampled
   fewer than ``max_reuse`` times *and* can evaluate π_k (the new policy halts within the stored
@@ -30,9 +30,9 @@ Details the seed leaves open, as implemented here:
   evaluation; a resampled value only conditions the GP on one more point with the hyperparameters
   kept, which is exact GP conditioning and keeps K resamples cheap.
 * The recommendation after each real evaluation is the evaluated policy (real or simulated) with
-  the lowest GP posterior mean (as seed 000 §III.2 recommends the GP's estimated minimum).
+  the lowest GP posterior mean (as Kim et al. 2019 §III.2 recommends the GP's estimated minimum).
 
-Costs are minimised (the seed's tutoring objective is f(π) = 1 − R(π)). Everything problem-specific
+Costs are minimised (Antonova 2016's tutoring objective is f(π) = 1 − R(π)). Everything problem-specific
 is a callable: ``execute`` (the real world), ``halt`` (the policy class) and ``objective``. With
 ``n_resamples = 0`` the loop is plain BO, so both arms of a comparison share one code path.
 """
@@ -108,7 +108,7 @@ class Trajectory:
 
 
 def replay_halt_step(halt: HaltRule, params: Mapping[str, float], trajectory: Trajectory) -> int | None:
-    """Where a policy would halt on a stored trajectory (off-policy replay, seed 003 §4.2).
+    """Where a policy would halt on a stored trajectory (off-policy replay, Antonova 2016 §4.2).
 
     Asks ``halt`` after 0, 1, … observations of the stored prefix.
 
@@ -152,7 +152,7 @@ class TrajectoryStore:
     """The trajectories collected so far, with how often each was resampled.
 
     Args:
-        max_reuse: Resamples allowed per trajectory (the seed's experiments: 10).
+        max_reuse: Resamples allowed per trajectory (Antonova 2016's experiments: 10).
     """
 
     def __init__(self, max_reuse: int) -> None:
@@ -220,13 +220,13 @@ class ResampleConfig:
 
     Attributes:
         n_resamples: K, simulated evaluations after each real one (0 = plain BO).
-        max_reuse: Resamples allowed per stored trajectory (seed 003 §4.4 uses 10).
+        max_reuse: Resamples allowed per stored trajectory (Antonova 2016 §4.4 uses 10).
         n_init: Real evaluations on a space-filling design before the GP proposes (>= 1).
         kernel: GP kernel.
         n_candidates: Feasible Sobol candidates per EI maximisation.
         n_local: Candidates refined locally per EI maximisation.
         n_restarts: Random restarts of the hyperparameter fit.
-        xi: EI's ξ (seed 000 §II.B convention).
+        xi: EI's ξ (Kim et al. 2019 §II.B convention).
     """
 
     n_resamples: int = 10
@@ -359,7 +359,7 @@ def bo_resample(
     prior_trajectories: Sequence[Trajectory] = (),
     on_real: Callable[[int, ResampleRun], None] | None = None,
 ) -> ResampleRun:
-    """Run Algorithm 1 of seed 003 §4.2 for ``n_real`` real evaluations.
+    """Run Algorithm 1 of Antonova 2016 §4.2 for ``n_real`` real evaluations.
 
     Args:
         space: The policy-parameter space.
@@ -388,7 +388,7 @@ def bo_resample(
     for traj in prior_trajectories:
         store.add(traj)
     model = _Surrogate(space, cfg)
-    # The design BO-RESAMPLE was measured with (the seed-003 method stays what it was).
+    # The design BO-RESAMPLE was measured with (the Antonova 2016 method stays what it was).
     design = space.design(min(cfg.n_init, n_real), rng, kind=DesignKind.MAXIMIN)
     evaluations: list[PolicyEvaluation] = []
     recommendations: list[dict[str, float]] = []

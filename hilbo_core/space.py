@@ -37,10 +37,10 @@ class DesignKind(enum.Enum):
     """How the exploration bout's settings are chosen (:meth:`ParameterSpace.design`)."""
 
     # The default: the setting nearest the feasible set's centre (where a lab starts, and where
-    # CMA-ES starts too), then the first feasible points of a second scrambled Sobol sequence: seed 000
+    # CMA-ES starts too), then the first feasible points of a second scrambled Sobol sequence: Kim et al. 2019
     # §IV.A.3's "evenly distributed pseudo-random set of parameters".
     SOBOL = "sobol"
-    # The centre, then greedy maximin from a Sobol pool (the design before issue 17). With few
+    # The centre, then greedy maximin from a Sobol pool (the design of earlier versions). With few
     # points in many dimensions maximin pushes the points after the first to the boundary of the
     # feasible set (the points farthest from each other are near its corners: in hip_6d 85 % lie
     # within 0.02 of a bound or constraint, against 36 % of Sobol's; tests/hilbo_core/
@@ -424,7 +424,7 @@ class ParameterSpace:
 
         The first point is the feasible pool's point nearest the centre of the feasible set;
         the others follow ``kind`` (:class:`DesignKind`): ``sobol``, the first n − 1 feasible
-        points of a second, independently scrambled Sobol sequence (seed 000 §IV.A.3: "an evenly
+        points of a second, independently scrambled Sobol sequence (Kim et al. 2019 §IV.A.3: "an evenly
         distributed pseudo-random set of parameters"), or ``maximin``, greedy maximin selection
         from the pool.
 

@@ -1,4 +1,4 @@
-"""Stopping rules for the metabolic estimate of one setting (seed 000 §II.D, Algorithms 1 and 2).
+"""Stopping rules for the metabolic estimate of one setting (Kim et al. 2019 §II.D, Algorithms 1 and 2).
 
 After every measurement i of a setting x_t the optimizer compares the estimate
 ``N(μ_xt, σ²_xt)`` with the best setting so far ``N(μ_x*, σ²_x*)``: with ``μ = μ_xt − μ_x*`` and
@@ -6,7 +6,7 @@ After every measurement i of a setting x_t the optimizer compares the estimate
 after the N-th measurement. :func:`threshold_schedule` computes the schedule A from the
 exploration traces (Algorithm 2); :class:`SigmaScaledRule` applies it (Algorithm 1, lines 13–20);
 :class:`FixedIntervalRule` never stops early (the fixed-interval baseline). :class:`SoundRule`
-(issue 17 part 1, the optimizer's default) is the σ-scaled rule made safe: no decision before
+(the optimizer's default) is the σ-scaled rule made safe: no decision before
 ``min_decision_s`` in the setting, and a threshold floored at ``a_floor`` ≥ 0, so a candidate that
 looks at least as good as the incumbent is never stopped.
 
@@ -59,11 +59,11 @@ def _check_traces(name: str, arr: npt.NDArray[np.float64], positive: bool) -> No
 
 
 def threshold_schedule(
-    M: npt.ArrayLike,  # the seed's name for the matrix of means
-    S: npt.ArrayLike,  # the seed's Σ
+    M: npt.ArrayLike,  # Kim et al. 2019's name for the matrix of means
+    S: npt.ArrayLike,  # Kim et al. 2019's Σ
     window: int,
 ) -> npt.NDArray[np.float64]:
-    """Threshold schedule A from exploration traces (seed 000 Algorithm 2).
+    """Threshold schedule A from exploration traces (Kim et al. 2019 Algorithm 2).
 
     Each exploration point is treated as if its own final estimate were the best so far:
     ``X_ij = (M_ij − M_iN) / sqrt(S_ij + S_iN)``, and ``A_i`` is the largest X over all rows and
@@ -74,7 +74,7 @@ def threshold_schedule(
         M: Shape (n_explore, N): mean of the estimate after each measurement of each
             exploration point.
         S: Shape (n_explore, N): the matching variances (> 0).
-        window: W ≥ 0, in measurements (the seed's simulations use 2).
+        window: W ≥ 0, in measurements (Kim et al. 2019's simulations use 2).
 
     Returns:
         A, shape (N,).
@@ -174,7 +174,7 @@ def _difference(
 
 
 class SigmaScaledRule:
-    """σ-scaled offset rule with a threshold schedule (seed 000 §II.D, Algorithm 1 l. 13–20).
+    """σ-scaled offset rule with a threshold schedule (Kim et al. 2019 §II.D, Algorithm 1 l. 13–20).
 
     After measurement i, with ``μ = mean − best_mean`` and ``σ² = var + best_var``, stop with
     THRESHOLD if ``μ > A[i]·σ``; at the last index ``i == N−1`` the evaluation is complete and the
@@ -199,7 +199,7 @@ class SigmaScaledRule:
 
     @classmethod
     def constant(cls, k: float, n_max: int) -> SigmaScaledRule:
-        """The σ-scaled offset with a single K for every measurement (seed 000 §II.D).
+        """The σ-scaled offset with a single K for every measurement (Kim et al. 2019 §II.D).
 
         Args:
             k: The offset K in units of σ (finite).
@@ -243,7 +243,7 @@ class SigmaScaledRule:
         z = mu / sigma
         if idx == self.n_max - 1:
             return StopDecision(True, StopReason.MAX_MEASUREMENTS, idx, z, a_i)
-        # Compare μ > A_i·σ as the seed writes it (not z > A_i) so boundary cases are exact.
+        # Compare μ > A_i·σ as Kim et al. 2019 write it (not z > A_i) so boundary cases are exact.
         if mu > a_i * sigma:
             return StopDecision(True, StopReason.THRESHOLD, idx, z, a_i)
         return StopDecision(False, StopReason.CONTINUE, idx, z, a_i)
@@ -286,21 +286,21 @@ class FixedIntervalRule:
 
 
 class SoundRule:
-    """The σ-scaled rule with a time floor and a threshold floor (issue 17 part 1).
+    """The σ-scaled rule with a time floor and a threshold floor.
 
     After measurement i at ``t_s`` seconds into the setting, with ``μ = mean − best_mean`` and
     ``σ² = var + best_var``: no decision while ``t_s < min_decision_s``; after that, stop with
     THRESHOLD if ``μ > max(A_i, a_floor)·σ``; MAX_MEASUREMENTS at ``i == N−1``. Why the floors:
 
     * **Time.** The first breaths of a setting are dominated by the previous setting: with the
-      first-order response of τ (median 42 s between people, 30–60 s; Selinger & Donelan 2014,
-      issue 16) the previous level still makes up e^{−t/τ} of the signal, 49 % at 30 s and 24 %
-      at 60 s. Issue 16 measured the first-order fit's error at 28.9 % (30 s) vs 11.9 % (60 s)
-      on real transitions. The default 60 s ≈ 1.5·τ_median is where the estimate's error first
+      first-order response of τ (median 42 s between people, 30–60 s; Selinger & Donelan 2014)
+      the previous level still makes up e^{−t/τ} of the signal, 49 % at 30 s and 24 %
+      at 60 s. On held-out real transitions (24 people) the first-order fit's error was 28.9 % (30 s)
+      vs 11.9 % (60 s). The default 60 s ≈ 1.5·τ_median is where the estimate's error first
       comes close to the breath-noise floor; it also makes "≤ 5 % of evaluations end within
       30 s" hold by construction (only budget ends can).
-    * **Threshold.** Algorithm 2's A_i can be negative (issue 17 measured a median −0.29 at
-      breath 1), which stops candidates that look *better* than the incumbent. With a floor
+    * **Threshold.** Algorithm 2's A_i can be negative (its median at breath 1 was measured
+      at −0.29), which stops candidates that look *better* than the incumbent. With a floor
       ``a_floor ≥ 0`` a stop always needs ``μ > 0`` (and by a margin of ``a_floor``·σ).
 
     Optionally (``accept_z``: off here, 3 σ in :class:`~hilbo_core.optimizer.OptimizerConfig`)

@@ -1,4 +1,4 @@
-"""Soak test of whole simulated sessions: does every ``hilbo sim`` reach its end? (issue 15).
+"""Soak test of whole simulated sessions: does every ``hilbo sim`` reach its end?
 
 Runs ``hilbo sim --minutes M`` N times in a row, in-process and/or with ``--processes``,
 optionally beside one CPU-burning process per core (``--burn``, the busy lab PC), each with a

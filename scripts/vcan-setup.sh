@@ -7,7 +7,7 @@
 #   scripts/vcan-setup.sh --print [IF]    # only print the commands
 #
 # Runs the commands with sudo when not root. Same commands as drivers.exosuit.vcan_setup
-# (`hilbo vcan-setup`). To keep vcan0 across reboots, see "CAN set-up" in the README.
+# (`hilbo vcan-setup`). To keep vcan0 across reboots, see docs/exosuit-bus.md.
 set -eu
 
 print_only=0

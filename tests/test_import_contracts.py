@@ -34,3 +34,10 @@ def test_the_contracts_state_the_design_rule() -> None:
     # The one exception: bridge.sim wires the virtual devices in.
     assert bridge["forbidden_modules"] == ["virtual_hw"]
     assert bridge["ignore_imports"] == ["bridge.sim.** -> virtual_hw.**"]
+
+
+def test_no_package_of_ours_may_hold_an_import_cycle() -> None:
+    acyclic = [c for c in _contracts() if c["type"] == "acyclic_siblings"]
+    assert len(acyclic) == 1
+    assert set(acyclic[0]["ancestors"]) == {"hilbo_core", "drivers", "virtual_hw", "bridge"}
+    assert "depth" not in acyclic[0] and "skip_descendants" not in acyclic[0]  # every level

@@ -226,7 +226,7 @@ class DeviceLimits:
 
     Attributes:
         max_force_n: largest force of any point, N (default 600 N, ≈ 60 % of the body weight
-            of a 100 kg wearer, the seed's largest ankle assistance).
+            of a 100 kg wearer, Kim et al. 2019's largest ankle assistance).
         max_slope_n_per_pct: largest change of force per % gait cycle between neighbouring points
             (N/%GC); the step allowed between neighbours of an ``m``-point table is
             ``max_slope_n_per_pct · 100 / (m − 1)``. The default, 80 N/%GC (≈ 7 kN/s at a 1.1 s
@@ -263,7 +263,7 @@ class GaitConfig:
     ``stride_cv`` and lag-one correlation ``stride_ar1``, clipped at ±4 SD. Healthy adults
     walking at a steady speed show stride-time CVs of about 1.5–3 % with persistent (positively
     correlated) fluctuations (Hausdorff et al., J Appl Physiol 1995 and 1996); 1.1 s is a typical
-    stride at the seed's 1.25 m/s treadmill speed.
+    stride at Kim et al. 2019's 1.25 m/s treadmill speed.
 
     Attributes:
         stride_s: mean stride time, s.
@@ -353,7 +353,7 @@ class GaitModel:
 
     Reference boundaries ``b_k`` (maximum hip flexion of the reference leg) are generated lazily
     and kept, so any time at or after the start can be queried, and the sequence depends only on
-    the seed. Actuator ``a`` with stride fraction ``o_a`` has its boundaries at
+    Kim et al. 2019. Actuator ``a`` with stride fraction ``o_a`` has its boundaries at
     ``β_k = b_k + o_a·(b_{k+1} − b_k)``; its phase runs linearly from 0 to 100 % between
     consecutive boundaries.
 

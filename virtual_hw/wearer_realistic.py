@@ -1,4 +1,4 @@
-"""A simulated wearer that breathes like a person (issue 16 part 3): the default of ``hilbo sim``.
+"""A simulated wearer that breathes like a person: the default of ``hilbo sim``.
 
 A pure model, like :class:`virtual_hw.wearer.SimulatedWearer` (the ``legacy`` wearer, kept as a
 named option) and with the same interface: the caller owns the clock, reports what the exosuit
@@ -6,8 +6,8 @@ applies and when (:meth:`RealisticWearer.apply_profiles`) and pulls breaths
 (:meth:`RealisticWearer.next_breath`, :meth:`RealisticWearer.breaths_until`). What differs is what
 real breath-by-breath data look like, and that the landscape is not always the same shape.
 
-Sources: "issue 16" is the project's measurement of 156 real walking/running transitions of 24
-people (breath-by-breath, resampled at 2-3.5 s); the rest are cited where they are used.
+Sources: "the real recordings" are a measurement made for this project of 156 real walking/running
+transitions of 24 people (breath-by-breath, resampled at 2-3.5 s); the rest are cited where they are used.
 
 Landscape families (drawn per subject seed)
 ===========================================
@@ -33,27 +33,27 @@ to one shape:
   or later, so there are two local optima, the best one may sit on a force bound (``F_1`` can
   exceed the largest force the space allows), and timing and duration trade off along a tilted
   ridge (the correlation). The last term is the cost of force at the wrong time (as the window
-  family's negative scores; seed 000's generic profile cost one subject 4 %). The bump priors
+  family's negative scores; Kim et al. 2019's generic profile cost one subject 4 %). The bump priors
   are placed inside the range the presets' tables reach (hip centroid 17-38 %GC, spread 5-12 %GC;
-  ankle centroid 52-62 %GC) around the hip-extension and push-off timings of seed 000's Table II
+  ankle centroid 52-62 %GC) around the hip-extension and push-off timings of Kim et al. 2019's Table II
   and Fig. 4, and ``β`` is drawn so the best saving is 5-25 % of unassisted walking, the range the
-  project specifies (the seed reports 7-35 %; hip-exosuit reports are mostly 5-20 %). Over
+  project specifies (Kim et al. 2019 report 7-35 %; hip-exosuit reports are mostly 5-20 %). Over
   seeds 0-39 (both families): best saving 9.4-20.7 % in ``hip_6d``, 7.4-24.4 % in
   ``hip_ankle_4d``; 23 window and 17 bump subjects.
 
 Dynamics
 ========
-First-order dynamics of the *actual* metabolic rate (Selinger & Donelan 2014, seed 000 ref. [20];
-seed §II.C): ``dm/dt = (c(t) - m)/τ``. The state ``m`` is carried across every change of the
+First-order dynamics of the *actual* metabolic rate (Selinger & Donelan 2014, Kim et al. 2019 ref. [20];
+Kim et al. 2019 §II.C): ``dm/dt = (c(t) - m)/τ``. The state ``m`` is carried across every change of the
 applied assistance, so a new setting's transition starts from wherever the body is when it begins
-(issue 16: "transitions of more than 50 % are common"), never from a reset. ``τ`` is drawn per
-person in 30-60 s (issue 16: "time constants vary between people (30-60 s)"; Selinger & Donelan
+(the real recordings: transitions of more than 50 % are common), never from a reset. ``τ`` is drawn per
+person in 30-60 s (the real recordings: time constants vary between people, 30-60 s; Selinger & Donelan
 report about 40 s on average).
 
 **Slow adaptation.** The steady-state cost of every setting (unassisted walking included) falls
 with time on the breath clock, ``c(x, t) = c(x)·D(t)``,
 ``D(t) = 1 - α·(1 - e^{-t/T}) / (1 - e^{-3600/T})``: by exactly ``α`` after one hour, fastest at
-first. ``α`` is drawn per person in 0-3 % (issue 16; continued reductions of metabolic cost over
+first. ``α`` is drawn per person in 0-3 % (continued reductions of metabolic cost over
 sessions with the same assistance are reported by the Collins lab: Poggensee & Collins 2021,
 Sci. Robot. 6:eabf1078, and Slade et al. 2022, Nature 610:277), ``T`` in 15-40 min (a model
 choice: most of the change within the session). The ODE with this target has a closed form
@@ -70,13 +70,13 @@ the unadapted one, and ``hilbo sim`` adds ``regret_w_at_end`` (× ``D`` at the s
 Breaths
 =======
 * Intervals: gamma with a per-person mean in 2.0-3.5 s (17-30 breaths/min, the usual breathing
-  rate in walking; issue 16 resampled its real breaths at 2-3.5 s) and a per-person jitter CV of
+  rate in walking; the real recordings were resampled at 2-3.5 s) and a per-person jitter CV of
   10-20 %, each interval clipped to [0.5, 2] × the person's mean.
 * Noise: ``P = m(t)·(1 + e)``. The core ``e`` is AR(1) with a per-person stationary SD of
-  8-12 % of the level and a per-person lag-one correlation of 0-0.12 (issue 16: "median
-  coefficient of variation of about 11 %", "autocorrelation below 0.15 beyond 3 s"; at ≥ 2 s per
+  8-12 % of the level and a per-person lag-one correlation of 0-0.12 (the real recordings: median
+  coefficient of variation of about 11 %, autocorrelation below 0.15 beyond 3 s; at ≥ 2 s per
   breath the correlation at two breaths is ≤ 0.02).
-* Outliers (swallows, coughs, talking; issue 16: "some breaths are outliers"): each breath is,
+* Outliers (swallows, coughs, talking; the real recordings have some): each breath is,
   with a per-person probability of 1-4 %, off by an extra ``outlier_scale·t_3`` (Student t, 3 degrees
   of freedom: heavy-tailed), the breath's factor clipped to [0.2, 3]. The share and the width are
   model choices (no published distribution); they lift the raw CV of a steady state by about
@@ -105,7 +105,7 @@ from hilbo_core.errors import ConfigError, MeasurementError
 from hilbo_core.profiles import ForceProfile, build_profile
 from hilbo_core.space import ParameterSpace
 from hilbo_core.types import BreathRecord
-from virtual_hw.wearer import (
+from virtual_hw.wearer_common import (
     _BROCKWAY_CO2,
     _BROCKWAY_O2,
     _G,
@@ -299,7 +299,7 @@ class BumpPrior:
         _check_range(o, "mistiming_penalty", self.mistiming_penalty, 0.0, 2.0)
 
 
-# Hip: hip-extension assistance peaking at 21-27 %GC (seed 000 Table II, Fig. 4) has its
+# Hip: hip-extension assistance peaking at 21-27 %GC (Kim et al. 2019 Table II, Fig. 4) has its
 # force centroid at about 22-32 %GC for the presets' tables; ideal effective forces 0.12-0.30 BW
 # (the hip_6d tables reach 0.05-0.27 BW, so the best force is sometimes the largest allowed).
 HIP_BUMPS = BumpPrior("hip", centre_pct=(22.0, 32.0), spread_pct=(6.0, 10.0),

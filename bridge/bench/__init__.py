@@ -1,4 +1,4 @@
-"""``hilbo bench``: the benchmarks (seed 000's stopping study, simulated HIL sessions, latency).
+"""``hilbo bench``: the benchmarks (Kim et al. 2019's stopping study, simulated HIL sessions, latency).
 
 Modules: :mod:`~bridge.bench.stopping`, :mod:`~bridge.bench.hil`, :mod:`~bridge.bench.perf`
 (the three benchmarks), :mod:`~bridge.bench.executors` (local processes or Dask),

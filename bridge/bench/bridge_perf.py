@@ -1,11 +1,11 @@
-"""``hilbo bench perf --bridge-minutes M``: the bridge at real time (issue 6).
+"""``hilbo bench perf --bridge-minutes M``: the bridge at real time.
 
 A short :func:`bridge.sim.virtual.run_virtual_sim` session at ``speed`` (1 = real time) with the virtual
 exosuit sending force feedback of both actuators at ``feedback_hz`` (1 kHz), with one of two
 protocols (:class:`BridgeProtocol`): ``quick``, cut down so that profile pushes come often (2
-exploration points, N = 10 breaths, 20 s warm-ups), or ``lab``, the lab's own (seed 000 §IV.A.3,
+exploration points, N = 10 breaths, 20 s warm-ups), or ``lab``, the lab's own (Kim et al. 2019 §IV.A.3,
 as in ``hilbo config example``: 6 exploration points, N = 45, 180 s warm-ups), measuring what
-issue 6 asks for:
+the bridge's targets (:data:`BRIDGE_TARGETS`) are about:
 
 * **stop → ack latency** — wall time from the stopping rule's decision (the breath's
   ``observe_breath`` returning *stop*) to the device's ack of the commit of the next setting's
@@ -73,7 +73,7 @@ from hilbo_core.errors import ConfigError
 
 __all__ = ["BRIDGE_TARGETS", "BridgeProtocol", "BridgeRtConfig", "bridge_realtime", "bridge_table"]
 
-#: Issue 6: p99 of stop → committed under 100 ms at speed 1; 2 × 1 kHz feedback plus logging
+#: The bridge's targets: p99 of stop → committed under 100 ms at speed 1; 2 × 1 kHz feedback plus logging
 #: without dropping frames, under half a core.
 BRIDGE_TARGETS = {"stop_to_ack_p99_ms": 100.0, "cores": 0.5, "dropped_frames": 0}
 
@@ -83,7 +83,7 @@ class BridgeProtocol(StrEnum):
 
     #: 2 exploration points, N = 10, 20 s warm-ups: a stop decision every ~20 s, many per minute.
     QUICK = "quick"
-    #: The lab's own (seed 000 §IV.A.3, ``hilbo config example``,
+    #: The lab's own (Kim et al. 2019 §IV.A.3, ``hilbo config example``,
     #: :class:`~bridge.sim.virtual.VirtualSimConfig`'s defaults): 6 exploration points, N = 45,
     #: 180 s warm-ups; the GP sizes of a real session.
     LAB = "lab"
@@ -116,7 +116,7 @@ class BridgeRtConfig:
     Attributes:
         minutes: Session length (both bouts and warm-ups), minutes of walking; at ``speed`` 1
             also the wall time.
-        speed: Real-time factor of the simulated clock (1 = real time, what issue 6 asks).
+        speed: Real-time factor of the simulated clock (1 = real time, where the targets hold).
         feedback_hz: Force-feedback rate per actuator (Hz, wall clock).
         n_explore: Exploration points (the ``quick`` protocol's by default; see
             :meth:`for_protocol`).
@@ -558,7 +558,7 @@ def bridge_realtime(cfg: BridgeRtConfig, out: Path | None = None) -> dict[str, A
 
 
 def bridge_table(result: dict[str, Any]) -> str:
-    """Markdown: the real-time measurements against issue 6's targets."""
+    """Markdown: the real-time measurements against :data:`BRIDGE_TARGETS`."""
 
     def q(d: dict[str, float] | None) -> str:
         if not d:

@@ -11,19 +11,18 @@ as Optuna); 130 when interrupted.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import logging
 import sys
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 from rich.console import Console
 
 from bridge.bench.bridge_perf import BridgeProtocol
-from bridge.bench.common import choices, machine_info, numbers, round_sig, write_json
+from bridge.bench.common import choices, machine_info, numbers, options, round_sig, write_json
 from bridge.collector import GcMode
 from bridge.errors import BridgeError, UsageError
 from bridge.sim.devices import WEARER_CHOICES, WearerKind
@@ -61,19 +60,6 @@ def _executor(args: argparse.Namespace) -> Any:
             raise ConfigError(f"--workers {args.workers}; expected an integer >= 1")
     # A scheduler that cannot be reached is a runtime failure (exit status 1), not a usage error.
     return make_executor(args.workers, args.scheduler, progress=False if args.no_progress else None)
-
-
-@contextlib.contextmanager
-def options() -> Iterator[None]:
-    """Checks of the command line's values before any work: their ConfigError is a usage error
-    (exit status 2). A missing optional dependency (a ConfigError from an ImportError) is not:
-    the command line is right, the installation is not (exit status 1)."""
-    try:
-        yield
-    except ConfigError as err:
-        if isinstance(err.__cause__, ImportError):
-            raise
-        raise UsageError(str(err)) from err
 
 
 def _console() -> Console:
@@ -155,7 +141,7 @@ def _cmd_stopping(args: argparse.Namespace) -> int:
         "projected_campaign_core_s": sum(per_trial) * campaign.trials if complete else None,
         "methods": method_descriptions(methods),
         "functions": function_descriptions(functions),
-        "noise": "σ_z²/σ̃² (seed 000 §III.2 levels 0.1, 1, 10); noise_model 'matched': measurements "
+        "noise": "σ_z²/σ̃² (Kim et al. 2019 §III.2 levels 0.1, 1, 10); noise_model 'matched': measurements "
                  "have variance σ_z² and the estimator knows it; 'assumed': measurements have "
                  "variance σ̃² and σ_z² is the estimator's assumption; noise_estimate 'seed': "
                  "every measurement is fused with σ_z²; 'pooled': with the variance learnt from "
@@ -384,8 +370,8 @@ def add_bench_parser(subparsers: Any) -> Any:
     bsub = bench.add_subparsers(dest="bench_command", required=True, metavar="BENCH")
 
     st = bsub.add_parser(
-        "stopping", help="seed 000 §III.2: stopping vs fixed-interval BO on the Table I functions",
-        description="The simulation study of seed 000 §III.2 (Table I functions, Gaussian-product "
+        "stopping", help="Kim et al. 2019 §III.2: stopping vs fixed-interval BO on the Table I functions",
+        description="The simulation study of Kim et al. 2019 §III.2 (Table I functions, Gaussian-product "
                     "measurements, three noise levels, 6 exploration points, N = 45, 630 measurements).")
     st.add_argument("--trials", type=_int, default=100, help="trials per function and noise (default 100)")
     st.add_argument("--functions", default=None,
@@ -401,7 +387,7 @@ def add_bench_parser(subparsers: Any) -> Any:
     st.add_argument("--noise-estimate", default="pooled", choices=["pooled", "seed"],
                     help="pooled: the measurement variance is learnt from the trial's measurements, "
                          "σ_z² being its prior (3 pseudo-measurements); seed: every measurement "
-                         "has variance σ_z², as in seed 000 (default pooled)")
+                         "has variance σ_z², as in Kim et al. 2019 (default pooled)")
     st.add_argument("--budget", type=_int, default=630, help="measurements after exploration (630)")
     st.add_argument("--n-explore", type=_int, default=6, help="exploration points (6)")
     st.add_argument("--max-breaths", type=_int, default=45, help="N, measurements per evaluation (45)")
@@ -437,7 +423,7 @@ def add_bench_parser(subparsers: Any) -> Any:
         description="Whole HIL sessions on simulated wearers; regret of the recommended setting "
                     "against minutes walked. Besides the four default methods, adaptive-ahead "
                     "(adaptive with the GP hyperparameters fitted ahead, as hilbo run does) and "
-                    "the seed-003 ones: "
+                    "the Antonova 2016 ones: "
                     "adaptive-day2 (a second day, no prior), adaptive-prior and adaptive-prior-e3 "
                     "(day 2 with day 1's evaluations as a fast prior; E or 3 exploration points), "
                     "adaptive-features (kernel on raw parameters + force-profile features), "
@@ -463,8 +449,8 @@ def add_bench_parser(subparsers: Any) -> Any:
     hil.add_argument("--window", type=_int, default=2, help="BO's window W (2)")
     hil.add_argument("--grid-min", type=float, default=1.0, help="minutes grid of the summary (1)")
     hil.add_argument("--wearer", choices=WEARER_CHOICES, default=WearerKind.REALISTIC.value,
-                     help="simulated wearer: realistic (default; issue 16) or legacy (the earlier "
-                          "one; the seed-003 methods need it)")
+                     help="simulated wearer: realistic (default; breathes like real data) or legacy (the "
+                          "earlier one; the Antonova 2016 methods need it)")
     hil.add_argument("--tuned-k", default="bo", metavar="bo|grid|K",
                      help="K of adaptive-tuned-k: bo = BO-RESAMPLE's recommendation, grid = the best "
                           "of an exhaustive grid, both tuned offline on the full-length trajectories "
@@ -485,7 +471,7 @@ def add_bench_parser(subparsers: Any) -> Any:
     pf = bsub.add_parser("perf",
                          help="compute latency: breath, proposal, whole session; the bridge at real time",
                          description="Latency of one breath, one proposal and a 60-minute simulated session. "
-                                     "With --bridge-minutes M > 0 also the bridge at real time (issue 6): an "
+                                     "With --bridge-minutes M > 0 also the bridge at real time: an "
                                      "M-minute hilbo-sim session at speed 1 (hip_6d, 2 actuators × 1 kHz "
                                      "force feedback; --bridge-protocol quick: 2 exploration points, N = 10, "
                                      "20 s warm-ups, or lab: 6, N = 45, 180 s) reporting "
@@ -503,8 +489,8 @@ def add_bench_parser(subparsers: Any) -> Any:
                     help="also run the bridge at real time for M minutes of wall time (at least 2.7; "
                          "5 gives ~10 profile pushes; default 0 = skip)")
     pf.add_argument("--bridge-speed", type=float, default=1.0,
-                    help="real-time factor of that session (1 = real time, as issue 6 asks; more only "
-                         "for quick checks)")
+                    help="real-time factor of that session (1 = real time, where the latency targets hold; "
+                         "more only for quick checks)")
     pf.add_argument("--bridge-feedback-hz", type=float, default=1000.0,
                     help="its force-feedback rate per actuator (1000 Hz)")
     pf.add_argument("--bridge-baseline-s", type=float, default=30.0, metavar="S",
@@ -523,11 +509,11 @@ def add_bench_parser(subparsers: Any) -> Any:
 
     from bridge.bench.estimator import add_estimator_bench_parser
 
-    add_estimator_bench_parser(bsub)  # hilbo bench estimator (issue 16)
+    add_estimator_bench_parser(bsub)  # hilbo bench estimator
 
     from bridge.bench.pairs import add_pairs_bench_parser
 
-    add_pairs_bench_parser(bsub)  # hilbo bench pairs (issue 17)
+    add_pairs_bench_parser(bsub)  # hilbo bench pairs
     return bsub
 
 

@@ -1,18 +1,20 @@
-"""Helpers shared by the benchmarks: list parsing, machine description, JSON and tables."""
+"""Helpers shared by the benchmarks: list parsing, option checks, machine info, JSON and tables."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
 import platform
 import sys
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from bridge.errors import UsageError
 from hilbo_core.errors import ConfigError
 
 __all__ = [
@@ -21,6 +23,7 @@ __all__ = [
     "machine_info",
     "markdown_table",
     "numbers",
+    "options",
     "round_sig",
     "write_json",
 ]
@@ -121,6 +124,19 @@ def numbers(text: str | Sequence[float] | None, what: str, default: Sequence[flo
     if not out:
         raise ConfigError(f"no {what} given; expected e.g. {list(default)}")
     return out
+
+
+@contextlib.contextmanager
+def options() -> Iterator[None]:
+    """Checks of the command line's values before any work: their ConfigError is a usage error
+    (exit status 2). A missing optional dependency (a ConfigError from an ImportError) is not:
+    the command line is right, the installation is not (exit status 1)."""
+    try:
+        yield
+    except ConfigError as err:
+        if isinstance(err.__cause__, ImportError):
+            raise
+        raise UsageError(str(err)) from err
 
 
 def machine_info() -> dict[str, Any]:

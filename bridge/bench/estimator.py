@@ -1,4 +1,4 @@
-"""``hilbo bench estimator``: accuracy and calibration of the breath-by-breath estimators (issue 16).
+"""``hilbo bench estimator``: accuracy and calibration of the breath-by-breath estimators.
 
 For every transition (a setting change) and every horizon h (30/60/90/120/180 s after it) each
 estimator sees the breaths of the new setting up to h and reports (mean, sd) of the steady-state
@@ -9,13 +9,13 @@ cost c. Against the truth c:
   of |z| ≤ 1.96 (95 % interval coverage);
 
 split by step size: *small* when the first breath of the setting is less than 50 % away from
-the new steady state, *large* otherwise (issue 16's split).
+the new steady state, *large* otherwise (where the UKF was found overconfident on real data).
 
 Estimators:
 
 * ``transition`` — :class:`~hilbo_core.estimation.TransitionEstimator`, the optimizer's default;
   like in the optimizer it starts each setting from the level it ended the previous one at;
-* ``seed_ukf`` — :class:`~hilbo_core.metabolic.MetabolicUKF` (seed 000 §II.C);
+* ``seed_ukf`` — :class:`~hilbo_core.metabolic.MetabolicUKF` (Kim et al. 2019 §II.C);
 * ``first_order_42`` — the lab's fit: least squares of y = c + (y0 − c)·e^{−t/42 s} in (c, y0),
   sd from the residual variance;
 * ``full_ls`` — least squares of the full model y = c + (b0 − c)·e^{−t/τ} in (c, b0, τ)
@@ -25,7 +25,7 @@ Data:
 
 * synthetic (default): :func:`synthetic_people` — a small pure generator of breath trajectories
   (documented there). ``--wearer NAME`` picks a registered wearer (:data:`WEARERS`):
-  ``synthetic`` or ``realistic`` (the simulated wearer of the virtual devices, issue 16 part 3).
+  ``synthetic`` or ``realistic`` (the simulated wearer of the virtual devices).
 * ``--replay FILE --transitions t1,t2,...``: a recorded breath file (hilbo-line, a vendor export
   ``hilbo cart inspect`` recognises, or a CSV with ``--csv-columns TIME,VO2,VCO2``) read with
   the cart driver's parsers and validator;
@@ -73,7 +73,7 @@ __all__ = [
 
 HORIZONS_S: tuple[float, ...] = (30.0, 60.0, 90.0, 120.0, 180.0)
 ESTIMATORS: tuple[str, ...] = ("transition", "seed_ukf", "first_order_42", "full_ls")
-_LARGE_STEP = 0.5  # issue 16: "the first breath more than 50 % away from the new steady state"
+_LARGE_STEP = 0.5  # large: the first breath more than 50 % away from the new steady state
 _Z95 = 1.959963984540054
 _LAB_TAU_S = 42.0  # Selinger & Donelan (2014), the first-order fit labs use
 _FULL_TAU_GRID_S = np.geomspace(5.0, 300.0, 80)
@@ -118,7 +118,7 @@ def synthetic_people(n: int, seed: int, *, bouts: int = 5, bout_s: float | None 
                      step_scale: float = 1.0) -> list[list[Bout]]:
     """Synthetic breath trajectories: ``n`` people, each walking ``bouts`` settings in a row.
 
-    Per person: τ ~ U(30, 60) s and a steady-state breath CV ~ U(8, 12) % (issue 16's facts of
+    Per person: τ ~ U(30, 60) s and a steady-state breath CV ~ U(8, 12) % (facts of
     real data: τ 30–60 s between people, median CV ≈ 11 %), a starting level ~ U(250, 450) W.
     Per setting: the steady state c is the body's level at the setting's start divided by
     (1 + d), d ~ step_scale·U(−0.7, 0.8) (steps up to ±80 % of the distance from the new steady
@@ -126,13 +126,13 @@ def synthetic_people(n: int, seed: int, *, bouts: int = 5, bout_s: float | None 
     m(t) = c + (b0 − c)·e^{−t/τ} from the level b0 the previous setting left it at. Durations
     are 45–120 s (half the settings: early stops) or 200–300 s, or all ``bout_s`` when it is
     given. Breaths every U(2, 3.5) s; y = m·(1 + cv·ε) with ε an AR(1) of correlation
-    e^{−Δt/1.5 s} (≤ 0.14 beyond 3 s: issue 16's "below 0.15 beyond 3 s"), and 3 % outliers
+    e^{−Δt/1.5 s} (≤ 0.14 beyond 3 s: real breaths' is below 0.15 beyond 3 s), and 3 % outliers
     (swallows, coughs, talking) with an extra Student-t(2) error of scale 3·cv.
 
     ``step_scale`` < 1 makes the steps smaller and the pairs of ``hilbo bench pairs`` harder to
     rank. At 0.3 the seed UKF ranks 10.6–13.9 % of truly better candidates above their
-    incumbent after 45 breaths (seeds 1–3, 40 people), near the 10.3 % that issue 17 measured on
-    its real pairs (docs/results.md §5).
+    incumbent after 45 breaths (seeds 1–3, 40 people), near the 10.3 % measured on the real
+    within-person pairs (docs/results.md).
 
     Pure: the same (n, seed, bouts, bout_s, step_scale) give the same data.
 
@@ -179,7 +179,7 @@ def synthetic_people(n: int, seed: int, *, bouts: int = 5, bout_s: float | None 
 
 
 def realistic_people(n: int, seed: int, *, bouts: int = 6, bout_s: float | None = None) -> list[list[Bout]]:
-    """The realistic simulated wearer (bridge.sim.devices, issue 16 part 3) walked through settings.
+    """The realistic simulated wearer (bridge.sim.devices) walked through settings.
 
     Person k is the wearer of seed ``1000·seed + k`` in the ``hip_6d`` space; each bout applies a
     random feasible setting at the breath clock's current time and lasts as the synthetic
@@ -189,7 +189,7 @@ def realistic_people(n: int, seed: int, *, bouts: int = 6, bout_s: float | None 
     bout's end (the wearer adapts, 0–3 % over the hour); the first bout only starts the chained
     estimator.
     Steps between hip settings are small (5–25 % of the cost at most), unlike the walking /
-    running transitions of the real data of issue 16.
+    running transitions of the real recordings.
 
     Pure given (n, seed, bouts, bout_s): the same people every time.
     """
@@ -492,8 +492,7 @@ def run_estimator_bench(people: Sequence[list[Bout]], estimators: Sequence[str] 
 def _cmd_estimator(args: argparse.Namespace) -> int:
     from rich.console import Console
 
-    from bridge.bench.cli import options
-    from bridge.bench.common import choices
+    from bridge.bench.common import choices, options
 
     console = Console(highlight=False, soft_wrap=True)
     with options():  # the command line's values (exit status 2); the replay file's are 1
@@ -546,7 +545,7 @@ def _cmd_estimator(args: argparse.Namespace) -> int:
 def add_estimator_bench_parser(bench_subparsers: Any) -> argparse.ArgumentParser:
     """Add ``estimator`` to the ``hilbo bench`` subcommands; returns its parser."""
     p = bench_subparsers.add_parser(
-        "estimator", help="accuracy and calibration of the breath-by-breath estimators (issue 16)",
+        "estimator", help="accuracy and calibration of the breath-by-breath estimators",
         description="MAPE, bias, z-score mean/SD and 95 %% coverage of the steady-state estimate at "
                     "30/60/90/120/180 s after a setting change, split by step size, for the default "
                     "estimator, the seed UKF, the first-order tau = 42 s fit and a full-model least-"

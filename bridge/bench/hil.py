@@ -3,17 +3,17 @@
 Every session is one subject (a simulated wearer's seed: the realistic wearer of
 :class:`~bridge.sim.devices.RealisticWearerConfig` by default, the legacy
 :class:`~bridge.sim.devices.SimulatedWearer` with ``wearer="legacy"``, :attr:`HilProtocol.wearer`) walking a
-session of ``minutes`` on the wearer's breath clock (default 60, like the seed's protocol,
+session of ``minutes`` on the wearer's breath clock (default 60, like Kim et al. 2019's protocol,
 §IV.A.3): a 3-minute unassisted warm-up, a first bout, a second 3-minute warm-up and a second
 bout until the session ends. The methods:
 
-* ``sound`` — BO with the default sound stopping rule and recommendation (issue 17).
+* ``sound`` — BO with the default sound stopping rule and recommendation.
 * ``adaptive`` / ``fixed`` — Bayesian optimisation with / without the estimator stopping process,
   exactly as ``hilbo sim`` runs it (:func:`bridge.sim.core.run_insim`): bout 1 is the exploration
   (6 points × N = 45 breaths, ≈ 14 min), bout 2 the optimisation until the session ends (≈ 40
   min). The recommendation after every evaluation is :meth:`HILOptimizer.best`.
 * ``cmaes`` — CMA-ES as HIL studies run it (the ``cma`` package): generations of 8 conditions of
-  2 minutes each, every condition's cost the UKF estimate (seed 000 §II.C) from that condition's
+  2 minutes each, every condition's cost the UKF estimate (Kim et al. 2019 §II.C) from that condition's
   breaths; bout 1 is the first generation. CMA-ES searches the unit cube (``bounds=[0, 1]``, cma's
   own boundary transformation); the linear constraints (e.g. ``t_on <= t_p − 15``) are handled
   by *projection with a penalty*: an infeasible sample is walked as its Euclidean projection onto
@@ -30,7 +30,7 @@ bout until the session ends. The methods:
 * ``random`` — uniform random feasible settings (rejection sampling), 2-minute conditions, the
   same UKF estimate; recommendation: the lowest estimate so far. Bout 1 is its first 8 conditions.
 
-The seed-003 methods (:data:`THESIS_METHODS`, not run by default) are BO sessions of
+The Antonova 2016 methods (:data:`THESIS_METHODS`, not run by default) are BO sessions of
 :func:`bridge.bench.thesis_session.run_session` — the same protocol and recommendation as
 ``adaptive``, with one thing changed:
 
@@ -39,11 +39,11 @@ The seed-003 methods (:data:`THESIS_METHODS`, not run by default) are BO session
 * ``adaptive-prior`` — day 2 with the day-1 session's evaluations (the ``adaptive`` session of
   the same subject, run again inside the task) as fast-prior observations
   (:func:`hilbo_core.priors.priors_from_evaluations`, ``previous_session`` inflation:
-  var = 2·σ² + (10 W)²), seed 003 §3.3. ``adaptive-prior-e3``: the same with an exploration bout
+  var = 2·σ² + (10 W)²), Antonova 2016 §3.3. ``adaptive-prior-e3``: the same with an exploration bout
   of 3 points instead of E.
 * ``adaptive-features`` — the GP's kernel over [raw parameters, profile features]
   (:class:`hilbo_core.features.ProfileFeatureMap` via :func:`~hilbo_core.features.with_raw`),
-  seed 003 §3.4.2; ``adaptive-features-only`` over the profile features alone. 15–30× slower
+  Antonova 2016 §3.4.2; ``adaptive-features-only`` over the profile features alone. 15–30× slower
   per session (finite-difference EI refinement).
 * ``adaptive-tuned-k`` — the σ-scaled rule with a constant threshold K (A_i = K) instead of
   Algorithm 2's schedule; K is given (:attr:`HilTask.stopping_k`), e.g. tuned offline by
@@ -108,7 +108,7 @@ DEFAULT_HIL_METHODS: tuple[str, ...] = ("sound", "adaptive", "fixed", "cmaes", "
 PRIOR_METHODS: tuple[str, ...] = ("adaptive-prior", "adaptive-prior-e3")
 THESIS_METHODS: tuple[str, ...] = ("adaptive-day2", *PRIOR_METHODS, "adaptive-features",
                                    "adaptive-features-only", "adaptive-tuned-k")
-"""The seed-003 methods (module docstring)."""
+"""The Antonova 2016 methods (module docstring)."""
 HIL_METHODS: tuple[str, ...] = (*DEFAULT_HIL_METHODS, "adaptive-ahead", *THESIS_METHODS)
 _PRIOR_E3 = 3  # exploration points of adaptive-prior-e3 (docs/results_thesis.md §2)
 _BO_METHODS = ("sound", "adaptive", "fixed")
@@ -230,7 +230,7 @@ class HilTask:
 
 
 def check_methods_for_wearer(methods: Iterable[str], wearer: str) -> None:
-    """Refuse the seed-003 methods on any wearer but the legacy one.
+    """Refuse the Antonova 2016 methods on any wearer but the legacy one.
 
     :func:`bridge.bench.thesis_session.run_session` builds the legacy wearer itself; scoring its sessions
     on another wearer's landscape would be meaningless.
@@ -532,7 +532,7 @@ def tune_constant_k(trajectories: Sequence[Sequence[Sequence[float]]], protocol:
                     seed: int = 0) -> dict[str, Any]:
     """Tune the constant K of the σ-scaled rule offline (:func:`bridge.bench.tune_stopping.tune_stopping`).
 
-    BO-RESAMPLE (seed 003 §4.2) over K on the trajectories' replays, as ``hilbo tune-stopping``
+    BO-RESAMPLE (Antonova 2016 §4.2) over K on the trajectories' replays, as ``hilbo tune-stopping``
     does on logs; the cost of a rule is the breaths it uses plus ``error_weight`` evaluations for
     every wrong early stop (docs/results_thesis.md §4).
 
@@ -596,7 +596,7 @@ def run_hil_task(task: HilTask) -> dict[str, Any]:
         ``final_regret_pct`` (% of the optimum's reduction from unassisted walking);
         ``n_evaluations``, ``n_evaluations_bout2``, ``early_stops``; ``assisted_s`` (time on
         conditions), ``bout2_s``; ``evaluations_per_hour`` (conditions per hour of assisted
-        walking, warm-ups excluded); ``wall_s``. The seed-003 methods add ``n_explore``,
+        walking, warm-ups excluded); ``wall_s``. The Antonova 2016 methods add ``n_explore``,
         ``n_priors``, ``stopping_k``, and for the prior methods ``day1_wall_s`` (included in
         ``wall_s``), ``day1_final_regret_w`` and ``day1_n_evaluations``.
     """

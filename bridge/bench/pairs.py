@@ -1,12 +1,12 @@
-"""``hilbo bench pairs``: the stopping rules on within-person pairs of transitions (issue 17).
+"""``hilbo bench pairs``: the stopping rules on within-person pairs of transitions.
 
-Issue 17 asks for stop statistics on *real* breath data, measured on within-person pairs of
+The project's targets are stop statistics on *real* breath data, measured on within-person pairs of
 transitions: ≤ 10 % of truly better candidates rejected, ≥ 25 % fewer breaths than N = 45 per
 evaluation, ≤ 5 % of evaluations ending within the first 30 s. This command measures them on a
 lab's own recordings (``--replay FILE --transitions ...``, one person per file, the option pair
 repeated per person) or on simulated people (``--wearer realistic``: the realistic wearer's hip
-settings, whose costs differ by 5–25 %; ``--wearer synthetic``: issue 16's synthetic transitions,
-steps up to ±80 %, closer to the walking/running transitions of real recordings).
+settings, whose costs differ by 5–25 %; ``--wearer synthetic``: the synthetic transitions of
+``hilbo bench estimator``, steps up to ±80 %, closer to the walking/running transitions of real recordings).
 
 For every person the chained :class:`~hilbo_core.estimation.TransitionEstimator` (the
 optimizer's default; each setting starts from where the previous one left the body, as in a
@@ -21,16 +21,17 @@ built from up to 6 *other* bouts of the same person, standing in for a session's
 
 * ``sound`` — :class:`~hilbo_core.stopping.SoundRule` with the optimizer's defaults
   (``min_decision_s``, ``a_floor``; ``--min-decision-s`` and ``--a-floor`` change them);
-* ``adaptive`` — the seed's rule (seed 000 Algorithm 1/2: the same schedule, no floors);
+* ``adaptive`` — Kim et al. 2019's rule (their Algorithm 1/2: the same schedule, no floors);
 * ``fixed`` — N breaths every time. Its row also gives the share of truly better candidates
   whose N-breath estimate is above the incumbent's: the measurement's own error, which no rule
   that decides on these estimates can beat.
 
 How hard the pairs are to rank (``measurement_error`` in ``pairs.json``, and a line of the
 output): the share of truly better candidates still ranked above their incumbent after N
-breaths, by the transition estimator and by a fresh seed UKF per setting. Issue 17's real pairs
-had 10.3 % with the seed UKF, so this places a lab's recordings, or simulated people
-(``--wearer synthetic --step-scale S`` scales the synthetic steps), beside them.
+breaths, by the transition estimator and by a fresh seed UKF (Kim et al. 2019's filter) per
+setting. The real within-person pairs had 10.3 % with the seed UKF, so this places a lab's
+recordings, or simulated people (``--wearer synthetic --step-scale S`` scales the synthetic
+steps), beside them.
 
 What a replay leaves out (as :mod:`bridge.bench.tune_sound` says): in a session the candidate's
 estimate is fused with the GP's predictive at x_t and the incumbent is the GP posterior at x\\*;
@@ -51,8 +52,8 @@ import numpy as np
 
 from bridge.bench.common import machine_info, markdown_table, round_sig, write_json
 from bridge.bench.estimator import WEARERS, Bout, chained_estimators, parse_transitions, replay_people
+from bridge.bench.traces import BreathTrace, exploration_groups, threshold_schedules
 from bridge.bench.tune_sound import SoundReplay
-from bridge.bench.tune_stopping import BreathTrace, _exploration_groups, _schedules
 from hilbo_core.errors import ConfigError, EstimatorError, MeasurementError
 from hilbo_core.metabolic import MetabolicUKF
 from hilbo_core.optimizer import OptimizerConfig
@@ -61,12 +62,12 @@ __all__ = ["GRID_A_FLOOR", "GRID_MIN_DECISION_S", "ISSUE17_REAL_SEED_UKF_PCT", "
            "add_pairs_bench_parser", "measurement_error", "pair_stats", "person_traces", "run_pairs_bench",
            "sound_grid"]
 
-# Issue 17's targets for the stop statistics on within-person pairs.
+# The project's targets for the stop statistics on within-person pairs (docs/benchmarks.md).
 TARGET_REJECTED_BETTER = 0.10
 TARGET_BREATH_FRACTION = 0.75
 TARGET_ENDED_30S = 0.05
-# Issue 17: on its real pairs "the same UKF after 45 breaths" rejected 10.3 % of truly better
-# candidates: the real data's measurement error, to place simulated pairs beside it.
+# On the real within-person pairs, Kim et al. 2019's UKF after 45 breaths put 10.3 % of truly better
+# candidates above their incumbent: the real data's measurement error, to place simulated pairs by.
 ISSUE17_REAL_SEED_UKF_PCT = 10.3
 _DEFAULTS = OptimizerConfig()
 # The sound rule's constants the trade-off grid covers (pairs.png, "grid" in pairs.json).
@@ -123,7 +124,7 @@ class PersonTraces:
         truth_w: Per trace, the bout's truth (W).
         short: Scored bouts left out for having fewer than N breaths.
         seed_ukf_w: Per trace, the seed UKF's estimate after the bout's first N breaths (W; a
-            fresh filter per bout, as seed 000 §II.C runs it), for :func:`measurement_error`.
+            fresh filter per bout, as Kim et al. 2019 §II.C runs it), for :func:`measurement_error`.
     """
 
     traces: list[BreathTrace]
@@ -184,8 +185,8 @@ def measurement_error(people: Sequence[PersonTraces]) -> dict[str, Any]:
     a person's full-length bouts) whose N-breath estimate is above the incumbent's, for the
     chained transition estimator and for the seed UKF.
 
-    The second is the figure issue 17 gives for its real pairs (10.3 %, "the same UKF after 45
-    breaths"), so it places simulated pairs on the real data's scale of difficulty. It is None
+    The second was 10.3 % on the real within-person pairs (Kim et al. 2019's UKF after 45
+    breaths), so it places simulated pairs on the real data's scale of difficulty. It is None
     when some person's traces carry no seed-UKF estimates (``seed_ukf_w`` empty).
     """
     paired = [p for p in people if len(p.traces) >= 2]
@@ -219,8 +220,8 @@ def _replays(people: Sequence[PersonTraces], config: PairsConfig) -> list[SoundR
     for p in people:
         if len(p.traces) < 2:
             continue
-        groups = _exploration_groups(len(p.traces), config.n_explore, config.seed)
-        schedules = _schedules(p.traces, min(config.window, config.n_max - 1), groups)
+        groups = exploration_groups(len(p.traces), config.n_explore, config.seed)
+        schedules = threshold_schedules(p.traces, min(config.window, config.n_max - 1), groups)
         out.append(SoundReplay(p.traces, p.times, schedules, p.truth_w))
     if not out:
         raise ConfigError(f"no within-person pairs: every person needs at least 2 scored bouts of "
@@ -247,7 +248,7 @@ def _pooled(replays: Sequence[SoundReplay], n_max: int, min_decision_s: float, a
 
 
 def _targets(st: dict[str, Any]) -> dict[str, bool]:
-    """Issue 17's three pair targets, met or not, for pooled statistics."""
+    """The three pair targets, met or not, for pooled statistics."""
     return {"rejected_better_at_most_10pct": st["pct_rejected_better"] is not None
             and st["pct_rejected_better"] <= 100.0 * TARGET_REJECTED_BETTER,
             "breaths_at_least_25pct_fewer": st["breath_fraction"] <= TARGET_BREATH_FRACTION,
@@ -258,7 +259,7 @@ def pair_stats(people: Sequence[PersonTraces], config: PairsConfig) -> dict[str,
     """Pooled stop statistics of ``sound``, ``adaptive`` and ``fixed`` over every person's pairs.
 
     ``fixed`` runs N breaths against every incumbent (no stop); its ``pct_better_above_at_n`` is
-    the measurement's own error. Only ``sound`` carries issue 17's ``targets``.
+    the measurement's own error. Only ``sound`` carries the ``targets``.
 
     Raises:
         ConfigError: No person has two full-length scored bouts.
@@ -275,7 +276,7 @@ def sound_grid(people: Sequence[PersonTraces], config: PairsConfig) -> list[dict
     """The sound rule's statistics over :data:`GRID_MIN_DECISION_S` × :data:`GRID_A_FLOOR`.
 
     The trade-off the constants make on these data (breaths against wrong rejections), with the
-    configuration's accept stop; each entry says whether it meets issue 17's three targets.
+    configuration's accept stop; each entry says whether it meets the three targets.
     """
     replays = _replays(people, config)
     out = []
@@ -339,7 +340,7 @@ def _accept_z(text: str) -> float | None:
 def _cmd_pairs(args: argparse.Namespace) -> int:
     from rich.console import Console
 
-    from bridge.bench.cli import options
+    from bridge.bench.common import options
 
     console = Console(highlight=False, soft_wrap=True)
     replays = args.replay or []
@@ -421,10 +422,10 @@ def _cmd_pairs(args: argparse.Namespace) -> int:
     if err["n_better"] and err["pct_above_seed_ukf"] is not None:
         console.print(f"how hard these pairs are to rank: after {cfg.n_max} breaths the seed UKF puts "
                       f"{err['pct_above_seed_ukf']:.1f} % of truly better candidates above their incumbent "
-                      f"(issue 17's real pairs: {ISSUE17_REAL_SEED_UKF_PCT:g} %), the transition estimator "
+                      f"(the real pairs: {ISSUE17_REAL_SEED_UKF_PCT:g} %), the transition estimator "
                       f"{err['pct_above_transition']:.1f} %")
     met = doc["rules"]["sound"]["targets"]
-    console.print("issue 17 targets (sound): " + ", ".join(
+    console.print("targets (sound): " + ", ".join(
         f"{k} {'met' if v else 'NOT met'}" for k, v in met.items()))
     console.print(str(out / "pairs.json"))
     return 0
@@ -433,12 +434,12 @@ def _cmd_pairs(args: argparse.Namespace) -> int:
 def add_pairs_bench_parser(bench_subparsers: Any) -> argparse.ArgumentParser:
     """Add ``pairs`` to the ``hilbo bench`` subcommands; returns its parser."""
     p = bench_subparsers.add_parser(
-        "pairs", help="stop statistics on within-person pairs of transitions (issue 17)",
-        description="Replay the sound rule, the seed's adaptive rule and fixed N breaths on every "
+        "pairs", help="stop statistics on within-person pairs of transitions",
+        description="Replay the sound rule, Kim et al. 2019's adaptive rule and fixed N breaths on every "
                     "within-person pair of full-length bouts (candidate against incumbent) of recorded "
                     "breath files (--replay FILE --transitions ..., repeated per person) or of "
                     "simulated people (--wearer); reports breaths per evaluation, evaluations ended "
-                    "within 30 s and truly better candidates rejected, against issue 17's targets.")
+                    "within 30 s and truly better candidates rejected, against the project's targets.")
     p.add_argument("--replay", action="append", default=None, metavar="FILE",
                    help="a recorded breath file of one person (hilbo-line or a vendor export, detected "
                         "as `hilbo cart inspect` does); repeat per person")

@@ -1,7 +1,7 @@
 """``hilbo bench perf``: compute latency of the pieces that run while a person walks.
 
 * **Breath latency** — one :meth:`HILOptimizer.observe_breath` in the optimisation phase: the UKF
-  update (seed 000 §II.C) and the σ-scaled stopping decision (§II.D), with the optimizer's
+  update (Kim et al. 2019 §II.C) and the σ-scaled stopping decision (§II.D), with the optimizer's
   bookkeeping. Breaths come from a simulated wearer; the proposals between evaluations are not
   timed here. Median and p99 over all timed breaths.
 * **Proposal latency** — one :meth:`HILOptimizer.ask` in the optimisation phase of ``hip_6d``
@@ -16,7 +16,7 @@
   on all n and maximises EI. This is what stands between a stop decision and the next push.
 * **Session wall time** — :func:`bridge.sim.core.run_insim` of a 60-minute ``hip_6d`` session
   (adaptive stopping) at ``speed=max``, for a few subject seeds.
-* **The bridge at real time** (opt-in, ``bridge_minutes`` > 0; issue 6) — a
+* **The bridge at real time** (opt-in, ``bridge_minutes`` > 0) — a
   :func:`bridge.sim.virtual.run_virtual_sim` session at speed 1 with 2 × 1 kHz force feedback: stop →
   ack latency, dropped and logged feedback frames, CPU (:mod:`bridge.bench.bridge_perf`).
 

@@ -36,7 +36,7 @@ def _arr(values: Sequence[Any]) -> np.ndarray:
 
 
 def plot_stopping_function(settings: Sequence[Mapping[str, Any]], function: str, path: Path) -> Path:
-    """One function's panel row in the layout of seed 000 Fig. 2.
+    """One function's panel row in the layout of Kim et al. 2019 Fig. 2.
 
     One panel per noise level (left to right as given), y_t against the optimisation-phase
     measurement count for every method, mean line with a ±1 SE band.

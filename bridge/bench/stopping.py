@@ -1,22 +1,23 @@
-"""``hilbo bench stopping``: seed 000 §III.2's simulation study, campaign and summary.
+"""``hilbo bench stopping``: Kim et al. 2019 §III.2's simulation study, campaign and summary.
 
 One *trial* is :func:`hilbo_core.studies.benchmarks.stopping_trial` for one (function, noise, method,
 seed). A campaign runs ``trials`` seeds for every function × noise level × method; the methods
 of one trial share the seed, hence the exploration design, the exploration measurements and x_0,
-so methods are compared pairwise on the same trials (as the seed compares them).
+so methods are compared pairwise on the same trials (as Kim et al. 2019 compare them).
 
 Every finished trial is appended to ``OUT/trials.jsonl`` as it completes, so an interrupted
 campaign continues with ``--resume`` and a campaign can be grown by re-running with more
 trials. The summary (``results.json``), the Markdown table and one PNG per function (the layout
-of the seed's Fig. 2) are written from all trials of the campaign at the end.
+of Kim et al. 2019's Fig. 2) are written from all trials of the campaign at the end.
 
 ``refit_growth`` (``--refit-growth``) is :class:`~hilbo_core.optimizer.OptimizerConfig`'s option
 of the same name, applied identically to every method of the campaign; it is part of a trial's
 identity (a trial of one growth factor is never resumed or merged into a campaign of another), and
 trials recorded before the option existed count as 1.0 (they refitted at every proposal).
 
-Reference methods (:data:`PEER_METHODS`, issue 17 part 5): Optuna's TPE sampler with the Wilcoxon
-(``tpe-wilcoxon``) or the successive-halving pruner (``tpe-halving``), in the same harness: the
+Reference methods (:data:`PEER_METHODS`, the strongest off-the-shelf peers): Optuna's TPE
+sampler with the Wilcoxon (``tpe-wilcoxon``) or the successive-halving pruner (``tpe-halving``),
+in the same harness: the
 same exploration (design points, measurements and hence x_0 as the BO methods of the trial; they
 enter the study as completed trials), then every Optuna trial is a setting measured breath by
 breath with the harness's Gaussian-product measurements, each measurement reported as an
@@ -100,7 +101,7 @@ PEER_METHODS: Mapping[str, PeerMethod] = {
         "tpe-halving", "Optuna TPE, successive-halving pruner (rungs 1, 4, 16 measurements) on the "
         "running estimate", "halving"),
 }
-"""Optuna TPE + pruner peers, by name (issue 17 part 5); they need the ``peers`` extra."""
+"""Optuna TPE + pruner peers, by name; they need the ``peers`` extra."""
 
 _PEERS_HINT = "pip install hilbo[peers]"
 # Wilcoxon pruner: Optuna's default p threshold; the test compares the new setting's single
@@ -149,8 +150,8 @@ def peer_trial(function: str, noise: float, method: str, seed: int,
     rng = np.random.default_rng([int(seed), _NOISE_STREAM])
 
     # Exploration exactly as stopping_trial runs it (same optimizer seed, design, noise stream):
-    # the same points, the same measurements, the same x_0. The study's BO methods are the
-    # seed's rules, whose design is maximin (OptimizerConfig.design).
+    # the same points, the same measurements, the same x_0. The study's BO methods are Kim et
+    # al. 2019's rules, whose design is maximin (OptimizerConfig.design).
     explorer = HILOptimizer(fn.space(), estimator_factory=estimator, n_explore=proto.n_explore,
                             max_breaths=proto.max_breaths, window=proto.window,
                             budget_breaths=proto.budget, seed=int(seed),
@@ -283,7 +284,7 @@ class StoppingCampaign:
 
     Attributes:
         functions: Names in :data:`hilbo_core.studies.benchmarks.FUNCTIONS`.
-        noises: σ_z²/σ̃² factors (the seed's: 0.1, 1, 10).
+        noises: σ_z²/σ̃² factors (Kim et al. 2019's: 0.1, 1, 10).
         methods: Names in :data:`hilbo_core.studies.benchmarks.METHODS` or :data:`PEER_METHODS`.
         trials: Trials per function × noise (>= 1); trial k uses seed ``seed + k``.
         seed: Seed of the first trial (>= 0).
@@ -347,7 +348,7 @@ def load_trials(path: Path, protocol: StoppingProtocol, refit_growth: float = 1.
 
     Lines of other protocols or growth factors are skipped (a line without ``refit_growth`` was
     written before the option existed and refitted at every proposal: 1.0; one without the
-    protocol's ``noise_estimate`` used the seed's estimator); a truncated last line
+    protocol's ``noise_estimate`` used Kim et al. 2019's estimator); a truncated last line
     (a killed run) is ignored.
     """
     out: dict[tuple[str, float, str, int], dict[str, Any]] = {}
@@ -362,7 +363,7 @@ def load_trials(path: Path, protocol: StoppingProtocol, refit_growth: float = 1.
         except json.JSONDecodeError:
             logger.warning("%s:%d: unreadable line skipped (interrupted write?)", path, n)
             continue
-        # A line without noise_estimate was written before the option existed: the seed's.
+        # A line without noise_estimate was written before the option existed: Kim et al. 2019's.
         proto = {"noise_estimate": "seed", **rec.get("protocol", {})}
         if proto != want or float(rec.get("refit_growth", 1.0)) != refit_growth:
             continue

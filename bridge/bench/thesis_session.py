@@ -1,4 +1,4 @@
-"""One simulated HIL session with the seed-003 options: fast prior, feature kernel, constant-K stopping.
+"""One simulated HIL session with the Antonova 2016 options: fast prior, feature kernel, constant-K stopping.
 
 Shared by the study script (:mod:`bridge.bench.thesis_study`, docs/results_thesis.md §2–4) and the
 ``adaptive-*`` methods of ``hilbo bench hil`` (:mod:`bridge.bench.hil`). The protocol is that of
@@ -165,7 +165,7 @@ def run_session(seed: int, arm: Arm, *, minutes: float = 60.0, preset: str = "hi
     opt = StudyOptimizer(space, n_explore=arm.n_explore, max_breaths=max_breaths, window=arm.window,
                          seed=opt_seed, prior_observations=list(priors), feature_map=fm,
                          stopping_k=arm.stopping_k,
-                         stopping="adaptive")  # the seed-003 studies are of the seed's rule
+                         stopping="adaptive")  # the Antonova 2016 studies are of Kim et al. 2019's rule
     _, opt_cost = wearer.true_optimum
     # The protocol of run_insim: the minutes are the whole session, no pause between the bouts.
     plan = SimConfig(minutes=minutes, n_explore=arm.n_explore, max_breaths=max_breaths, warmup_s=warmup_s)

@@ -1,4 +1,4 @@
-"""Simulated-wearer study of the seed-003 methods in whole HIL sessions (docs/results_thesis.md).
+"""Simulated-wearer study of the Antonova 2016 methods in whole HIL sessions (docs/results_thesis.md).
 
 Three questions, each answered with paired sessions on the same simulated wearers
 (:class:`bridge.sim.devices.SimulatedWearer`) under the protocol of :func:`bridge.sim.core.run_insim`
@@ -6,13 +6,13 @@ Three questions, each answered with paired sessions on the same simulated wearer
 ends), measuring the true regret of the recommendation (:meth:`HILOptimizer.best`) at fixed
 minutes of walking:
 
-1. **Fast prior** (seed 003 §3.3): a second session of the same wearer, on another "day" (a fresh
+1. **Fast prior** (Antonova 2016 §3.3): a second session of the same wearer, on another "day" (a fresh
    breath-noise stream, another optimizer seed), with or without the first session's evaluations
    as prior observations (:func:`hilbo_core.priors.priors_from_evaluations`, default inflation),
    and with the exploration bout cut to 3 points when the prior is there.
 2. **Feature kernels** (§3.4.2): the GP on raw parameters (baseline), on profile features only
    (:class:`hilbo_core.features.ProfileFeatureMap`), and on both (:func:`hilbo_core.features.with_raw`).
-3. **Tuned stopping** (issue 8, item 5): a constant-K σ-scaled rule with K tuned offline by
+3. **Tuned stopping** (Antonova 2016 §4.2): a constant-K σ-scaled rule with K tuned offline by
    ``tune_stopping`` on *other* wearers' full-length trajectories vs Algorithm 2's schedule.
 
 The sessions themselves (the optimizer scaffolding for feature maps and constant-K stopping,

@@ -1,14 +1,14 @@
-"""Tune the sound stopping rule's constants offline with BO-RESAMPLE (issue 17 part 1).
+"""Tune the sound stopping rule's constants offline with BO-RESAMPLE.
 
 :class:`~hilbo_core.stopping.SoundRule` has two constants: ``min_decision_s`` (no decision
 before this many seconds in a setting) and ``a_floor`` (the floor of Algorithm 2's thresholds, in
-σ). Issue 17's targets are constraints, not a trade-off weight: use as few breaths as possible
+σ). The project's targets for the rule are constraints, not a trade-off weight: use as few breaths as possible
 while rejecting ≤ 10 % of truly better candidates and ending ≤ 5 % of evaluations within 30 s.
 The tuner therefore minimises a *penalised* cost (:func:`sound_cost`)::
 
     breaths / N  +  penalty · (max(0, rejected_better − 0.10) + max(0, ended_30s − 0.05))
 
-on off-policy replays of full-length breath trajectories (seed 003 §4.2, as
+on off-policy replays of full-length breath trajectories (Antonova 2016 §4.2, as
 :mod:`bridge.bench.tune_stopping` does for K and W): trajectory j's running estimate is compared
 with every other trajectory k's final estimate as the incumbent. "Truly better" is j's true cost
 below k's when the trajectories come from a simulated wearer (``truth``), else j's final estimate
@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from bridge.bench.tune_stopping import BreathTrace, _exploration_groups, _schedules, breath_traces
+from bridge.bench.traces import BreathTrace, breath_traces, exploration_groups, threshold_schedules
 from hilbo_core.errors import ConfigError
 from hilbo_core.estimation import TransitionEstimator
 from hilbo_core.metabolic import Estimator, brockway_watts
@@ -100,7 +100,7 @@ class SoundReplay:
     """The sound rule replayed on every ordered pair of full-length traces.
 
     Args:
-        traces: Full-length running estimates (:func:`bridge.bench.tune_stopping.breath_traces`).
+        traces: Full-length running estimates (:func:`bridge.bench.traces.breath_traces`).
         times: Per trace, the breath times since the setting began (s), shape (N,).
         schedules: Algorithm 2's schedule per trace, shape (n, N).
         truth: True cost per trace (W), or None to judge "better" by the final estimates.
@@ -152,7 +152,7 @@ class SoundReplay:
               accept_z: float | None = None) -> dict[str, float]:
         """Pooled replay statistics over the pairs (j, k ≠ j) for j in ``js`` (default all).
 
-        ``a_floor`` may be ``-inf`` (Algorithm 2's schedule unfloored: the seed's rule, with
+        ``a_floor`` may be ``-inf`` (Algorithm 2's schedule unfloored: Kim et al. 2019's rule, with
         ``min_decision_s`` 0). Rates, and the counts behind them (``n_pairs``,
         ``breaths_total``, ``n_early`` (every stop before N, rejections and accept stops),
         ``n_ended_30s``, ``n_better``, ``n_rejected_better``, ``n_better_above_at_n``: truly
@@ -219,8 +219,8 @@ def tune_sound(trajectories: Sequence[Any], config: TuneSoundConfig | None = Non
         raise ConfigError(f"need >= 3 trajectories of >= {N} breaths{with_truth}, "
                           f"got {len(traces)} ({skipped} shorter)")
     times = [np.asarray(t, dtype=float)[:N, 0] for t in trajectories if len(t) >= N]
-    groups = _exploration_groups(len(traces), cfg.n_explore, cfg.seed)
-    replay = SoundReplay(traces, times, _schedules(traces, min(cfg.window, N - 1), groups), truth)
+    groups = exploration_groups(len(traces), cfg.n_explore, cfg.seed)
+    replay = SoundReplay(traces, times, threshold_schedules(traces, min(cfg.window, N - 1), groups), truth)
     space = ParameterSpace([Parameter("min_decision_s", *cfg.min_decision_bounds, "s", "no decision before"),
                             Parameter("a_floor", *cfg.a_floor_bounds, "σ", "threshold floor")],
                            name="sound_rule")

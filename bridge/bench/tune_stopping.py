@@ -1,17 +1,17 @@
 """``hilbo tune-stopping LOG.mcap…``: tune the estimator stopping rule offline with BO-RESAMPLE.
 
-The σ-scaled offset rule of seed 000 §II.D is itself an optimal-stopping policy: after breath i
+The σ-scaled offset rule of Kim et al. 2019 §II.D is itself an optimal-stopping policy: after breath i
 of a setting it stops when ``μ_i − μ* > A_i·σ_i`` (σ_i² = var_i + σ*²). Its hyperparameter is
 either a constant K (``A_i = K``; family ``k``) or Algorithm 2's window W (``A`` = the threshold
 schedule of the given traces with window W; family ``window``). Every full-length breath
 trajectory — an exploration bout, or an optimisation-phase evaluation that ran all N breaths —
-can replay *any* rule that stops at or before N (seed 003 §4.2), so BO-RESAMPLE
+can replay *any* rule that stops at or before N (Antonova 2016 §4.2), so BO-RESAMPLE
 (:func:`hilbo_core.resample.bo_resample`) can search the hyperparameter with few "real"
 episodes and many off-policy resamples.
 
 An **episode** is one full-length trajectory j (drawn in random order, as a new evaluation's
 breaths would arrive) compared, as the optimizer compares a new setting with its best one, with
-every other trajectory k as the incumbent: the rule watches j's running UKF estimate (seed 000
+every other trajectory k as the incumbent: the rule watches j's running UKF estimate (Kim et al. 2019
 §II.C) against k's final estimate (μ*, σ*²) and stops after s_k breaths. Its cost, in units of
 one full evaluation's walking time, is the mean over k of
 
@@ -54,11 +54,11 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from hilbo_core.errors import ConfigError, MeasurementError
+from bridge.bench.traces import BreathTrace, breath_traces, exploration_groups, threshold_schedules
+from hilbo_core.errors import ConfigError
 from hilbo_core.metabolic import Estimator, MetabolicUKF
 from hilbo_core.resample import ResampleConfig, Trajectory, bo_resample
 from hilbo_core.space import Parameter, ParameterSpace
-from hilbo_core.stopping import threshold_schedule
 
 if TYPE_CHECKING:
     from bridge.log.records import Evaluation
@@ -139,74 +139,6 @@ class TuneStoppingConfig:
             raise ConfigError(f"error_weight={self.error_weight!r}; expected a number >= 0")
 
 
-@dataclass(frozen=True)
-class BreathTrace:
-    """The running estimate of one full-length evaluation.
-
-    Attributes:
-        means: Estimated steady-state cost after each breath (W), shape (N,).
-        vars: Its variance (W²), shape (N,).
-        source: Where the breaths came from.
-    """
-
-    means: np.ndarray
-    vars: np.ndarray
-    source: str = ""
-
-    @property
-    def final_mean(self) -> float:
-        """μ_N."""
-        return float(self.means[-1])
-
-    @property
-    def final_var(self) -> float:
-        """σ_N²."""
-        return float(self.vars[-1])
-
-
-def breath_traces(trajectories: Sequence[Any], n_max: int,
-                  estimator_factory: Callable[[], Estimator] = MetabolicUKF,
-                  sources: Sequence[str] | None = None) -> tuple[list[BreathTrace], int]:
-    """Run the estimator over breath trajectories.
-
-    Args:
-        trajectories: Each an array-like of shape (n, 2): per breath ``(t_s, watts)`` with
-            ``t_s`` the time since the setting began.
-        n_max: N; trajectories with fewer breaths are skipped, longer ones use their first N.
-        estimator_factory: A fresh estimator per trajectory (default the UKF of seed 000 §II.C).
-        sources: Labels of the trajectories (for errors and the result).
-
-    Returns:
-        (traces, number of trajectories skipped as too short).
-
-    Raises:
-        MeasurementError: A trajectory with non-finite values or times that do not increase
-            (naming its index).
-    """
-    traces: list[BreathTrace] = []
-    skipped = 0
-    for i, traj in enumerate(trajectories):
-        label = sources[i] if sources is not None else f"trajectory {i}"
-        a = np.asarray(traj, dtype=float)
-        if a.ndim != 2 or a.shape[1] != 2:
-            raise MeasurementError(f"{label}: expected shape (n, 2) of (t_s, watts), got {a.shape}")
-        if a.shape[0] < n_max:
-            skipped += 1
-            continue
-        a = a[:n_max]
-        if not np.all(np.isfinite(a)):
-            raise MeasurementError(f"{label}: contains non-finite breaths")
-        est = estimator_factory()
-        means, variances = np.empty(n_max), np.empty(n_max)
-        try:
-            for b, (t, w) in enumerate(a):
-                means[b], variances[b] = est.update(float(t), float(w))
-        except MeasurementError as err:
-            raise MeasurementError(f"{label}, breath {b}: {err}") from err
-        traces.append(BreathTrace(means, variances, label))
-    return traces, skipped
-
-
 def _stop_step(trace: BreathTrace, thresholds: np.ndarray, mu_star: float, var_star: float) -> int:
     """Breaths used by the σ-scaled rule on a trace against an incumbent (N if never early)."""
     sigma = np.sqrt(trace.vars + var_star)
@@ -247,20 +179,6 @@ def evaluate_schedule(traces: Sequence[BreathTrace], thresholds: np.ndarray,
             "early_stop_rate": float(np.mean(early)), "wrong_stop_rate": wr}
 
 
-def _exploration_groups(n: int, size: int, seed: int) -> np.ndarray:
-    """For each trace j, ``size`` other traces standing in for its session's exploration bout."""
-    rng = np.random.default_rng([seed, 0x57])
-    size = min(size, n - 1)
-    return np.array([rng.choice(np.delete(np.arange(n), j), size, replace=False) for j in range(n)])
-
-
-def _schedules(traces: Sequence[BreathTrace], window: int, groups: np.ndarray) -> np.ndarray:
-    """Algorithm 2's schedule for each trace j from its group's traces: (n, N)."""
-    M = np.array([t.means for t in traces])
-    S = np.array([t.vars for t in traces])
-    return np.array([threshold_schedule(M[g], S[g], window) for g in groups])
-
-
 def _thresholds_fn(cfg: TuneStoppingConfig, traces: Sequence[BreathTrace], groups: np.ndarray
                    ) -> tuple[ParameterSpace, Callable[[Mapping[str, float]], np.ndarray]]:
     """The search space and params → per-trace threshold schedules (n, N)."""
@@ -271,7 +189,7 @@ def _thresholds_fn(cfg: TuneStoppingConfig, traces: Sequence[BreathTrace], group
                                name="stopping_k")
         return space, lambda p: np.full((n, N), float(p["k"]))
     w_max = min(cfg.max_window, N - 1)
-    schedules = [_schedules(traces, w, groups) for w in range(w_max + 1)]
+    schedules = [threshold_schedules(traces, w, groups) for w in range(w_max + 1)]
     space = ParameterSpace([Parameter("window", -0.5, w_max + 0.5, "breaths", "Algorithm 2 window W")],
                            name="stopping_window")
     return space, lambda p: schedules[int(np.clip(round(p["window"]), 0, w_max))]
@@ -303,7 +221,7 @@ def tune_stopping(trajectories: Sequence[Any], config: TuneStoppingConfig | None
             f"need at least 3 trajectories of >= {cfg.n_max} breaths, got {len(traces)} "
             f"({skipped} shorter ones skipped)"
         )
-    groups = _exploration_groups(len(traces), cfg.n_explore, cfg.seed)
+    groups = exploration_groups(len(traces), cfg.n_explore, cfg.seed)
     space, thresholds = _thresholds_fn(cfg, traces, groups)
     N = cfg.n_max
     lam = cfg.error_weight
@@ -347,7 +265,7 @@ def tune_stopping(trajectories: Sequence[Any], config: TuneStoppingConfig | None
         grid_values = list(range(min(cfg.max_window, N - 1) + 1))
         key = "window"
     grid = [{key: v, **evaluate_schedule(traces, thresholds({key: v}), lam)} for v in grid_values]
-    alg2 = _schedules(traces, min(cfg.reference_window, N - 1), groups)
+    alg2 = threshold_schedules(traces, min(cfg.reference_window, N - 1), groups)
     if key == "window":
         recommended: dict[str, float] = {key: int(np.clip(round(best[key]), 0, min(cfg.max_window, N - 1)))}
     else:
@@ -457,7 +375,7 @@ def _cmd_tune_stopping(args: argparse.Namespace) -> int:
     return 0
 
 
-# The sound rule (issue 17) is tuned by bridge.bench.tune_sound: its two constants, not K or W.
+# The sound rule (hilbo's default) is tuned by bridge.bench.tune_sound: its two constants, not K or W.
 SOUND_FAMILY = "sound"
 
 
@@ -504,7 +422,7 @@ def add_tune_stopping_parser(subparsers: Any) -> argparse.ArgumentParser:
         description="Replay the full-length breath trajectories of session logs and tune the "
                     "σ-scaled stopping rule (constant K, or Algorithm 2's window W; compared with "
                     "Algorithm 2's schedule) or the sound rule's time and threshold floors (--family "
-                    "sound; with an exhaustive grid beside it) with BO-RESAMPLE (seed 003 §4.2).")
+                    "sound; with an exhaustive grid beside it) with BO-RESAMPLE (Antonova 2016 §4.2).")
     p.add_argument("logs", nargs="+", metavar="LOG.mcap", help="session logs")
     p.add_argument("--family", choices=[*(f.value for f in StoppingFamily), SOUND_FAMILY], default="k",
                    help="tune a constant K (default), the window W, or the sound rule's "
@@ -513,7 +431,7 @@ def add_tune_stopping_parser(subparsers: Any) -> argparse.ArgumentParser:
                    help="N, breaths of a full evaluation (default: from the logs, else 45)")
     p.add_argument("--error-weight", type=float, default=2.0,
                    help="λ: cost of a wrong early stop in evaluations' time (default 2; not for "
-                        "sound, whose cost is issue 17's targets)")
+                        "sound, whose cost is the project's targets for the rule)")
     p.add_argument("--window", type=int, default=2, help="W of the Algorithm 2 reference (default 2)")
     p.add_argument("--real", type=int, default=60, help="real episodes (default 60)")
     p.add_argument("--resamples", type=int, default=3, help="resamples per real episode (default 3)")

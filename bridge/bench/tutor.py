@@ -1,7 +1,7 @@
-"""``hilbo bench tutor``: the tutoring study of seed 003 §4.1/§4.4 (Figs. 7 and 9).
+"""``hilbo bench tutor``: the tutoring study of Antonova 2016 §4.1/§4.4 (Figs. 7 and 9).
 
 Simulated BKT students are taught by the AFM threshold policy (β1, β2, β3); the cost of a policy
-on one student is f = 1 − R(π) (seed 003 §4.1). Three ways of choosing the policy are compared
+on one student is f = 1 − R(π) (Antonova 2016 §4.1). Three ways of choosing the policy are compared
 after every student, over many repetitions:
 
 * ``bo`` — direct policy search by Bayesian optimisation, one real evaluation per student;
@@ -20,7 +20,7 @@ curves carry no evaluation noise. Reference lines: the best AFM threshold policy
 over its effective "stop at the c-th correct answer" form) and the best BKT threshold policy with
 the students' true parameters (exact, over a grid of 48 thresholds).
 
-Not implemented: MBOA (seed ref. [31]), the third curve of Fig. 9.
+Not implemented: MBOA (Antonova 2016 ref. [31]), the third curve of Fig. 9.
 """
 
 from __future__ import annotations
@@ -69,7 +69,7 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 FIGURES: dict[str, BKTParams] = {"fig7": FIG7_STUDENTS, "fig9": FIG9_STUDENTS}
-"""The student populations of seed 003 Fig. 7 and Fig. 9."""
+"""The student populations of Antonova 2016 Fig. 7 and Fig. 9."""
 METHODS = ("bo", "bo_resample", "fit_threshold")
 # Thresholds tried for the reference "best BKT threshold policy".
 _REFERENCE_THRESHOLDS = np.linspace(0.05, 0.99, 48)
@@ -81,10 +81,10 @@ class TutorBenchConfig:
 
     Attributes:
         figures: Which student populations (keys of :data:`FIGURES`).
-        students: Students per repetition (the seed: 30).
+        students: Students per repetition (Antonova 2016: 30).
         repetitions: Independent repetitions per method.
         resamples: K of BO-RESAMPLE (resamples per real evaluation).
-        max_reuse: Resamples allowed per stored trajectory (the seed: 10).
+        max_reuse: Resamples allowed per stored trajectory (Antonova 2016: 10).
         t_max: Curriculum length.
         seed: Base seed; repetition r of figure f uses SeedSequence([seed, f, r]).
         workers: Processes (1 = in this process).
@@ -282,7 +282,7 @@ def _plot(fig: dict[str, Any], figure: str, cfg: TutorBenchConfig, path: Path) -
 def _cmd_bench_tutor(args: argparse.Namespace) -> int:
     from rich.console import Console
 
-    from bridge.bench.cli import options
+    from bridge.bench.common import options
 
     console = Console(stderr=True)
     with options():  # a bad value on the command line: exit status 2
@@ -316,8 +316,8 @@ def add_tutor_bench_parser(bench_subparsers: Any) -> argparse.ArgumentParser:
         The ``tutor`` parser (its ``func`` default runs the bench and returns the exit code).
     """
     p = bench_subparsers.add_parser(
-        "tutor", help="tutoring study of seed 003 (BO vs BO-RESAMPLE vs fit-then-threshold)",
-        description="Simulated BKT students taught by the AFM threshold policy (seed 003 §4.1, "
+        "tutor", help="tutoring study of Antonova 2016 (BO vs BO-RESAMPLE vs fit-then-threshold)",
+        description="Simulated BKT students taught by the AFM threshold policy (Antonova 2016 §4.1, "
                     "§4.4): BO, BO-RESAMPLE and model-fit-then-threshold after every student; "
                     "writes results.json and tutor_fig7.png / tutor_fig9.png.")
     p.add_argument("--figures", nargs="+", default=["fig7", "fig9"], choices=sorted(FIGURES),

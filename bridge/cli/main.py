@@ -239,7 +239,7 @@ def build_parser() -> argparse.ArgumentParser:
                           "legacy (the earlier one)")
     sim.add_argument("--stopping", default="sound", choices=["sound", "adaptive", "fixed"],
                      help="stopping rule in the optimisation phase: sound (default), adaptive "
-                          "(seed 000's Algorithm 1/2 with the σ-scaled rule) or fixed (N breaths)")
+                          "(Kim et al. 2019's Algorithm 1/2 with the σ-scaled rule) or fixed (N breaths)")
     sim.add_argument("--engine", default="bridge", choices=["bridge", "core"],
                      help="bridge (default): the whole system over real transports; core: the "
                           "optimizer and the wearer only")
@@ -251,7 +251,7 @@ def build_parser() -> argparse.ArgumentParser:
                           "server started on 127.0.0.1; auto (default) = vcan0 where it exists, "
                           "else remote")
     sim.add_argument("--live", action="store_true",
-                     help="stream the session to Foxglove on ws://127.0.0.1:8765 (README: Live view)")
+                     help="stream the session to Foxglove on ws://127.0.0.1:8765 (docs/review.md: Live view)")
     sim.set_defaults(func=_cmd_sim)
 
     run = sub.add_parser("run", help="run a lab session from a config file",
@@ -272,7 +272,7 @@ def build_parser() -> argparse.ArgumentParser:
                           "have been healthy for S seconds, at most [watchdog] max_auto_resumes "
                           "times, then stop (default: [watchdog] auto_resume_s, else wait for r)")
     run.add_argument("--live", action="store_true",
-                     help="stream the session to Foxglove (as [live] enabled = true; README: Live view)")
+                     help="stream the session to Foxglove (as [live] enabled = true; docs/review.md)")
     run.set_defaults(func=_cmd_run)
 
     from bridge.config import add_config_parser

@@ -239,6 +239,8 @@ class Estimate(_Record, kw_only=True):
     phase: Annotated[str | None, _d("Phase of Algorithm 1: exploration, optimization or done")] = None
 
 
+# Its docstring is the schema's description in every log ("seed 000" = Kim et al. 2019): it
+# changes with FORMAT_VERSION only.
 class StopDecision(_Record, kw_only=True):
     """The stopping rule's decision after a breath (optimisation phase, seed 000 §II.D)."""
 

@@ -1,4 +1,4 @@
-"""Rebuild the optimizer of a crashed session from its log (issue 6 item 5, shared/DESIGN.md).
+"""Rebuild the optimizer of a crashed session from its log (shared/DESIGN.md).
 
 The rule: **no completed evaluation is lost or counted twice.**
 
@@ -8,7 +8,7 @@ The rule: **no completed evaluation is lost or counted twice.**
    ``/proposals`` message is an ``ask()`` (preceded by ``cancel_current()`` when a setting was
    still open: the session re-asks after abandoning one), every ``/estimator`` message is one
    breath fed with the very ``t_setting_s`` and ``watts`` the session used. The optimizer is
-   deterministic given its state (seed 000 Algorithm 1 as implemented by HILOptimizer: one
+   deterministic given its state (Kim et al. 2019 Algorithm 1 as implemented by HILOptimizer: one
    seeded generator, serialised with the state), so the replay reproduces the session's calls
    exactly: an evaluation that completed after the snapshot (the snapshot message itself was cut
    off) is completed again, with the same estimate. Breaths already inside the snapshot are
@@ -21,7 +21,7 @@ The rule: **no completed evaluation is lost or counted twice.**
    the optimizer goes back to its state just before that setting's ``ask()``, so the resumed
    session's first ``ask()`` proposes the *same* setting again and it is measured from scratch.
    Why not continue it: after a crash the wearer has walked for an unknown time with assistance
-   off or on the old profile, so the metabolic transient the UKF models (seed 000 §II.C,
+   off or on the old profile, so the metabolic transient the UKF models (Kim et al. 2019 §II.C,
    m_t = c(1−e^{−t/τ}) + c0·e^{−t/τ0}, t = time since the setting began) no longer starts where
    the logged breaths left it, and the breath clock of the new process does not continue the old
    one. Re-measuring costs a few minutes; mixing two transients biases the estimate the GP is

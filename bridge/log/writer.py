@@ -1,6 +1,6 @@
 """The session's MCAP log writer: one file per session, one typed JSON channel per kind of record.
 
-Layout (shared/DESIGN.md "MCAP log"; issue 6 item 4; issue 18 item 2):
+Layout (shared/DESIGN.md "MCAP log"):
 
 * Every channel carries one record type of :mod:`bridge.log.records` (a msgspec Struct), encoded
   with msgspec (about 3x faster than ``json.dumps`` of the dicts of format 1). Its draft-07 JSON
@@ -26,7 +26,7 @@ Layout (shared/DESIGN.md "MCAP log"; issue 6 item 4; issue 18 item 2):
 
 Crash safety. mcap's ``Writer`` keeps a chunk in memory until it reaches ``chunk_size`` (1 MiB
 by default) and writes through a buffered file, so a process killed before then leaves nothing
-(issue 6 measured a 0-byte file after 3 s). ``Writer.flush()`` (mcap >= 1.6) closes the open
+(measured: a writer killed after 3 s left a 0-byte file). ``Writer.flush()`` (mcap >= 1.6) closes the open
 chunk, writes it with its message indexes and flushes the file object. :class:`SessionLog` calls
 it right after every message (``flush_immediately``) except on the high-rate ``/force_feedback``
 and ``/device_status`` channels, and from a background thread every ``flush_interval_s`` (0.1 s)
@@ -278,7 +278,7 @@ class SessionLog:
         started_unix_ns: The ``started_unix_ns`` stored in ``/config`` and the metadata (default
             the wall clock now; a fixed value makes the file reproducible, e.g. for tests).
         live: A live view (:class:`bridge.live.LiveServer`) that gets every record written, on
-            the same topic with the same schema (issue 19 item 2); None: no live view.
+            the same topic with the same schema; None: no live view.
 
     Raises:
         LogValueError: A bad option.

@@ -98,7 +98,7 @@ def session_plots(session: Session, out: Path) -> tuple[dict[str, Path], dict[st
 
 
 def _timeline(session: Session, path: Path) -> str | None:
-    """(a) breath-by-breath power, the UKF estimate with its ±1 σ band, setting changes (seed 000 Fig. 1)."""
+    """(a) breath power, the estimate with its ±1 σ band, setting changes (Kim et al. 2019, Fig. 1)."""
     if not session.breaths:
         return "the log holds no breaths"
     fig = _figure("timeline")
@@ -273,7 +273,7 @@ def _binned(phase: np.ndarray, values: np.ndarray, width: float = 2.0) -> tuple[
 
 
 def _force_tracking(session: Session, path: Path) -> str | None:
-    """(e) desired vs measured force over the gait cycle for the recommended setting (seed 000 Fig. 4)."""
+    """(e) desired vs measured force over the gait cycle, recommended setting (Kim et al. 2019 Fig. 4)."""
     fb = session.feedback
     if fb is None:
         return "the log has no force feedback for the recommended setting"

@@ -8,14 +8,14 @@
 
     * ``timeline.png``: breath-by-breath metabolic power (W) with the UKF estimate of each
       setting and its ±1 σ band on one continuous time axis, setting changes
-      marked (seed 000 Fig. 1), and the estimate's σ below;
+      marked (Kim et al. 2019 Fig. 1), and the estimate's σ below;
     * ``best_so_far.png``: best estimated cost so far (W) against minutes walked;
     * ``parameters.png``: each parameter against evaluation number, early stops marked;
     * ``thresholds.png``: Algorithm 2's threshold schedule A over breath index with the
-      standardised exploration traces X it is the envelope of (seed 000 Algorithm 2) and the
+      standardised exploration traces X it is the envelope of (Kim et al. 2019 Algorithm 2) and the
       z of the optimisation evaluations (skipped when exploration did not complete);
     * ``force_tracking.png``: desired vs measured force over the gait cycle while the
-      recommended setting was measured (seed 000 Fig. 4; skipped without ``/force_feedback``);
+      recommended setting was measured (Kim et al. 2019 Fig. 4; skipped without ``/force_feedback``);
     * ``report.md`` and ``report.html`` (self-contained, images inlined): configuration,
       recommended setting, evaluations, events and faults, rejected records/frames by reason;
     * ``evaluations.csv`` (one row per evaluation) and ``breaths.csv`` (one row per breath).

@@ -1,7 +1,7 @@
 """In-process simulated session: HILOptimizer driven breath by breath by the simulated wearer.
 
 This is what ``hilbo sim`` runs until the asyncio bridge drives the virtual devices over real
-transports. The protocol follows seed 000 §IV.A.3: a first bout with a warm-up and the
+transports. The protocol follows Kim et al. 2019 §IV.A.3: a first bout with a warm-up and the
 exploration points, then a second bout with a warm-up and Bayesian optimisation until the
 session's minutes are used up. Time is the wearer's breath clock, so a 60-minute session runs
 as fast as the computer allows (``speed="max"``) or paced at a multiple of real time.
@@ -45,7 +45,8 @@ class SimConfig:
         max_breaths: N, the maximum breaths per evaluation.
         window: Algorithm 2's window W.
         warmup_s: Warm-up at the start of each bout, without assistance (seed: 3 min).
-        stopping: ``"sound"`` (the default rule), ``"adaptive"`` (seed 000's Algorithm 1/2) or ``"fixed"``.
+        stopping: ``"sound"`` (the default rule), ``"adaptive"`` (Kim et al. 2019's Algorithm 1/2) or
+            ``"fixed"``.
         refit: ``"at_proposal"`` (GP hyperparameters refitted in every proposal) or ``"ahead"``
             (as the bridge does by default: fitted on the completed evaluations while the next
             setting is measured, ``refit_lag`` 1).

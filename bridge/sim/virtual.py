@@ -56,8 +56,8 @@ class VirtualSimConfig:
         seed: The subject (wearer) and the optimizer's seed.
         speed: Real-time factor (None = :data:`MAX_SPEED`).
         preset: Parameter space.
-        stopping: ``sound`` (the default rule), ``adaptive`` (seed 000's Algorithm 1/2) or ``fixed``.
-        n_explore, max_breaths, window, warmup_s: The protocol (seed 000 §IV.A.3 by default).
+        stopping: ``sound`` (the default rule), ``adaptive`` (Kim et al. 2019's Algorithm 1/2) or ``fixed``.
+        n_explore, max_breaths, window, warmup_s: The protocol (Kim et al. 2019 §IV.A.3 by default).
         body_mass_kg: The simulated wearer's mass.
         feedback_hz: The virtual exosuit's force-feedback rate per actuator.
         exosuit_faults: Fault specs of the virtual exosuit (``virtual_hw.exosuit.EXOSUIT_FAULTS``).
@@ -156,7 +156,7 @@ channel = "hilbo-sim"
 [watchdog]
 device_heartbeat_timeout_ms = {device_timeout_ms}
 cart_data_timeout_s = 15.0
-# Nobody presses "r" in a simulation: every pause ends by the resume policy (issue 15), which
+# Nobody presses "r" in a simulation: every pause ends by the resume policy, which
 # a busy machine may need often (a stalled loop loses the heartbeat).
 auto_resume_s = 0.0
 max_auto_resumes = 1000

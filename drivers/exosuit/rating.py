@@ -14,5 +14,5 @@ RATED_FORCE_N = 600.0
 
 Source: the device this protocol was written for has no published rating in this repository;
 600 N is the hardware limit the virtual exosuit enforces (``virtual_hw.exosuit.DeviceLimits``:
-≈ 60 % of the body weight of a 100 kg wearer, the seed's largest ankle assistance). Change it
+≈ 60 % of the body weight of a 100 kg wearer, Kim et al. 2019's largest ankle assistance). Change it
 here for another device: the warnings follow."""

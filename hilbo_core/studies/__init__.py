@@ -1,1 +1,1 @@
-"""Pure study code: the seed-000 test functions and protocol, the tutoring model (seed 003)."""
+"""Pure study code: the Kim et al. 2019 test functions and protocol, the tutoring model (Antonova 2016)."""

@@ -1,11 +1,11 @@
-"""The simulation study of seed 000 §III.2: test functions, measurement model, metric y_t.
+"""The simulation study of Kim et al. 2019 §III.2: test functions, measurement model, metric y_t.
 
-* :data:`FUNCTIONS` — the four functions of the seed's Table I (Hartmann-6, Ackley-4, Levy-4,
-  Branin) with their domains, global minima, known minimisers and the priors (μ̃, σ̃) the seed
+* :data:`FUNCTIONS` — the four functions of Kim et al. 2019's Table I (Hartmann-6, Ackley-4, Levy-4,
+  Branin) with their domains, global minima, known minimisers and the priors (μ̃, σ̃) Kim et al. 2019
   initialises every estimate with. Definitions follow Surjanovic & Bingham's Virtual Library of
-  Simulation Experiments (the standard forms the seed's Table I values belong to).
+  Simulation Experiments (the standard forms Kim et al. 2019's Table I values belong to).
 * The measurement model: a measurement of x is ``z = f(x) + ε`` with ``ε ~ N(0, σ_z²)``; the
-  estimate of x starts at (μ̃, σ̃²) and fuses every z by the product of Gaussians. The seed's
+  estimate of x starts at (μ̃, σ̃²) and fuses every z by the product of Gaussians. Kim et al. 2019's
   estimator fuses every z with σ_z² (:class:`~hilbo_core.metabolic.GaussianProductEstimator`,
   ``noise_estimate="seed"``); the default learns the measurement variance from the trial's
   measurements with σ_z² as its prior (:class:`~hilbo_core.metabolic.PooledNoiseEstimator`,
@@ -21,12 +21,12 @@
   incumbent the next ``ask()`` computes for the stopping rule, which saves a second GP fit per
   evaluation) and x_0 the recommendation at the end of exploration.
 
-Noise levels. The seed writes ``σ_z = [σ̃²/10, σ̃², 10σ̃²]``: these are variances (they carry σ̃²),
-so here ``noise`` is the factor ``σ_z² / σ̃²`` ∈ {0.1, 1, 10}. Two readings of the seed exist and
+Noise levels. Kim et al. 2019 write ``σ_z = [σ̃²/10, σ̃², 10σ̃²]``: these are variances (they carry σ̃²),
+so here ``noise`` is the factor ``σ_z² / σ̃²`` ∈ {0.1, 1, 10}. Two readings of Kim et al. 2019 exist and
 both are offered (:class:`NoiseModel`): ``matched`` (default) — the measurements really have
 variance σ_z² and the estimator knows it ("three different levels of measurement variation",
 Fig. 2); ``assumed`` — the measurements have variance σ̃² and σ_z² is only what the estimator
-assumes, i.e. under-/correctly/over-estimated noise (the seed's discussion of "inaccuracy in
+assumes, i.e. under-/correctly/over-estimated noise (Kim et al. 2019's discussion of "inaccuracy in
 the measurement noise").
 """
 
@@ -68,7 +68,7 @@ __all__ = [
 ]
 
 NOISE_LEVELS: tuple[float, ...] = (0.1, 1.0, 10.0)
-"""σ_z² / σ̃² of seed 000 §III.2 (σ_z² = σ̃²/10, σ̃², 10σ̃²)."""
+"""σ_z² / σ̃² of Kim et al. 2019 §III.2 (σ_z² = σ̃²/10, σ̃², 10σ̃²)."""
 
 # Seeds the measurement-noise stream of a trial apart from the optimizer's own stream.
 _NOISE_STREAM = 0x5EED
@@ -175,7 +175,7 @@ def branin(x: npt.ArrayLike) -> np.ndarray:
 
 @dataclass(frozen=True)
 class TestFunction:
-    """A row of seed 000 Table I.
+    """A row of Kim et al. 2019 Table I.
 
     Attributes:
         name: Identifier used on the command line and in results.
@@ -221,7 +221,7 @@ class TestFunction:
         return float(self.fn(np.array([float(params[f"x{i + 1}"]) for i in range(self.dim)])))
 
 
-# Table I of seed 000 (μ̃, σ̃ as printed); the minima at full precision.
+# Table I of Kim et al. 2019 (μ̃, σ̃ as printed); the minima at full precision.
 FUNCTIONS: Mapping[str, TestFunction] = MappingProxyType({
     "hartmann6": TestFunction(
         "hartmann6", hartmann6, (0.0,) * 6, (1.0,) * 6, -3.3223680114155156,
@@ -257,10 +257,10 @@ class NoiseModel(enum.Enum):
 class NoiseEstimate(enum.Enum):
     """What measurement variance the estimates fuse with.
 
-    ``seed``: σ_z², always (seed 000 §III.2's estimator). ``pooled`` (the default): σ_z² is the
+    ``seed``: σ_z², always (Kim et al. 2019 §III.2's estimator). ``pooled`` (the default): σ_z² is the
     prior of a variance learnt from every measurement of the trial
     (:class:`~hilbo_core.metabolic.MeasurementNoisePool`, 3 pseudo-measurements), as hilbo's
-    breath estimator learns a person's breath noise. Under ``assumed`` with σ_z² ≠ σ̃² the seed's
+    breath estimator learns a person's breath noise. Under ``assumed`` with σ_z² ≠ σ̃² Kim et al. 2019's
     estimator is over- or under-confident by the factor σ_z²/σ̃² at every measurement
     (docs/results.md §1); the pooled one learns σ̃² during exploration.
     """
@@ -285,12 +285,12 @@ def estimator_factory(fn: TestFunction, noise: float,
 
 
 def measure(f_value: float, var: float, rng: np.random.Generator) -> float:
-    """One noisy measurement ``z = f(x) + ε``, ``ε ~ N(0, var)`` (seed 000 §III.2)."""
+    """One noisy measurement ``z = f(x) + ε``, ``ε ~ N(0, var)`` (Kim et al. 2019 §III.2)."""
     return float(f_value + rng.normal(0.0, math.sqrt(var)))
 
 
 def y_metric(f_x: float | npt.ArrayLike, f_x0: float, f_min: float) -> float | np.ndarray:
-    """Seed 000 §III.2's ``y_t = (f(x_t) − f*) / (f(x_0) − f*)``.
+    """Kim et al. 2019 §III.2's ``y_t = (f(x_t) − f*) / (f(x_0) − f*)``.
 
     0 at the optimum, 1 at the post-exploration recommendation, above 1 when the recommendation
     got worse. If x_0 is already optimal (f(x_0) = f*), y is 0 where f(x_t) = f* and +inf
@@ -339,7 +339,7 @@ _PROTECTED_OPTIONS = frozenset({"n_explore", "max_breaths", "window", "budget_br
 
 @dataclass(frozen=True)
 class StoppingProtocol:
-    """The study's protocol (defaults: seed 000 §III.2).
+    """The study's protocol (defaults: Kim et al. 2019 §III.2).
 
     Attributes:
         n_explore: Exploration points (6), each measured ``max_breaths`` times.
@@ -425,7 +425,7 @@ def stopping_trial(
     seed: int,
     protocol: StoppingProtocol | None = None,
 ) -> dict[str, Any]:
-    """One trial of seed 000 §III.2 for one method.
+    """One trial of Kim et al. 2019 §III.2 for one method.
 
     Deterministic in its arguments: the design (hence the exploration points) and the noise
     stream depend on ``seed`` only, so every method of a trial explores the same points with the
@@ -433,10 +433,10 @@ def stopping_trial(
 
     Args:
         function: A name in :data:`FUNCTIONS` or a :class:`TestFunction`.
-        noise: σ_z² / σ̃² (the seed's levels are :data:`NOISE_LEVELS`).
+        noise: σ_z² / σ̃² (Kim et al. 2019's levels are :data:`NOISE_LEVELS`).
         method: A name in :data:`METHODS` or a :class:`StoppingMethod`.
         seed: Trial seed (>= 0).
-        protocol: The protocol (default: the seed's).
+        protocol: The protocol (default: Kim et al. 2019's).
 
     Returns:
         JSON-able dict: ``function``, ``noise``, ``method``, ``seed``; ``y`` — list of

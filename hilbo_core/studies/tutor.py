@@ -1,14 +1,14 @@
-"""The tutoring simulation of seed 003 §4.1, §4.3 and §4.4: BKT students, AFM threshold policy, R(π).
+"""The tutoring simulation of Antonova 2016 §4.1, §4.3 and §4.4: BKT students, AFM threshold policy, R(π).
 
 An instructional policy decides, before every practice item, whether to stop teaching a skill.
 When it stops after ``t`` practice items the student answers one more item, the assessment, and
-the policy earns (seed 003 §4.1)
+the policy earns (Antonova 2016 §4.1)
 
     R(π) = I(o_{t+1} = correct) · (t_max − t) / (t_max + 1),
 
 so a good policy gives enough practice for a correct assessment but no more. ``t_max`` is the
 length of the curriculum: a policy that has not stopped after ``t_max`` items is stopped there
-(and earns 0). The seed does not print ``t_max``; :data:`DEFAULT_T_MAX` is our choice.
+(and earns 0). Antonova 2016 does not print ``t_max``; :data:`DEFAULT_T_MAX` is our choice.
 
 **Students** follow Bayesian Knowledge Tracing (§4.3, Corbett & Anderson 1994): a hidden state
 "learned"/"not learned", learned at the start with ``p_know``; an item is answered correctly with
@@ -16,7 +16,7 @@ length of the curriculum: a policy that has not stopped after ``t_max`` items is
 learns with ``p_learn``; no forgetting. The assessment item is answered by the same process, so a
 student is fully described by the answers it *would* give to items 1 … t_max + 1
 (:func:`draw_student`), and any policy's outcome is a function of a prefix of that sequence
-(:func:`run_policy`). This is the structure BO-RESAMPLE exploits (seed 003 §4.2).
+(:func:`run_policy`). This is the structure BO-RESAMPLE exploits (Antonova 2016 §4.2).
 
 **Policies.** The AFM threshold policy of §4.1 predicts the next item with the additive factors
 model ``p = 1 / (1 + exp(−(β1 + β2·n_c)))`` (``n_c`` = correct answers so far) and halts when
@@ -74,7 +74,7 @@ __all__ = [
 ]
 
 DEFAULT_T_MAX = 20
-"""Curriculum length t_max (practice items before a forced stop). Our choice (the seed omits it):
+"""Curriculum length t_max (practice items before a forced stop). Our choice (Antonova 2016 omits it):
 with 20 items both populations of Figs. 7 and 9 have an interior optimum in the AFM class (stop
 at the 2nd correct answer); with 10 the best policy is the trivial "stop at the 1st correct"."""
 
@@ -85,14 +85,14 @@ HaltFn = Callable[[Sequence[bool]], bool]
 # often separable (e.g. every answer after the first correct one is correct) and the plain MLE
 # runs off to infinity; N(0, 10²) keeps it finite while moving a well-determined fit by < 1 %.
 _AFM_PRIOR_SD = 10.0
-# The 20 thresholds of the fit-then-threshold baseline (seed 003 §4.1: "discretizing [0, 1]
+# The 20 thresholds of the fit-then-threshold baseline (Antonova 2016 §4.1: "discretizing [0, 1]
 # into 20 discrete thresholds"): the midpoints of 20 equal bins.
 _N_THRESHOLDS = 20
 
 
 @dataclass(frozen=True)
 class BKTParams:
-    """Bayesian Knowledge Tracing parameters (seed 003 §4.3, Fig. 8), all probabilities.
+    """Bayesian Knowledge Tracing parameters (Antonova 2016 §4.3, Fig. 8), all probabilities.
 
     Attributes:
         p_know: P(learned before the first item), ``pk``.
@@ -122,9 +122,9 @@ class BKTParams:
 
 
 FIG7_STUDENTS = BKTParams(p_know=0.18, p_learn=0.2, p_guess=0.2, p_slip=0.1)
-"""The simulated students of seed 003 Fig. 7."""
+"""The simulated students of Antonova 2016 Fig. 7."""
 FIG9_STUDENTS = BKTParams(p_know=0.05, p_learn=0.05, p_guess=0.05, p_slip=0.05)
-"""The simulated students of seed 003 Fig. 9."""
+"""The simulated students of Antonova 2016 Fig. 9."""
 
 
 def _check_t_max(t_max: int) -> int:
@@ -181,7 +181,7 @@ def bkt_posterior(p_learned: float, correct: bool, bkt: BKTParams) -> float:
 
 
 def bkt_threshold_halt(bkt: BKTParams, threshold: float) -> HaltFn:
-    """The 5-parameter BKT threshold policy of seed 003 §4.3: halt when P(learned) > threshold.
+    """The 5-parameter BKT threshold policy of Antonova 2016 §4.3: halt when P(learned) > threshold.
 
     Args:
         bkt: The policy's student model (not necessarily the students' true one).
@@ -243,7 +243,7 @@ def draw_students(bkt: BKTParams, t_max: int, n: int, rng: np.random.Generator) 
 
 
 def reward(n_practice: int, assessment_correct: bool, t_max: int) -> float:
-    """R(π) of seed 003 §4.1: ``I(o_{t+1} = c) · (t_max − t) / (t_max + 1)``.
+    """R(π) of Antonova 2016 §4.1: ``I(o_{t+1} = c) · (t_max − t) / (t_max + 1)``.
 
     Args:
         n_practice: t, the practice items given (0 … t_max).
@@ -282,7 +282,7 @@ def run_policy(halt: HaltFn, answers: Sequence[bool], t_max: int) -> tuple[int, 
 
 @dataclass(frozen=True)
 class AFMPolicy:
-    """The AFM threshold policy of seed 003 §4.1.
+    """The AFM threshold policy of Antonova 2016 §4.1.
 
     Predicts P(next correct) = σ(β1 + β2·n_c) from the number of correct answers so far and
     halts when that exceeds β3.
@@ -334,7 +334,7 @@ class AFMPolicy:
 
 def afm_space(beta1: tuple[float, float] = (-3.0, 3.0), beta2: tuple[float, float] = (-1.0, 3.0),
               beta3: tuple[float, float] = (0.0, 1.0)) -> ParameterSpace:
-    """The policy-search space of (β1, β2, β3). Bounds are our choice (the seed gives none)."""
+    """The policy-search space of (β1, β2, β3). Bounds are our choice (Antonova 2016 gives none)."""
     return ParameterSpace(
         [
             Parameter("beta1", *beta1, "logit", "AFM intercept"),
@@ -405,7 +405,7 @@ def expected_reward(policy: AFMPolicy | Callable[[int, int], bool], bkt: BKTPara
 
 
 def best_count_policy(bkt: BKTParams, t_max: int) -> tuple[int | None, float]:
-    """The best policy of the AFM class by brute force (seed 003 §4.1's offline analysis).
+    """The best policy of the AFM class by brute force (Antonova 2016 §4.1's offline analysis).
 
     An AFM threshold policy halts as soon as n_c reaches some count c (or at the start, or
     never), so the class is exactly "stop at the c-th correct answer", c = 0 … t_max, or never.
@@ -481,7 +481,7 @@ def afm_model_expected_reward(policy: AFMPolicy, beta1: float, beta2: float, t_m
 
 
 # --------------------------------------------------------------------------------------------
-# Model fit, then threshold (seed 003 §4.1, Fig. 7)
+# Model fit, then threshold (Antonova 2016 §4.1, Fig. 7)
 # --------------------------------------------------------------------------------------------
 
 
@@ -531,7 +531,7 @@ def fit_afm(answer_sequences: Sequence[Sequence[bool]]) -> tuple[float, float]:
 
 def fit_then_threshold(answer_sequences: Sequence[Sequence[bool]], t_max: int,
                        n_thresholds: int = _N_THRESHOLDS) -> AFMPolicy:
-    """The model-fit-then-threshold baseline of seed 003 §4.1 (Fig. 7).
+    """The model-fit-then-threshold baseline of Antonova 2016 §4.1 (Fig. 7).
 
     Fit (β1, β2) by :func:`fit_afm`, then evaluate ``n_thresholds`` thresholds (midpoints of equal
     bins of [0, 1]) by their expected reward under the fitted model and keep the best (the first
@@ -547,7 +547,7 @@ def fit_then_threshold(answer_sequences: Sequence[Sequence[bool]], t_max: int,
 
 
 # --------------------------------------------------------------------------------------------
-# The tutoring problem for BO-RESAMPLE (seed 003 §4.4)
+# The tutoring problem for BO-RESAMPLE (Antonova 2016 §4.4)
 # --------------------------------------------------------------------------------------------
 
 
@@ -557,7 +557,7 @@ class TutorProblem:
 
     A real evaluation teaches one new BKT student with the AFM policy; its trajectory is the
     answers o_1 … o_{t+1} (practice and assessment) with ``halt_step = t``. The cost is
-    f(π) = 1 − R(π) (seed 003 Fig. 7/9: "set up optimization as loss minimization").
+    f(π) = 1 − R(π) (Antonova 2016 Fig. 7/9: "set up optimization as loss minimization").
 
     Attributes:
         bkt: The students.

@@ -1,4 +1,4 @@
-"""A deterministic stand-in for the CAN side of a session, for the pause-holds tests (issue 15).
+"""A deterministic stand-in for the CAN side of a session, for the pause-holds tests.
 
 Everything runs on one event loop with fake time (looptime): the exosuit endpoint is a model of
 the device that keeps a transcript of what reached it, the cart yields a breath every

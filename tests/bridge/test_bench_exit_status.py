@@ -1,5 +1,5 @@
-"""``hilbo bench``: 2 for a wrong command line only, 1 with one line for a failure at run time
-(issue 15), the same through ``hilbo bench`` and ``python -m bridge.bench``."""
+"""``hilbo bench``: 2 for a wrong command line only, 1 with one line for a failure at run time,
+the same through ``hilbo bench`` and ``python -m bridge.bench``."""
 
 from __future__ import annotations
 

@@ -96,7 +96,7 @@ def test_cmaes_and_random_sessions_use_whole_conditions_within_the_session(space
     for method in ("cmaes", "random"):
         r = run_hil_task(HilTask(method, space, 3, TOY))
         assert r["n_evaluations"] == 8 and r["n_evaluations_bout2"] == 4
-        # Every method walks the whole session (issue 17: session time is walking time): to the
+        # Every method walks the whole session (session time is walking time): to the
         # first breath at or past its minutes; the condition that cannot end by then is not counted.
         assert TOY.minutes * 60.0 <= r["session_s"] <= TOY.minutes * 60.0 + 10.0
         assert r["walking"]["session_s"] == pytest.approx(r["session_s"])

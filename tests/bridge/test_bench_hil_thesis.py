@@ -1,4 +1,4 @@
-"""The seed-003 methods of ``hilbo bench hil`` at toy size: sessions, tuning K, paired comparisons, CLI."""
+"""The Antonova 2016 methods of ``hilbo bench hil`` at toy size: sessions, tuning K, comparisons, CLI."""
 
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ from bridge.bench.hil import _thesis_arm as _thesis_arm  # the method → sessio
 from bridge.bench.thesis_session import Arm, run_session
 from hilbo_core.errors import ConfigError
 
-# The seed-003 methods run on the legacy wearer (bridge/bench/thesis_session.py builds it).
+# The Antonova 2016 methods run on the legacy wearer (bridge/bench/thesis_session.py builds it).
 TOY = HilProtocol(minutes=5.5, warmup_s=30.0, n_explore=2, max_breaths=5, condition_s=30.0, popsize=4,
                   bout1_conditions=4, grid_min=0.5, wearer="legacy")
 # The feature kernel costs ~1 s per proposal (profiles of every EI candidate): a shorter session.
@@ -50,7 +50,7 @@ def _check_session(r: dict, proto: HilProtocol) -> None:
 
 
 def test_method_lists() -> None:
-    assert DEFAULT_HIL_METHODS == ("sound", "adaptive", "fixed", "cmaes", "random")  # issue 17
+    assert DEFAULT_HIL_METHODS == ("sound", "adaptive", "fixed", "cmaes", "random")
     # adaptive-ahead: adaptive with the hyperparameters fitted ahead, as the bridge runs it.
     assert set(HIL_METHODS) == set(DEFAULT_HIL_METHODS) | set(THESIS_METHODS) | {"adaptive-ahead"}
 

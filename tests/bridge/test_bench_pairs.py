@@ -1,4 +1,4 @@
-"""``hilbo bench pairs``: stop statistics on within-person pairs of transitions (issue 17)."""
+"""``hilbo bench pairs``: stop statistics on within-person pairs of transitions."""
 
 from __future__ import annotations
 
@@ -65,7 +65,7 @@ def test_pair_stats_pool_counts_over_people_and_skip_people_without_pairs() -> N
     assert one["sound"]["n_pairs"] == 2 and one["sound"]["breaths_total"] == 4 + 2
     assert one["sound"]["n_better"] == 1 and one["sound"]["pct_rejected_better"] == 0.0
     assert one["fixed"]["breaths_total"] == 8 and one["fixed"]["n_early"] == 0
-    # The seed's rule has no time floor: the 500 candidate stops after breath 0.
+    # Kim et al. 2019's rule has no time floor: the 500 candidate stops after breath 0.
     assert one["adaptive"]["breaths_total"] == 4 + 1
     both = pair_stats([a, a, _person([450.0], [450.0])], cfg)
     for rule in ("sound", "adaptive", "fixed"):
@@ -204,7 +204,7 @@ def test_cli_replays_one_file_per_person(tmp_path: Path, capsys: pytest.CaptureF
     assert "--replay" in doc["command"] and (out / "pairs_table.md").read_text().startswith("| rule |")
     assert (out / "pairs.png").read_bytes().startswith(b"\x89PNG")
     printed = capsys.readouterr().out
-    assert "issue 17 targets (sound)" in printed and "the trade-off: pairs.png" in printed
+    assert "targets (sound)" in printed and "the trade-off: pairs.png" in printed
     assert "how hard these pairs are to rank" in printed
     assert doc["measurement_error"]["n_better"] == doc["rules"]["fixed"]["n_better"]
 

@@ -111,7 +111,7 @@ def test_toy_campaign_runs_resumes_and_respects_budgets(tmp_path: Path) -> None:
 
 
 def test_load_trials_reads_a_line_without_noise_estimate_as_the_seeds(tmp_path: Path) -> None:
-    # Campaigns written before --noise-estimate existed used the seed's estimator.
+    # Campaigns written before --noise-estimate existed used Kim et al. 2019's estimator.
     path = tmp_path / "trials.jsonl"
     old = {k: v for k, v in TOY.to_json().items() if k != "noise_estimate"}
     path.write_text(json.dumps(fake("fixed", 0, [1.0]) | {"protocol": old}) + "\n")

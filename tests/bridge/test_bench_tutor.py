@@ -50,7 +50,7 @@ def test_bench_writes_json_and_plot(tmp_path: Path) -> None:
 def test_reference_lines() -> None:
     thr, cost = bkt_threshold_reference(FIG7_STUDENTS, 10)
     _, best_afm = best_count_policy(FIG7_STUDENTS, 10)
-    # Seed 003 §4.1: the best AFM threshold policy ties with the best BKT threshold policy.
+    # Antonova 2016 §4.1: the best AFM threshold policy ties with the best BKT threshold policy.
     assert cost == pytest.approx(1.0 - best_afm, abs=1e-9)  # at t_max = 10 exactly
     assert 0.0 < thr < 1.0
 

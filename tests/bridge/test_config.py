@@ -151,7 +151,7 @@ def test_defaults_of_the_optional_tables():
     text = GOLDEN.split("[protocol]")[0] + GOLDEN[GOLDEN.index("[cart]"):GOLDEN.index("[limits]")]
     cfg = parse_config(text)
     assert cfg.protocol == ProtocolConfig()
-    assert cfg.protocol.budget_s == 2400.0  # the seed's 40-minute optimisation bout
+    assert cfg.protocol.budget_s == 2400.0  # Kim et al. 2019's 40-minute optimisation bout
     assert cfg.limits == ProfileLimits() and cfg.watchdog == WatchdogConfig() and cfg.prior == PriorConfig()
 
 

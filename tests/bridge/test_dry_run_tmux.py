@@ -1,11 +1,11 @@
-"""The README's dry run without vcan, as a user runs it: every program a process of its own.
+"""The documented dry run without vcan, as a user runs it: every program a process of its own.
 
-"A dry run on the virtual devices" (README.md), the python-can-remote variant: a
+"A dry run of a lab config on the virtual devices" (docs/simulation.md), the python-can-remote variant: a
 python-can-remote server on 127.0.0.1, ``hilbo virtual-exosuit --interface remote``,
 ``hilbo virtual-cart --can-interface remote``, then ``hilbo run my_session.toml`` with the
 config of ``hilbo config example`` and ``[can] interface = "remote"``. Only the protocol is
 shrunk (and the ports are free ones), so a session takes seconds; the pause between the bouts
-stays on. Issue 15 part 2 asks that this dry run passes the bout pause
+stays on. A pause must end, so this dry run must pass the bout pause
 
 * headless, by the resume policy: ``hilbo run CONFIG --no-view --auto-resume 1``;
 * by the operator's ``r``: ``hilbo run CONFIG`` in a terminal (a tmux pane, read with
@@ -51,7 +51,7 @@ pytestmark = [
 
 HILBO = [sys.executable, "-m", "bridge.cli.main"]  # = the venv's `hilbo` console script
 HOST = "127.0.0.1"
-#: The README says --speed 10; 30 keeps the session to seconds (the clock runs 30x the wall).
+#: The docs say --speed 10; 30 keeps the session to seconds (the clock runs 30x the wall).
 SPEED = "30"
 #: Bounded waits, wall seconds.
 READY_S = 20.0
@@ -149,7 +149,7 @@ def dry_run_config(work: Path, *, cart_port: int, can_url: str, **more: str) -> 
 
 @dataclass(frozen=True)
 class Devices:
-    """The README's three background commands, running: where to reach them."""
+    """The documented three background commands, running: where to reach them."""
 
     lab: Lab
     can_url: str
@@ -312,9 +312,9 @@ def view_state(screen: str) -> str:
 def test_r_in_the_live_view_passes_the_bout_pause(tmp_path: Path, devices: Devices) -> None:
     """An operator at the live view presses `r` at every pause it shows, the bout pause among them.
 
-    The README's example config as printed keeps the device watchdog at 100 ms, which a loaded
+    The example config as printed keeps the device watchdog at 100 ms, which a loaded
     PC trips (the view then shows "paused: device heartbeat lost ..."): an operator presses `r`
-    there too. What must hold is issue 15's: the pause between the bouts shows, the operator's
+    there too. What must hold: the pause between the bouts shows, the operator's
     first `r` there ends it, and the session reaches its end in the optimisation bout.
     """
     tmux = Tmux(tmp_path / "tmux.sock")

@@ -1,5 +1,5 @@
 """The live view (bridge/live.py): a Foxglove WebSocket client subscribes and decodes what the
-session log writes (issue 19 item 2).
+session log writes.
 
 The client below speaks just enough of the Foxglove WebSocket protocol (RFC 6455 framing over a
 blocking socket; subprotocol ``foxglove.sdk.v1``, the one foxglove-sdk 0.30 accepts): it reads

@@ -1,4 +1,4 @@
-"""The event-loop stall monitor (bridge/loop_monitor.py, issue 15 part 2)."""
+"""The event-loop stall monitor (bridge/loop_monitor.py)."""
 
 from __future__ import annotations
 

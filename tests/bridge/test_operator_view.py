@@ -1,4 +1,4 @@
-"""The terminal operator view (issue 19.2): faults by name, the expected end, best = opt.best()."""
+"""The terminal operator view: faults by name, the expected end, best = opt.best()."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""A pause holds (issue 15 part 1): faults injected at every await point of the path from a stop
+"""A pause holds (shared/DESIGN.md): faults injected at every await point of the path from a stop
 decision to the next setting's first breath (stop -> propose -> push -> commit -> ack -> applied),
 and at hypothesis-chosen times; nothing is committed or assisting while the session is paused."""
 

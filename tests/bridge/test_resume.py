@@ -33,11 +33,11 @@ def estimator() -> GaussianProductEstimator:
 
 
 def make() -> HILOptimizer:
-    # seed 6 (was 5): with data-only GP observations (issue 16) seed 5's session has no
+    # seed 6 (was 5): with data-only GP observations seed 5's session has no
     # optimisation evaluation of 2+ breaths for the mid-evaluation cuts.
     return HILOptimizer(SPACE, estimator_factory=estimator, n_explore=N_EXPLORE, max_breaths=5, window=1,
                         budget_breaths=14, seed=6, n_candidates=64, n_local=1,
-                        stopping="adaptive")  # the seed rule: early stops within 5 breaths
+                        stopping="adaptive")  # Kim et al. 2019's rule: early stops within 5 breaths
 
 
 def breath_watts(k: int, b: int, params: dict[str, float]) -> float:

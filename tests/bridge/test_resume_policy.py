@@ -1,4 +1,4 @@
-"""A pause can end (issue 15 part 2): the resume policy of headless runs, and no whole-heap
+"""A pause can end: the resume policy of headless runs, and no whole-heap
 garbage collection while a device is connected."""
 
 from __future__ import annotations

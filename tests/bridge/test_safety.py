@@ -27,7 +27,7 @@ from hilbo_core.presets import hip_6d, hip_ankle_4d
 from hilbo_core.profiles import ForceProfile, build_profile
 
 GRID = np.linspace(0.0, 100.0, 101)
-# Seed 000 Fig. 4, subject 1: onset 2 %, peak 24 %, offset 40 %, 223 N, nodes 0.6 and 0.45.
+# Kim et al. 2019 Fig. 4, subject 1: onset 2 %, peak 24 %, offset 40 %, 223 N, nodes 0.6 and 0.45.
 S1 = {"t_on": 2.0, "t_p": 24.0, "t_off": 40.0, "F_p": 223.0, "F_r": 0.6, "F_f": 0.45}
 
 

@@ -21,7 +21,7 @@ pytestmark = pytest.mark.slow
 
 
 def small(**kw) -> VirtualSimConfig:
-    # Walking time counts every push (issue 17), and at --speed max a second of wall time is 100 s
+    # Walking time counts every push, and at --speed max a second of wall time is 100 s
     # of it. The proposal worker's process start (2-3 s beside CPU burners) once ate 5 of 8
     # minutes; the session's clock now waits for the worker (test_session_start.py), but these
     # tests are not about the worker (test_sim_worker.py is), so they ask in a thread.
@@ -61,7 +61,7 @@ def test_session_log_and_summary_agree(tmp_path) -> None:
     # first breath past 8 walked minutes (breaths come every 2-3.5 s).
     assert on_disk["end_reason"] == "session"
     assert 480.0 <= on_disk["walking"]["session_s"] < 480.0 + 3.5
-    # The event-loop stall monitor (issue 15): in the summary and in the session-end record.
+    # The event-loop stall monitor: in the summary and in the session-end record.
     loop = on_disk["loop"]
     assert loop["half_heartbeat_ms"] == 50.0 and loop["wakeups"] > 100
     assert 0.0 < loop["worst_stall_ms"] and loop["stalls_over_half_heartbeat"] >= 0

@@ -42,7 +42,7 @@ def test_session_collects_at_each_applied_profile_and_the_bout_pause_never_the_w
     d = event["details"]
     assert d["mode"] == "freeze"
     # One quiet point per profile the device applied and one between the bouts; no whole-heap
-    # walk while the device is connected (issue 15: it outlasted the device's heartbeat
+    # walk while the device is connected (it outlasted the device's heartbeat
     # watchdog), and no full collection started by CPython during the session.
     # One per applied profile and the bout pause; a session that ends between its last ack and
     # that profile's boundary has one fewer (seen once in a fresh-clone run: 3 for 3 acks).

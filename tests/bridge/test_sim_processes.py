@@ -4,7 +4,7 @@
   devices as children, over SocketCAN vcan0 (marked ``vcan``: natively, or inside user-mode
   Linux, tests/conftest.py) and over python-can-remote on this host.
 * ``hilbo run`` with the example config (``hilbo config example``) as a process of its own, the
-  devices started with the commands the README gives.
+  devices started with the commands docs/simulation.md gives.
 
 Did the cart's wearer feel the profile the exosuit applied? The simulated wearer is
 deterministic from its seed, and its breath times and noise do not depend on the assistance, so
@@ -82,7 +82,7 @@ def _children(pid: int) -> list[int]:
 
 def assert_the_wearer_felt_the_applied_profiles(log: LogContents, seed: int) -> None:
     """Unassisted until the first push; then, within every evaluation, the metabolic rate relaxes
-    towards the cost of that setting (first order, seed 000 §II.C) and away from unassisted."""
+    towards the cost of that setting (first order, Kim et al. 2019 §II.C) and away from unassisted."""
     breaths = log.data("/breaths")
     reference = RealisticWearer(hip_6d(), seed)  # the default wearer of the cart process
     unassisted = {b.t_s: b.watts for b in reference.breaths_until(breaths[-1]["t_s"])}
@@ -153,7 +153,7 @@ def assert_the_device_acked_every_push(log: LogContents, device_stats: dict[str,
 @pytest.mark.parametrize("bus", BUSES)
 def test_three_processes_log_summary_and_wearer_agree(tmp_path: Path, bus: str) -> None:
     needs(bus)
-    # The session's time is walking time (issue 17): every second from a stop decision to the
+    # The session's time is walking time: every second from a stop decision to the
     # next setting's first breath counts. Inside user-mode Linux at 30x real time the proposal
     # worker process's first reply (its imports: 10-20 s of wall time there) alone was 90 % of a
     # 12-minute session, so there the proposals run in a thread.
@@ -342,7 +342,7 @@ async def test_hilbo_run_with_the_example_config_drives_the_device_processes(
     assert log_path.parent == tmp_path / "sessions"
     s = json.loads(summary_path.read_text())
     assert s["n_evaluations"] > 2
-    # The last line says what the session did, walked minutes included (issue 17 part 4).
+    # The last line says what the session did, walked minutes included.
     assert f"session ended: {s['n_evaluations']} evaluations" in err.decode()
     assert f"{s['walking']['session_s'] / 60:.1f} min walked" in err.decode()
     log = read_log(log_path)

@@ -29,7 +29,7 @@ def test_killed_worker_costs_no_evaluation(tmp_path) -> None:
         tasks.append(session_task)
 
     tasks: list[asyncio.Task[None]] = []
-    # 8 minutes of walking (the session's time counts transitions too: issue 17), so a loaded
+    # 8 minutes of walking (the session's time counts transitions too), so a loaded
     # machine still leaves evaluations after the kill.
     cfg = VirtualSimConfig(minutes=8.0, seed=4, n_explore=3, max_breaths=10, warmup_s=20.0)
     s = asyncio.run(run_virtual_sim(cfg, tmp_path, on_session=killer))

@@ -1,4 +1,4 @@
-"""Bad input (issue 4): random bytes, truncated lines, wrong checksums, NaN, absurd values,
+"""Bad input: random bytes, truncated lines, wrong checksums, NaN, absurd values,
 duplicates and late breaths mixed with valid ones, in arbitrary chunks.
 
 Properties: nothing raises; every valid breath around the bad data comes out, in order; every

@@ -1,5 +1,5 @@
 """BreathValidator re-anchoring: a cart clock reset or forward jump costs a few breaths, not the
-session; a single absurd breath time costs only itself (issue 15, part 2 d)."""
+session; a single absurd breath time costs only itself (a cart restart used to pause a session for good)."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """A stream whose breaths are all rejected stops at once with the reason; a missing column is one line.
 
-Reproductions of issue 19 part 3: a CSV replayed with the wrong ``vo2_unit`` or ``time_format``
+Reproductions of two failures a new user met: a CSV replayed with the wrong ``vo2_unit`` or ``time_format``
 used to end "0 evaluations" with all 400 breaths rejected (visible only in /rejects); a column map
 naming a missing column used to end in a 51-line ExceptionGroup traceback.
 """

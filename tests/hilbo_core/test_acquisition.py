@@ -1,4 +1,4 @@
-"""Tests for hilbo_core.acquisition: stable EI (seed 000 §II.B) and its constrained maximiser."""
+"""Tests for hilbo_core.acquisition: stable EI (Kim et al. 2019 §II.B) and its constrained maximiser."""
 
 from __future__ import annotations
 

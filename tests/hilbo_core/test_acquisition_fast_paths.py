@@ -1,4 +1,4 @@
-"""The one-point paths of the EI maximisation (issue 17 part 6) give the batch paths' bits."""
+"""The one-point paths of the EI maximisation (fast campaigns) give the batch paths' bits."""
 
 from __future__ import annotations
 

@@ -73,7 +73,7 @@ def test_every_function_reaches_f_min_at_its_minimisers_and_nowhere_lower(name: 
 
 @pytest.mark.parametrize("name", sorted(FUNCTIONS))
 def test_table_one_priors_are_the_mean_and_sd_over_the_domain(name: str) -> None:
-    # Seed 000 Table I's (μ̃, σ̃) are the moments of f under a uniform x on the domain.
+    # Kim et al. 2019 Table I's (μ̃, σ̃) are the moments of f under a uniform x on the domain.
     fn = FUNCTIONS[name]
     rng = np.random.default_rng(5)
     lo, hi = np.array(fn.lower), np.array(fn.upper)
@@ -185,7 +185,7 @@ def test_trial_rejects_bad_input_by_name(kwargs: dict, match: str) -> None:
 
 def test_noise_models_agree_at_the_prior_variance_and_differ_elsewhere() -> None:
     # matched: measurement variance = σ_z²; assumed: σ̃² (σ_z² only in the estimator). At
-    # σ_z² = σ̃² the two readings of seed 000 §III.2 are the same experiment.
+    # σ_z² = σ̃² the two readings of Kim et al. 2019 §III.2 are the same experiment.
     proto = {"n_explore": 3, "max_breaths": 4, "budget": 8, "n_candidates": 32, "n_local": 0,
              "noise_estimate": "seed"}
     matched = StoppingProtocol(**proto, noise_model="matched")  # type: ignore[arg-type]
@@ -193,7 +193,7 @@ def test_noise_models_agree_at_the_prior_variance_and_differ_elsewhere() -> None
     same = [stopping_trial("branin", 1.0, "adaptive", 3, p) for p in (matched, assumed)]
     assert same[0] == same[1]
     # At 10σ̃² "assumed" measures with variance σ̃² only: different data, different stops.
-    # (Seed 5: with data-only GP observations, issue 16, seed 3's two runs happen to make the
+    # (Seed 5: with data-only GP observations, seed 3's two runs happen to make the
     # same number of evaluations; the point is only that the data differ.)
     high = [stopping_trial("branin", 10.0, "adaptive", 5, p) for p in (matched, assumed)]
     assert high[0]["evaluations"] != high[1]["evaluations"]
@@ -215,7 +215,7 @@ def test_noise_estimate_defaults_to_pooled_and_seed_is_the_seeds_estimator() -> 
     seed = estimator_factory(fn, 0.1, "seed")()
     assert isinstance(seed, GaussianProductEstimator)
     seed.update(1.0, 10.0)
-    # The seed's: fused with σ_z² = 0.1σ̃², whatever the data say.
+    # Kim et al. 2019's: fused with σ_z² = 0.1σ̃², whatever the data say.
     assert seed.var == pytest.approx(1.0 / (1.0 / fn.prior_std**2 + 1.0 / (0.1 * fn.prior_std**2)))
     # Pooled: the estimators of one factory (one trial) share one variance, another trial's don't.
     make = estimator_factory(fn, 0.1)

@@ -1,4 +1,4 @@
-"""Tests for hilbo_core.features: feature maps for feature kernels (seed 003 §3.4.2)."""
+"""Tests for hilbo_core.features: feature maps for feature kernels (Antonova 2016 §3.4.2)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The speed-ups of the EI maximisation (issue 17 part 6) change no result, bit for bit.
+"""The speed-ups of the EI maximisation (fast campaigns) change no result, bit for bit.
 
 Reference: the formulas as they were before (kept here verbatim; the new code must equal them
 bit for bit) and proposals of fixed-seed stopping trials recorded with the code before the change
@@ -112,9 +112,10 @@ def test_predict_with_grad_rejects_non_finite_queries() -> None:
 
 # Recorded with the code before the speed-ups (commit f911427) and matched exactly by them there
 # (docs/results.md, "Campaign speed"); re-recorded once the GP was given data-only observations
-# (issue 16), which changes the trials: evaluations, final recommendation and the measurement
-# counts where y_t changed, for three fixed-seed toy stopping trials. They used the seed's
-# estimator, named since the benchmark's default learns the measurement variance.
+# (the estimator's prior on c divided out), which changes the trials: evaluations, final
+# recommendation and the measurement counts where y_t changed, for three fixed-seed toy stopping
+# trials. They used Kim et al. 2019's estimator, named since the benchmark's default learns the
+# measurement variance.
 _PROTO = StoppingProtocol(n_explore=4, max_breaths=6, window=1, budget=40, n_candidates=64, n_local=2,
                           noise_estimate="seed")  # type: ignore[arg-type]
 _REFERENCE = {

@@ -104,7 +104,7 @@ def test_ukf_recovers_steady_state_cost() -> None:
     # 2 min of 10 %-noise breaths with unknown τ0, τ: a few percent on average (a single seed
     # can be ~2σ ≈ 8 % off — a batch least-squares fit of the same model does no better).
     assert float(np.mean(np.abs(errs_2min))) < 0.05
-    # After 5 minutes every seed is within 5 % (seed 000 §III.1 reports ~1 % on real data).
+    # After 5 minutes every seed is within 5 % (Kim et al. 2019 §III.1 reports ~1 % on real data).
     assert max(abs(e) for e in errs_5min) < 0.05
 
 

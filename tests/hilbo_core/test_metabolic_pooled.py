@@ -78,7 +78,7 @@ def test_pool_sums_each_settings_squares_about_its_own_mean(settings_z: list[lis
 
 @pytest.mark.parametrize("assumed_over_true", [0.1, 10.0])
 def test_a_wrong_assumption_is_learnt_within_an_exploration(assumed_over_true: float) -> None:
-    # Seed 000's exploration: 6 settings × 45 measurements of variance 1, estimator told 0.1 or 10.
+    # Kim et al. 2019's exploration: 6 settings × 45 measurements of variance 1, estimator told 0.1 or 10.
     rng = np.random.default_rng([3, int(assumed_over_true * 10)])
     pool = MeasurementNoisePool(assumed_over_true)
     for level in rng.uniform(-5.0, 5.0, size=6):

@@ -26,7 +26,7 @@ def cost(params: dict[str, float]) -> float:
 
 
 def product_estimator() -> GaussianProductEstimator:
-    # Seed 000 §III.2's measurement model; cheap and deterministic for given inputs.
+    # Kim et al. 2019 §III.2's measurement model; cheap and deterministic for given inputs.
     return GaussianProductEstimator(prior_mean=400.0, prior_var=100.0**2, meas_var=40.0**2)
 
 
@@ -122,7 +122,7 @@ def test_adaptive_stops_early_and_fixed_never_does() -> None:
 
 def test_json_round_trip_mid_evaluation_gives_identical_future() -> None:
     rng = np.random.default_rng(9)
-    # The seed's rule: its first breath after the round trip ends the evaluation, so run()'s
+    # Kim et al. 2019's rule: its first breath after the round trip ends the evaluation, so run()'s
     # clock restarting at 3 s is valid (the sound rule's round trip: test_stopping_sound.py).
     opt = make(budget_breaths=30, stopping="adaptive")
     # Finish exploration and part of an optimisation evaluation.
@@ -158,7 +158,7 @@ def test_best_has_no_side_effect_on_proposals() -> None:
     params, _mean, var = a.best()
     assert SPACE.is_feasible(params) and var > 0
     # The default (sound) recommendation reports the GP posterior at an evaluated setting
-    # (tests/hilbo_core/test_stopping_sound.py); the seed's, that evaluation's own estimate.
+    # (tests/hilbo_core/test_stopping_sound.py); Kim et al. 2019's, that evaluation's own estimate.
     assert any(e.params == params for e in a.evaluations)
 
 
@@ -220,7 +220,7 @@ def test_every_proposal_feasible_for_any_seed(seed: int) -> None:
 
 
 def test_a_state_from_before_the_design_choice_loads_as_maximin() -> None:
-    # Sessions before issue 17's design choice explored maximin points; the state says so.
+    # Sessions before the Sobol design explored maximin points; the state says so.
     opt = HILOptimizer(hip_6d(), config=OptimizerConfig(seed=1))
     assert opt.config.design is DesignKind.SOBOL
     state = opt.to_json()

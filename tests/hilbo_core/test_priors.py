@@ -1,4 +1,4 @@
-"""Tests for hilbo_core.priors: fast-prior observations with inflated noise (seed 003 §3.3)."""
+"""Tests for hilbo_core.priors: fast-prior observations with inflated noise (Antonova 2016 §3.3)."""
 
 from __future__ import annotations
 

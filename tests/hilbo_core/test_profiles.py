@@ -13,7 +13,7 @@ from hilbo_core.profiles import build_profile, hip_ankle_profiles, hip_spline_pr
 
 
 def test_hip_profile_passes_through_the_nodes() -> None:
-    # Subject 1's optimum in the seed's Fig. 4: 2 %, 24 %, 40 %, 223 N, 0.6, 0.45.
+    # Subject 1's optimum in Kim et al. 2019's Fig. 4: 2 %, 24 %, 40 %, 223 N, 0.6, 0.45.
     p = hip_spline_profile(2, 24, 40, 223, 0.6, 0.45)
     f = dict(zip(p.gait_pct.round(6), p.force_n, strict=True))
     assert p.gait_pct.shape == (101,) and p.force_n.shape == (101,)

@@ -1,4 +1,4 @@
-"""SessionProtocol: the walking protocol as a pure, breath-driven state machine (issue 18, 17.4)."""
+"""SessionProtocol: the walking protocol as a pure, breath-driven state machine (walked time)."""
 
 from __future__ import annotations
 
@@ -205,7 +205,7 @@ def test_bad_config(kw, match) -> None:
 
 def test_defaults_are_the_seeds_and_the_optimizers() -> None:
     c = SessionProtocolConfig()
-    assert (c.warmup_s, c.budget_s, c.pause_between_bouts) == (180.0, 2400.0, True)  # seed 000 §IV.A.3
+    assert (c.warmup_s, c.budget_s, c.pause_between_bouts) == (180.0, 2400.0, True)  # Kim et al. 2019 §IV.A.3
     assert (c.n_explore, c.max_breaths) == (OptimizerConfig().n_explore, OptimizerConfig().max_breaths)
 
 

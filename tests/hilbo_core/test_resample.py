@@ -1,4 +1,4 @@
-"""Tests for hilbo_core.resample: BO-RESAMPLE (seed 003 §4.2, Algorithm 1)."""
+"""Tests for hilbo_core.resample: BO-RESAMPLE (Antonova 2016 §4.2, Algorithm 1)."""
 
 from __future__ import annotations
 

@@ -48,7 +48,7 @@ def test_derived_parameter() -> None:
 def test_hip_6d_constraints_are_the_seeds() -> None:
     s = hip_6d()
     assert s.names == ("t_on", "t_p", "t_off", "F_p", "F_r", "F_f")
-    # The optimal parameters of subject 1 in the seed's Fig. 4 are feasible...
+    # The optimal parameters of subject 1 in Kim et al. 2019's Fig. 4 are feasible...
     assert s.is_feasible({"t_on": 2, "t_p": 24, "t_off": 40, "F_p": 223, "F_r": 0.6, "F_f": 0.45})
     # ...and onset closer than 15 %GC to the peak is not.
     with pytest.raises(InfeasibleError, match="t_on <= t_p - 15"):
@@ -59,7 +59,7 @@ def test_hip_6d_constraints_are_the_seeds() -> None:
 
 def test_hip_ankle_uses_corrected_hip_constraint() -> None:
     s = hip_ankle_4d()
-    # Table II of the seed (subject 1 OPT: hip peak 21.3, offset 45.3) must be feasible with
+    # Table II of Kim et al. 2019 (subject 1 OPT: hip peak 21.3, offset 45.3) must be feasible with
     # the corrected constraint; ankle values of Table II lie outside the printed bounds.
     assert s.is_feasible({"hip_t_peak": 21.3, "hip_t_offset": 45.3, "ankle_t1": 35, "ankle_t2": 55})
     assert not s.is_feasible({"hip_t_peak": 45, "hip_t_offset": 35, "ankle_t1": 35, "ankle_t2": 55})
@@ -124,7 +124,7 @@ def _boundary_margin(s, points: np.ndarray) -> np.ndarray:
 
 
 def test_both_designs_start_at_the_centre_and_maximin_goes_to_the_boundary() -> None:
-    # Why "sobol" is the sound rule's design (issue 17): measured over 20 seeds of hip_6d, 85 %
+    # Why "sobol" is the sound rule's design: measured over 20 seeds of hip_6d, 85 %
     # of maximin's points after the first lie within 0.02 of the feasible set's boundary (36 %
     # of Sobol's, about what uniform points in 6-D give).
     s = hip_6d()

@@ -55,7 +55,7 @@ traces = st.tuples(st.integers(1, 4), st.integers(1, 12)).flatmap(lambda s: _tra
 
 
 def _x_matrix(m: np.ndarray, s: np.ndarray) -> np.ndarray:
-    """X of Algorithm 2 lines 4–10, written as the loops of the seed."""
+    """X of Algorithm 2 lines 4–10, written as the loops of Kim et al. 2019."""
     x = np.empty_like(m)
     for i in range(m.shape[0]):
         for j in range(m.shape[1]):

@@ -1,4 +1,4 @@
-"""The sound rule's optional accept stop (``accept_z``, reason DECIDED): issue 17 part 1."""
+"""The sound rule's optional accept stop (``accept_z``, reason DECIDED)."""
 
 from __future__ import annotations
 

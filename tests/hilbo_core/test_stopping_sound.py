@@ -1,4 +1,4 @@
-"""The sound stopping rule, the GP-posterior incumbent and the recommendation (issue 17)."""
+"""The sound stopping rule, the GP-posterior incumbent and the recommendation."""
 
 from __future__ import annotations
 
@@ -70,7 +70,7 @@ def test_no_stop_before_min_decision_s() -> None:
 
 
 def test_boundary_and_schedule_above_the_floor() -> None:
-    # μ = 10 = 0.5·σ exactly: not greater, continue (the seed's strict μ > A·σ).
+    # μ = 10 = 0.5·σ exactly: not greater, continue (Kim et al. 2019's strict μ > A·σ).
     d = RULE.decide(1, 410.0, 300.0, 400.0, 100.0, t_s=90.0)
     assert (d.stop, d.z) == (False, 0.5)
     # i = 3 has A = 2.0 > floor: z = 1.5 does not stop there, stops at i = 2 (A floored to 0.5).
@@ -162,7 +162,7 @@ def test_sound_session_never_stops_early_or_when_looking_better() -> None:
 def test_adaptive_keeps_the_seed_rule() -> None:
     steps = drive(make(stopping="adaptive"), np.random.default_rng(2))
     early = [t for t, s in steps if s.stop and s.evaluation.reason == "threshold"]
-    assert early and min(early) < 30.0  # the seed's rule decides from the first breaths
+    assert early and min(early) < 30.0  # Kim et al. 2019's rule decides from the first breaths
 
 
 # ---------------------------------------------------------------- best()

@@ -1,4 +1,4 @@
-"""Tests for hilbo_core.studies.tutor: BKT students, the AFM threshold policy, R(π) (seed 003 §4.1-4.4)."""
+"""hilbo_core.studies.tutor: BKT students, the AFM threshold policy, R(π) (Antonova 2016 §4.1-4.4)."""
 
 from __future__ import annotations
 

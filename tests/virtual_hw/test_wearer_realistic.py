@@ -1,4 +1,4 @@
-"""The realistic simulated wearer (issue 16 part 3): noise, outliers, dynamics, adaptation, families."""
+"""The realistic simulated wearer: noise, outliers, dynamics, adaptation, families."""
 
 from __future__ import annotations
 
@@ -69,7 +69,7 @@ def test_steady_state_noise_cv_is_the_persons_8_to_12_percent(seed: int) -> None
     assert 0.08 <= w.noise_cv <= 0.12
     _, r = steady_residuals(w)
     # The core (robust SD, blind to the outliers) is the drawn CV; the raw CV includes the
-    # outliers and stays near the real data's median of about 11 % (issue 16).
+    # outliers and stays near the real recordings' median of about 11 %.
     assert robust_sd(r) == pytest.approx(w.noise_cv, abs=0.012)
     assert 0.075 <= float(np.std(r)) <= 0.17
 

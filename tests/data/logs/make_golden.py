@@ -44,7 +44,7 @@ class _Clock:
 def write_session(path: Path, **log_kwargs: Any) -> None:
     """The golden session: 3 evaluations (2 exploration, 1 optimisation) and every channel."""
     space = hip_6d()
-    # The seed's rule (it stops within 3 breaths, so every channel gets its records). Options
+    # Kim et al. 2019's rule (it stops within 3 breaths, so every channel gets its records). Options
     # whose default changed since a format version was written are given as they were then
     # (accept_z: off until 2026-12-05), so a default changes no golden record.
     opt = HILOptimizer(space, n_explore=2, max_breaths=3, window=1, budget_breaths=4, seed=1,
