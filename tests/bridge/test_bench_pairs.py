@@ -172,13 +172,14 @@ def test_run_on_the_realistic_wearer_reports_every_rule() -> None:
 
 
 def _write_recording(path: Path, levels: list[float], seed: int) -> list[float]:
-    """Bouts of 200 s at the given steady states, τ = 40 s, a breath every 2.5 s."""
+    """Bouts of 300 s at the given steady states, τ = 40 s, a breath every 2.5 s (a replay's truth
+    is the mean of a bout's breaths after 180 s)."""
     rng = np.random.default_rng(seed)
     lines, seq, body = [b"# hilbo-line recording\n"], 0, levels[0]
-    starts = [200.0 * k for k in range(len(levels))]
+    starts = [300.0 * k for k in range(len(levels))]
     for c, t0 in zip(levels, starts, strict=True):
         b0 = body
-        for t in np.arange(1.0, 200.0, 2.5):
+        for t in np.arange(1.0, 300.0, 2.5):
             body = c + (b0 - c) * math.exp(-t / 40.0)
             vo2 = body * (1.0 + 0.05 * rng.normal()) / _W_PER_ML_MIN
             rec = BreathRecord(t_s=t0 + float(t), vo2_ml_min=vo2, vco2_ml_min=0.9 * vo2)
