@@ -68,11 +68,21 @@ after large steps). The grid mixture carries that trade-off into the reported va
   Gaesser & Poole 1996, Exerc Sport Sci Rev 24:35–70; Coyle & González-Alonso 2001, Exerc Sport
   Sci Rev 29:88–92), and walking overshoots before it settles. On the held-out transitions even
   an oracle mean of the breaths at 120–180 s had a z-score SD of 2.1 against the bout's final
-  level. Over the 2–4 minutes between a decision and the end of the bout that is ≈ 3 % of the
-  level, whatever the number of breaths, so c's reported variance is the fit's plus
-  (model_error_rel·c)² with model_error_rel = 0.03 (the variance of a level that wanders at
-  ±1 %/min for 3 min). It is independent of the breath noise, so it goes to the GP as well: it is
-  the error of the setting's cost the optimizer models.
+  level, and a model-error term of 3–4 % of the level made its σ hold there. A level drifting
+  ≈ 1 %/min is ≈ 3 % away from where it was 3 minutes earlier (the time from a decision to the
+  end of a bout), whatever the number of breaths, so c's reported variance is the fit's plus
+  (model_error_rel·c)² with model_error_rel = 0.03. It is independent of the breath noise, so it
+  goes to the GP as well (:meth:`TransitionEstimator.data_only`): it is an error of the
+  observation of the setting's cost, not a prior.
+* **A transition-error term.** Early in a setting the single exponential also misses phase I
+  (the first ≈ 15–20 s, Whipp & Ward 1990), overshoot and, in heavy exercise, the slow component
+  (Poole & Jones 2012), all in proportion to the step: c's variance adds
+  (transition_error_rel·|c − b0|·e^{−t/transition_error_s})², 0.25 and 60 s, mixed over τ: at
+  60 s ≈ 9 % of the step (3–7 % of the level for the steps of the shared running recording,
+  whose 60-s estimates were up to 14 % off, mostly low), < 1 % of the step after 3 minutes, and
+  small for the small steps of an assistance change.
+  ``delays_s`` can marginalise a time delay as well (default none: on the shared recordings it
+  helped the off-steps and cost the on-steps, whose phase I is a fast rise, not a delay).
 
 The fit's variance of c is that of the τ mixture, with two corrections that make it describe
 the errors rather than the model's conditional spread: a sandwich factor for the t weights (for
@@ -81,8 +91,8 @@ a known factor, computed below by quadrature) and the Student-t inflation ν/(ν
 estimated CV (ν = ν0 + effective residual breaths).
 
 Cost: every breath refits all breaths of the setting (n ≤ a few hundred) on a 33-point τ grid
-with three reweighting passes, vectorised over the grid: a few hundred µs per breath
-(``hilbo bench perf`` times it inside the optimizer).
+with three reweighting passes, vectorised over the grid: ≈ 0.2 ms per breath at 200 breaths
+(``hilbo bench perf`` times it inside the optimizer, with the stopping decision).
 """
 
 from __future__ import annotations
