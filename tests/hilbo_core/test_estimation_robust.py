@@ -1,14 +1,17 @@
-"""TransitionEstimator: no single breath can capture the estimate (robust start, implausible breaths)."""
+"""TransitionEstimator: no single breath can capture the estimate (robust start, implausible
+breaths); the delay option."""
 
 from __future__ import annotations
 
 import math
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hilbo_core.estimation import TransitionEstimator
+from hilbo_core.errors import ConfigError
+from hilbo_core.estimation import TransitionConfig, TransitionEstimator
 
 
 def _breaths(seed: int, b0: float, c: float, tau: float, t_end: float) -> list[tuple[float, float]]:
@@ -75,3 +78,29 @@ def test_a_fast_real_change_is_not_flagged() -> None:
     assert abs(est.mean - 900.0) < 0.01 * 900.0
 
 
+
+
+def test_a_delayed_step_is_fitted_better_with_the_delay_option() -> None:
+    # A down-step that starts 15 s late (phase I of an off-transition): by 60 s the delays
+    # (0, 10, 20) s miss the steady state by ≈ 14 % on average, the plain exponential by ≈ 22 %.
+    errs: dict[bool, list[float]] = {False: [], True: []}
+    for seed in range(20):
+        rng = np.random.default_rng(seed)
+        breaths, t = [], float(rng.uniform(0.5, 3.0))
+        while t <= 60.0:
+            m = 1000.0 if t < 15.0 else 350.0 + 650.0 * math.exp(-(t - 15.0) / 30.0)
+            breaths.append((t, m * (1.0 + 0.08 * rng.normal())))
+            t += float(rng.uniform(2.0, 3.5))
+        for delays in (False, True):
+            est = TransitionEstimator(TransitionConfig(delays_s=(0.0, 10.0, 20.0)) if delays else None)
+            est.start_from(1000.0, 100.0)
+            for ti, w in breaths:
+                est.update(ti, w)
+            errs[delays].append(abs(est.mean - 350.0) / 350.0)
+    assert np.mean(errs[True]) < 0.8 * np.mean(errs[False])
+
+
+@pytest.mark.parametrize("delays", [(), (0.0, -1.0), (0.0, 200.0), [0.0, 10.0], (True,)])
+def test_bad_delays_are_refused(delays: object) -> None:
+    with pytest.raises(ConfigError, match="delays_s"):
+        TransitionConfig(delays_s=delays)  # type: ignore[arg-type]
