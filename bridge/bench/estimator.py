@@ -203,8 +203,9 @@ def realistic_people(n: int, seed: int, *, bouts: int = 6, bout_s: float | None 
     bouts do (45–120 s or 200–300 s), so its transition starts wherever the previous one left
     the body; ``bout_s`` makes every bout last that long instead (``hilbo bench pairs`` needs
     full-length evaluations). The truth of a bout is the setting's steady-state cost at the
-    bout's end (the wearer adapts, 0–3 % over the hour); the first bout only starts the chained
-    estimator.
+    bout's end (the wearer adapts, 0–3 % over the hour), not the breaths' level: the wearer's
+    steady state drifts (1.5–3.5 % SD), an error every estimate has, as on people; the first bout
+    only starts the chained estimator.
     Steps between hip settings are small (5–25 % of the cost at most), unlike the walking /
     running transitions of the real data of issue 16.
 
