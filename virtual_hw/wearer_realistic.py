@@ -46,9 +46,34 @@ Dynamics
 First-order dynamics of the *actual* metabolic rate (Selinger & Donelan 2014, Kim et al. 2019 ref. [20];
 Kim et al. 2019 §II.C): ``dm/dt = (c(t) - m)/τ``. The state ``m`` is carried across every change of the
 applied assistance, so a new setting's transition starts from wherever the body is when it begins
-(the real recordings: transitions of more than 50 % are common), never from a reset. ``τ`` is drawn per
-person in 30-60 s (the real recordings: time constants vary between people, 30-60 s; Selinger & Donelan
-report about 40 s on average).
+(on the real recordings transitions of more than 50 % are common), never from a reset. ``τ`` is drawn per
+person log-uniformly in 14-55 s (median ≈ 28 s). The phase-II time constant of VO2 in moderate
+exercise is ≈ 20-35 s in healthy adults, faster in the trained and slower in the unfit (Poole &
+Jones 2012, "Oxygen uptake kinetics", Compr Physiol 2:933-996; Xu & Rhodes 1999, Sports Med
+27:313-327); a single exponential fitted from the change on real transitions gave quartiles of
+19 / 30 / 41 s and a median of 16 s for walking (the project's held-out measurement of 156
+transitions); Selinger & Donelan 2014 report ≈ 42 s for the whole response to a walking step.
+(The range was 30-60 s before: slower than most people.)
+
+**Drift.** A real steady state is not flat: it drifts by about ±1 %/min within a 6-minute bout
+(the held-out measurement; cardiovascular drift and, above the lactate threshold, the slow
+component: Poole & Jones 2012; Coyle & González-Alonso 2001, Exerc Sport Sci Rev 29:88-92). The
+rate is the first-order solution times ``1 + d(t)``, ``d(t) = s·√(2/6)·Σ_k sin(2π t/P_k + φ_k)``
+over six sinusoids: ``s`` per person in 1.5-3.5 % of the level (the stationary SD of d),
+periods ``P_k`` log-uniform in 6-30 min and phases uniform per person. Over subjects 0-39 its RMS
+rate of change is 0.6-2.7 %/min (median 1.3) and its change over 3 minutes has a median SD of
+3.3 %: the size of the model error that made the breath estimate's σ hold on the held-out
+transitions (3-4 %; at 1-2.5 % the wearer was gentler than people and the estimate looked
+over-cautious on it). It is smooth and deterministic per subject (``metabolic_rate_w`` stays a
+function of time), continuous across changes (it is the body, not the setting), and not part of
+the truth: ``true_cost_w`` is the landscape, and the drift is an error every evaluation has.
+
+**First breaths.** The first breath after a change of the applied assistance is, with a
+per-person probability of 0-10 %, a partial breath at 20-60 % of the level (on real data: a run
+whose first breaths were 43-56 W for a level of 789 W, in the held-out measurement; the first
+breath of the first run of the shared ZAN recording, 92 W after standing at ≈ 195 W).
+The probability and factor range are model choices; the draws come from a stream of their own,
+so every other breath is what it was without them.
 
 **Slow adaptation.** The steady-state cost of every setting (unassisted walking included) falls
 with time on the breath clock, ``c(x, t) = c(x)·D(t)``,
@@ -147,6 +172,7 @@ _ONE_HOUR_S = 3600.0
 _FACTOR_LIMITS = (0.2, 3.0)
 _OUTLIER_DF = 3.0  # Student t degrees of freedom of the outliers: heavy tails, finite variance
 _INTERVAL_CLIP = (0.5, 2.0)  # each breath interval within these multiples of the person's mean
+_N_DRIFT = 6  # sinusoids of the steady state's drift (module docstring, "Drift")
 
 
 class LandscapeFamily(enum.Enum):
@@ -333,7 +359,7 @@ class RealisticWearerConfig:
     """
 
     gross_cost_w_per_kg: tuple[float, float] = (4.7, 5.8)
-    tau_s: tuple[float, float] = (30.0, 60.0)
+    tau_s: tuple[float, float] = (14.0, 55.0)
     breath_interval_s: tuple[float, float] = (2.0, 3.5)
     breath_interval_cv: tuple[float, float] = (0.10, 0.20)
     noise_cv: tuple[float, float] = (0.08, 0.12)
@@ -342,6 +368,10 @@ class RealisticWearerConfig:
     outlier_scale: float = 0.3
     adaptation_frac: tuple[float, float] = (0.0, 0.03)
     adaptation_tau_s: tuple[float, float] = (900.0, 2400.0)
+    drift_sd: tuple[float, float] = (0.015, 0.035)
+    drift_period_s: tuple[float, float] = (360.0, 1800.0)
+    first_breath_p: tuple[float, float] = (0.0, 0.1)
+    first_breath_factor: tuple[float, float] = (0.2, 0.6)
     p_bumps: float = 0.5
     rer: tuple[float, float] = (0.85, 0.90)
     rer_sd: float = 0.02
@@ -371,6 +401,10 @@ class RealisticWearerConfig:
         _check_range(o, "adaptation_frac", self.adaptation_frac, 0.0, 0.3)
         # T must stay far from τ: the closed-form transition divides by 1 - τ/T.
         _check_range(o, "adaptation_tau_s", self.adaptation_tau_s, 10.0 * self.tau_s[1], 1e6)
+        _check_range(o, "drift_sd", self.drift_sd, 0.0, 0.2)
+        _check_range(o, "drift_period_s", self.drift_period_s, 10.0, 1e5)
+        _check_range(o, "first_breath_p", self.first_breath_p, 0.0, 1.0)
+        _check_range(o, "first_breath_factor", self.first_breath_factor, 0.05, 1.0)
         _check_value(o, "p_bumps", self.p_bumps, 0.0, 1.0)
         _check_range(o, "rer", self.rer, _RER_LIMITS[0], _RER_LIMITS[1])
         _check_value(o, "rer_sd", self.rer_sd, 0.0, 0.2)
@@ -402,10 +436,12 @@ class RealisticWearerConfig:
 
     @classmethod
     def noiseless(cls, **overrides: Any) -> RealisticWearerConfig:
-        """The default population without breath noise, outliers or adaptation (intervals stay
-        irregular): every breath reports exactly the noiseless rate ``m(t)``."""
+        """The default population without breath noise, outliers, adaptation, drift or odd
+        first breaths (intervals stay irregular): every breath reports exactly the first-order
+        rate ``m(t)``."""
         base: dict[str, Any] = {"noise_cv": (0.0, 0.0), "outlier_frac": (0.0, 0.0),
-                                "adaptation_frac": (0.0, 0.0), "rer_sd": 0.0, "hr_sd_bpm": 0.0}
+                                "adaptation_frac": (0.0, 0.0), "rer_sd": 0.0, "hr_sd_bpm": 0.0,
+                                "drift_sd": (0.0, 0.0), "first_breath_p": (0.0, 0.0)}
         base.update(overrides)
         return cls(**base)
 
@@ -438,9 +474,14 @@ class RealisticWearer:
         self.seed = int(seed)
         self.config = cfg
         self.body_mass_kg = float(body_mass_kg)
-        subj_ss, breath_ss, search_ss = np.random.SeedSequence(self.seed).spawn(3)
+        # A fourth stream for the first-breath draws, so the first three (and every breath's
+        # noise) are what they were before it existed.
+        subj_ss, breath_ss, search_ss, first_ss = np.random.SeedSequence(self.seed).spawn(4)
         self._draw_subject(np.random.default_rng(subj_ss))
         self._breath_rng = np.random.default_rng(breath_ss)
+        self._first_rng = np.random.default_rng(first_ss)
+        self._first_pending = False
+        self._n_first_odd = 0
         self._search_ss = search_ss
         # The first-order state at each change: (t_change_s, rate_at_change_w, unadapted target).
         self._segments: list[tuple[float, float, float]] = [
@@ -462,7 +503,9 @@ class RealisticWearer:
 
         # Fixed draw order (every prior, used or not), so a seed is always the same person.
         self._baseline_w = u(cfg.gross_cost_w_per_kg) * self.body_mass_kg
-        self._tau_s = u(cfg.tau_s)
+        # τ log-uniform over the range (the same single draw as before: u in [0, 1) mapped).
+        lo_tau, hi_tau = cfg.tau_s
+        self._tau_s = lo_tau * (hi_tau / lo_tau) ** float(rng.uniform(0.0, 1.0))
         self._interval_mean_s = u(cfg.breath_interval_s)
         self._interval_cv = u(cfg.breath_interval_cv)
         self._noise_sd = u(cfg.noise_cv)
@@ -499,6 +542,13 @@ class RealisticWearer:
                 actuator=bp.actuator, bumps=tuple(bumps), max_benefit_frac=u(bp.max_benefit_frac),
                 mistiming_penalty=u(bp.mistiming_penalty),
             )
+        # Drawn last, so every earlier draw (the subject as it was) is unchanged.
+        self._drift_sd = u(cfg.drift_sd)
+        lo_p, hi_p = cfg.drift_period_s
+        periods = lo_p * (hi_p / lo_p) ** rng.uniform(0.0, 1.0, _N_DRIFT)
+        self._drift_omega = 2.0 * math.pi / periods
+        self._drift_phase = rng.uniform(0.0, 2.0 * math.pi, _N_DRIFT)
+        self._first_p = u(cfg.first_breath_p)
 
     @property
     def family(self) -> LandscapeFamily:
@@ -541,6 +591,16 @@ class RealisticWearer:
         return self._n_outliers
 
     @property
+    def n_partial_first_breaths(self) -> int:
+        """First breaths after a change that came out partial (a fraction of the level)."""
+        return self._n_first_odd
+
+    @property
+    def drift_sd(self) -> float:
+        """This subject's SD of the steady state's drift, as a fraction of the level."""
+        return self._drift_sd
+
+    @property
     def windows(self) -> dict[str, AssistWindow]:
         """The window-family landscape per actuator (a copy; drawn for every subject)."""
         return dict(self._windows)
@@ -574,6 +634,9 @@ class RealisticWearer:
             "outlier_scale": self.config.outlier_scale,
             "adaptation_frac_per_hour": self._adapt_frac,
             "adaptation_tau_s": self._adapt_tau_s,
+            "drift_sd_frac": self._drift_sd,
+            "drift_periods_s": [float(2.0 * math.pi / w) for w in self._drift_omega],
+            "first_breath_partial_p": self._first_p,
             "rer_mean": self._rer_mean,
             "hr_rest_bpm": self._hr_rest,
             "landscape": landscape,
@@ -670,13 +733,26 @@ class RealisticWearer:
         b = self._adapt_frac / k
         return 1.0 - b + b * math.exp(-t / self._adapt_tau_s) / (1.0 - self._tau_s / self._adapt_tau_s)
 
+    def drift_factor(self, t_s: float) -> float:
+        """``1 + d(t)``: the steady state's slow drift at breath-clock time ``t_s`` (module
+        docstring, "Drift"); 1 when the person's drift SD is 0."""
+        t = check_time("t_s", t_s)
+        if self._drift_sd == 0.0:
+            return 1.0
+        d = float(np.sum(np.sin(self._drift_omega * t + self._drift_phase)))
+        return 1.0 + self._drift_sd * math.sqrt(2.0 / _N_DRIFT) * d
+
     def metabolic_rate_w(self, t_s: float) -> float:
         """Noiseless instantaneous metabolic power in W at breath-clock time ``t_s`` (>= 0).
 
-        ``m(t) = c·P(t) + (m(t_c) - c·P(t_c))·e^{-(t - t_c)/τ}`` on the segment of the last
-        change ``t_c`` before ``t`` (the exact solution of the first-order ODE with the adapting
-        target; continuous at every change).
+        The first-order rate ``m(t) = c·P(t) + (m(t_c) - c·P(t_c))·e^{-(t - t_c)/τ}`` on the
+        segment of the last change ``t_c`` before ``t`` (the exact solution of the first-order
+        ODE with the adapting target; continuous at every change), times the drift
+        :meth:`drift_factor`.
         """
+        return self._first_order_w(t_s) * self.drift_factor(t_s)
+
+    def _first_order_w(self, t_s: float) -> float:
         t = check_time("t_s", t_s)
         seg = self._segments[0]
         for s in reversed(self._segments):
@@ -712,7 +788,8 @@ class RealisticWearer:
             self._segments[-1] = (t_c, m_c, target)
         elif target != old_target:
             # The new transition starts from the rate the body is at now (module docstring).
-            self._segments.append((t, self.metabolic_rate_w(t), target))
+            self._segments.append((t, self._first_order_w(t), target))
+            self._first_pending = True
         return target
 
     def apply_params(self, params: Mapping[str, float], t_s: float) -> float:
@@ -747,6 +824,15 @@ class RealisticWearer:
             e += cfg.outlier_scale * t_out
             self._n_outliers += 1
         watts = m * min(max(1.0 + e, _FACTOR_LIMITS[0]), _FACTOR_LIMITS[1])
+        # The first breath after a change: with the person's probability a partial breath (a
+        # fraction of the level), drawn from its own stream, two draws every breath.
+        u_first, f_first = self._first_rng.uniform(size=2)
+        if self._first_pending:
+            self._first_pending = False
+            if u_first < self._first_p:
+                lo, hi = cfg.first_breath_factor
+                watts = m * (lo + (hi - lo) * float(f_first))
+                self._n_first_odd += 1
         rer = min(max(self._rer_mean + cfg.rer_sd * xi_rer, _RER_LIMITS[0]), _RER_LIMITS[1])
         vo2 = _S_PER_MIN * watts / (_BROCKWAY_O2 + _BROCKWAY_CO2 * rer)
         vco2 = rer * vo2

@@ -9,7 +9,8 @@ cost c. Against the truth c:
   of |z| ≤ 1.96 (95 % interval coverage);
 
 split by step size: *small* when the first breath of the setting is less than 50 % away from
-the new steady state, *large* otherwise (where the UKF was found overconfident on real data).
+the new steady state, *large* otherwise; and the horizons 60-180 s pooled (on one recording a
+horizon has a handful of transitions: a coverage of 9 is 89 % or 100 %, nothing between).
 
 Estimators:
 
@@ -26,11 +27,16 @@ Data:
 * synthetic (default): :func:`synthetic_people` — a small pure generator of breath trajectories
   (documented there). ``--wearer NAME`` picks a registered wearer (:data:`WEARERS`):
   ``synthetic`` or ``realistic`` (the simulated wearer of the virtual devices).
-* ``--replay FILE --transitions t1,t2,...``: a recorded breath file (hilbo-line, a vendor export
-  ``hilbo cart inspect`` recognises, or a CSV with ``--csv-columns TIME,VO2,VCO2``) read with
-  the cart driver's parsers and validator;
-  the bouts are [t_k, t_{k+1}) (the last to the end of the file), the truth of each is the mean
-  of its last 60 s of breaths, and the breaths before t1 only start the chained estimator.
+* ``--replay FILE --transitions t1,t2,...`` (or ``--events FILE``, a CSV ``t_s,label`` of the
+  changes): a recorded breath file (hilbo-line, a vendor export ``hilbo cart inspect``
+  recognises, or a CSV with ``--csv-columns TIME,VO2,VCO2``) read with the cart driver's parsers
+  and validator; the bouts are [t_k, t_{k+1}) (the last to the end of the file). The truth of a
+  bout is the mean of its breaths from max(180 s, end − 180 s) to its end (at most its last
+  3 minutes, none of the breaths an estimate at ≤ 180 s saw), reported with that mean's standard
+  error. Scored: every bout after the first whose truth window spans ≥ 60 s, or those whose
+  label ``--score LABELS`` names; the rest (rests, warm-ups, the first bout) only move the
+  chained estimator on. ``estimator_bouts.md`` lists every bout, scored or not and why, its
+  truth with its SE, and the breaths the default estimator flagged as implausible.
 """
 
 from __future__ import annotations
@@ -77,7 +83,9 @@ _LARGE_STEP = 0.5  # large: the first breath more than 50 % away from the new st
 _Z95 = 1.959963984540054
 _LAB_TAU_S = 42.0  # Selinger & Donelan (2014), the first-order fit labs use
 _FULL_TAU_GRID_S = np.geomspace(5.0, 300.0, 80)
-_TRUTH_WINDOW_S = 60.0
+_TRUTH_WINDOW_S = 180.0  # a replay's truth: the mean of at most the bout's last 3 minutes...
+_TRUTH_MIN_SPAN_S = 60.0  # ...after the last horizon, spanning at least a minute to be scored
+_POOLED = (60.0, 180.0)  # the horizons pooled into one calibration figure
 
 
 @dataclass(frozen=True)
@@ -91,6 +99,11 @@ class Bout:
         first_distance: |first-breath level − truth| / truth (noise-free level when known).
         evaluate: Whether this bout is a transition to score (the first bout of a person only
             starts the chained estimator).
+        label: The bout's name (a replay's event label; "" when none).
+        truth_se_w: The standard error of ``truth_w`` in W (0 when the truth is known, as in
+            the simulations; a replay's truth is a mean of breaths).
+        truth_n: Breaths the truth is the mean of (0 when it is known).
+        note: Why a bout is not scored ("" when it is).
     """
 
     t_s: np.ndarray
@@ -98,6 +111,10 @@ class Bout:
     truth_w: float
     first_distance: float
     evaluate: bool = True
+    label: str = ""
+    truth_se_w: float = 0.0
+    truth_n: int = 0
+    note: str = ""
 
 
 # ------------------------------------------------------------------------------ synthetic data
@@ -186,8 +203,9 @@ def realistic_people(n: int, seed: int, *, bouts: int = 6, bout_s: float | None 
     bouts do (45–120 s or 200–300 s), so its transition starts wherever the previous one left
     the body; ``bout_s`` makes every bout last that long instead (``hilbo bench pairs`` needs
     full-length evaluations). The truth of a bout is the setting's steady-state cost at the
-    bout's end (the wearer adapts, 0–3 % over the hour); the first bout only starts the chained
-    estimator.
+    bout's end (the wearer adapts, 0–3 % over the hour), not the breaths' level: the wearer's
+    steady state drifts (1.5–3.5 % SD), an error every estimate has, as on people; the first bout
+    only starts the chained estimator.
     Steps between hip settings are small (5–25 % of the cost at most), unlike the walking /
     running transitions of the real recordings.
 
@@ -228,20 +246,32 @@ WEARERS: dict[str, Callable[..., list[list[Bout]]]] = {
 
 # ------------------------------------------------------------------------------ replay
 def replay_people(path: str | Path, transitions_s: Sequence[float],
-                  csv_columns: Sequence[str] | None = None) -> list[list[Bout]]:
+                  csv_columns: Sequence[str] | None = None, *, labels: Sequence[str] | None = None,
+                  score: Sequence[str] | None = None) -> list[list[Bout]]:
     """The transitions of a recorded breath file, as one "person".
+
+    The bouts are [t_k, t_{k+1}) (the last to the end of the file). The truth of a bout is the
+    mean of its breaths from max(180 s, its end − 180 s) to its end: at most its last 3 minutes
+    and none of the breaths any horizon sees (so truth and estimate share no breath), with that
+    mean's standard error SD/√n (:attr:`Bout.truth_se_w`). Scored: every bout after the first
+    whose truth window spans at least 60 s (a short rest or warm-up has no steady state to
+    score), or, with ``score``, the bouts whose label is in it (each must have such a window).
+    Breaths before t1 and unscored bouts only move the chained estimator on.
 
     Args:
         path: A hilbo-line recording or a vendor export (detected as ``hilbo cart inspect``
             does), or a CSV when ``csv_columns`` is given.
         transitions_s: Setting-change times on the file's clock (s), increasing.
         csv_columns: Header names of time (s), VO2 and VCO2 (ml/min) for a CSV.
+        labels: One name per transition (the bout it starts), or None.
+        score: Labels of the bouts to score (needs ``labels``), or None for the default rule.
 
     Returns:
-        ``[[bout before t1 (not scored), bout t1..t2, ...]]``.
+        ``[[bout before t1 (not scored), bout t1..t2, ...]]`` (an empty first bout left out).
 
     Raises:
-        ConfigError: Unreadable file, bad transition times, or a bout without breaths.
+        ConfigError: Unreadable file, bad transition times or labels, a bout without breaths,
+            or a bout named by ``score`` without a truth window.
     """
     from drivers.cart.csvmap import CsvMapping
     from drivers.cart.inspect import inspect_file
@@ -252,6 +282,16 @@ def replay_people(path: str | Path, transitions_s: Sequence[float],
         raise ConfigError(f"--transitions {ts}: expected increasing finite times in s")
     if csv_columns is not None and len(csv_columns) != 3:
         raise ConfigError(f"--csv-columns {list(csv_columns)}: expected TIME,VO2,VCO2")
+    if labels is not None and len(labels) != len(ts):
+        raise ConfigError(f"{len(labels)} labels for {len(ts)} transitions: expected one label per "
+                          "transition")
+    if score is not None:
+        if labels is None:
+            raise ConfigError("--score names bouts by label: give the labels (--events FILE)")
+        unknown = sorted(set(score) - set(labels))
+        if unknown:
+            raise ConfigError(f"--score {','.join(score)}: no bout is labelled {unknown} "
+                              f"(labels: {sorted(set(labels))})")
     try:
         # As a session reads it (``hilbo cart inspect``): the format detected (hilbo-line or a
         # vendor export), the breaths validated; a CSV by its column map.
@@ -270,6 +310,7 @@ def replay_people(path: str | Path, transitions_s: Sequence[float],
     t_all = np.array([r.t_s for r in records], dtype=float)
     w_all = np.array([r.watts for r in records], dtype=float)
     edges = [-math.inf, *ts, math.inf]
+    names = ["", *(labels if labels is not None else [""] * len(ts))]
     person: list[Bout] = []
     for k in range(len(edges) - 1):
         sel = (t_all >= edges[k]) & (t_all < edges[k + 1])
@@ -282,10 +323,86 @@ def replay_people(path: str | Path, transitions_s: Sequence[float],
         # Time since the setting began; the warm-up bout before t1 starts at its first breath.
         t0 = edges[k] if k else float(t_all[sel][0])
         t, w = t_all[sel] - t0, w_all[sel]
-        tail = t >= t[-1] - _TRUTH_WINDOW_S
-        truth = float(np.mean(w[tail]))
-        person.append(Bout(t, w, truth, abs(float(w[0]) - truth) / truth, evaluate=k > 0))
+        lo = max(HORIZONS_S[-1], float(t[-1]) - _TRUTH_WINDOW_S)
+        tail = t > lo
+        span = float(t[-1]) - lo
+        if tail.sum() >= 2:
+            truth = float(np.mean(w[tail]))
+            se = float(np.std(w[tail], ddof=1)) / math.sqrt(int(tail.sum()))
+        else:
+            truth, se = float(np.mean(w[-3:])), math.nan
+        has_truth = span >= _TRUTH_MIN_SPAN_S and tail.sum() >= 2
+        first = not person
+        if first:
+            note = "first bout: starts the chained estimator"
+        elif score is not None and names[k] not in score:
+            note = f"label {names[k]!r} not in --score"
+        elif not has_truth:
+            if score is not None:
+                raise ConfigError(f"--score {','.join(score)}: bout {names[k]!r} at {edges[k]:g} s lasts "
+                                  f"{t[-1]:.0f} s, too short for a truth after {HORIZONS_S[-1]:g} s")
+            note = (f"{t[-1]:.0f} s long: no truth window of {_TRUTH_MIN_SPAN_S:g} s after "
+                    f"{HORIZONS_S[-1]:g} s")
+        else:
+            note = ""
+        person.append(Bout(t, w, truth, abs(float(w[0]) - truth) / truth, evaluate=not note,
+                           label=names[k], truth_se_w=se, truth_n=int(tail.sum()), note=note))
     return [person]
+
+
+def read_events(path: str | Path) -> tuple[list[float], list[str]]:
+    """``--events FILE``: a CSV with columns ``t_s`` and ``label``, one row per change.
+
+    Returns:
+        (times in s, labels), in the file's order.
+
+    Raises:
+        ConfigError: Unreadable file, missing columns or a time that is not a number.
+    """
+    import csv
+
+    try:
+        with open(path, newline="", encoding="utf-8") as fh:
+            rows = list(csv.DictReader(fh))
+    except OSError as err:
+        raise ConfigError(f"--events {path}: cannot read: {err}") from err
+    if not rows or not {"t_s", "label"} <= set(rows[0]):
+        raise ConfigError(f"--events {path}: expected a CSV with columns t_s,label")
+    try:
+        return [float(r["t_s"]) for r in rows], [str(r["label"]) for r in rows]
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f"--events {path}: a t_s that is not a number: {err}") from err
+
+
+def bout_table(people: Sequence[list[Bout]]) -> tuple[list[dict[str, Any]], str]:
+    """Which bouts are scored and their truth: (JSON rows, Markdown table).
+
+    Also the default estimator's breaths flagged as implausible for the level at each bout's end.
+    """
+    rows: list[dict[str, Any]] = []
+    for i, person in enumerate(people):
+        for k, (bout, est) in enumerate(chained_estimators(person)):
+            for t, w in zip(bout.t_s, bout.watts, strict=True):
+                try:
+                    est.update(float(t), float(w))
+                except (MeasurementError, EstimatorError):
+                    continue
+            rows.append({"person": i, "bout": k, "label": bout.label, "length_s": float(bout.t_s[-1]),
+                         "breaths": int(bout.t_s.size), "scored": bout.evaluate, "note": bout.note,
+                         "truth_w": bout.truth_w, "truth_se_w": bout.truth_se_w, "truth_n": bout.truth_n,
+                         "flagged": est.n_flagged})
+
+    def se(r: dict[str, Any]) -> str:
+        v = r["truth_se_w"]
+        return "–" if not math.isfinite(v) else f"{v:.1f} ({100.0 * v / r['truth_w']:.1f} %)"
+
+    table = markdown_table(
+        ["person", "bout", "label", "length s", "breaths", "scored", "truth W", "truth SE W (%)",
+         "truth breaths", "flagged"],
+        [[r["person"], r["bout"], r["label"] or "–", f"{r['length_s']:.0f}", r["breaths"],
+          "yes" if r["scored"] else f"no: {r['note']}", f"{r['truth_w']:.1f}", se(r), r["truth_n"],
+          r["flagged"]] for r in rows])
+    return rows, table
 
 
 # ------------------------------------------------------------------------------ estimators
@@ -416,31 +533,45 @@ def evaluate(people: Iterable[list[Bout]], estimators: Sequence[str] = ESTIMATOR
 
 
 def summarize(rows: Sequence[dict[str, Any]], estimators: Sequence[str] = ESTIMATORS,
-              horizons: Sequence[float] = HORIZONS_S) -> list[dict[str, Any]]:
-    """Per estimator × horizon × step (all/small/large): n, MAPE %, bias %, z mean/SD, coverage %."""
+              horizons: Sequence[float] = HORIZONS_S,
+              pooled: tuple[float, float] | None = None) -> list[dict[str, Any]]:
+    """Per estimator × horizon × step (all/small/large): n, MAPE %, bias %, z mean/SD, coverage %.
+
+    With ``pooled = (lo, hi)`` also one entry per estimator × step for every row with a horizon
+    in [lo, hi] together (``horizon_s`` the string "lo-hi"): on a single recording a horizon has
+    a handful of transitions, too few for a coverage in percent to mean much on its own.
+    """
+    groups: list[tuple[str, Any, Callable[[float], bool]]] = [
+        (name, h, lambda x, h=h: x == h) for name in estimators for h in horizons]
+    if pooled is not None:
+        lo, hi = pooled
+        groups += [(name, f"{lo:g}-{hi:g}", lambda x: lo <= x <= hi) for name in estimators]
     out = []
-    for name in estimators:
-        for h in horizons:
-            for step in ("all", "small", "large"):
-                sel = [r for r in rows if r["estimator"] == name and r["horizon_s"] == h
-                       and (step == "all" or r["step"] == step)]
-                if not sel:
-                    continue
-                truth = np.array([r["truth"] for r in sel])
-                mean = np.array([r["mean"] for r in sel])
-                sd = np.array([r["sd"] for r in sel], dtype=float)
-                rel = (mean - truth) / truth
-                ok = np.isfinite(sd) & (sd > 0)
-                z = (mean[ok] - truth[ok]) / sd[ok]
-                out.append({
-                    "estimator": name, "horizon_s": h, "step": step, "n": len(sel),
-                    "mape_pct": 100.0 * float(np.mean(np.abs(rel))),
-                    "bias_pct": 100.0 * float(np.mean(rel)),
-                    "z_mean": float(np.mean(z)) if z.size else math.nan,
-                    "z_sd": float(np.std(z, ddof=1)) if z.size > 1 else math.nan,
-                    "coverage95_pct": 100.0 * float(np.mean(np.abs(z) <= _Z95)) if z.size else math.nan,
-                })
+    for name, label, in_group in groups:
+        for step in ("all", "small", "large"):
+            sel = [r for r in rows if r["estimator"] == name and in_group(r["horizon_s"])
+                   and (step == "all" or r["step"] == step)]
+            if not sel:
+                continue
+            truth = np.array([r["truth"] for r in sel])
+            mean = np.array([r["mean"] for r in sel])
+            sd = np.array([r["sd"] for r in sel], dtype=float)
+            rel = (mean - truth) / truth
+            ok = np.isfinite(sd) & (sd > 0)
+            z = (mean[ok] - truth[ok]) / sd[ok]
+            out.append({
+                "estimator": name, "horizon_s": label, "step": step, "n": len(sel),
+                "mape_pct": 100.0 * float(np.mean(np.abs(rel))),
+                "bias_pct": 100.0 * float(np.mean(rel)),
+                "z_mean": float(np.mean(z)) if z.size else math.nan,
+                "z_sd": float(np.std(z, ddof=1)) if z.size > 1 else math.nan,
+                "coverage95_pct": 100.0 * float(np.mean(np.abs(z) <= _Z95)) if z.size else math.nan,
+            })
     return out
+
+
+def _horizon(h: float | str) -> str:
+    return h if isinstance(h, str) else f"{h:g}"
 
 
 def estimator_table(summary: Sequence[dict[str, Any]],
@@ -449,7 +580,7 @@ def estimator_table(summary: Sequence[dict[str, Any]],
     def f(v: float, fmt: str) -> str:
         return "–" if not math.isfinite(v) else format(v, fmt)
 
-    rows = [[s["estimator"], f"{s['horizon_s']:g} s", s["step"], s["n"], f(s["mape_pct"], ".1f"),
+    rows = [[s["estimator"], f"{_horizon(s['horizon_s'])} s", s["step"], s["n"], f(s["mape_pct"], ".1f"),
              f(s["bias_pct"], "+.1f"), f(s["z_mean"], "+.2f"), f(s["z_sd"], ".2f"),
              f(s["coverage95_pct"], ".1f")]
             for s in summary if s["step"] in steps]
@@ -465,14 +596,15 @@ def comparison_table(summary: Sequence[dict[str, Any]]) -> str:
     by = {(s["estimator"], s["horizon_s"], s["step"]): s for s in summary}
     others = [e for e in ESTIMATORS if e != "transition"]
     rows = []
-    for h in HORIZONS_S:
+    for h in [*HORIZONS_S, f"{_POOLED[0]:g}-{_POOLED[1]:g}"]:
         for step in ("all", "small", "large"):
             t = by.get(("transition", h, step))
             if t is None:
                 continue
             mape = [f"{by[(e, h, step)]['mape_pct']:.1f}" if (e, h, step) in by else "–" for e in others]
-            rows.append([f"{h:g} s", step, t["n"], f"{t['mape_pct']:.1f}", *mape, f"{t['bias_pct']:+.1f}",
-                         f"{t['z_mean']:+.2f}", f"{t['z_sd']:.2f}", f"{t['coverage95_pct']:.1f}"])
+            rows.append([f"{_horizon(h)} s", step, t["n"], f"{t['mape_pct']:.1f}", *mape,
+                         f"{t['bias_pct']:+.1f}", f"{t['z_mean']:+.2f}", f"{t['z_sd']:.2f}",
+                         f"{t['coverage95_pct']:.1f}"])
     return markdown_table(["horizon", "step", "n", "MAPE % transition", *(f"MAPE % {e}" for e in others),
                            "bias %", "z mean", "z SD", "95 % cov. %"], rows)
 
@@ -483,7 +615,7 @@ def run_estimator_bench(people: Sequence[list[Bout]], estimators: Sequence[str] 
     """Evaluate and summarise; the JSON document without command and machine."""
     t0 = time.perf_counter()
     rows = evaluate(people, estimators, HORIZONS_S, progress)
-    summary = summarize(rows, estimators, HORIZONS_S)
+    summary = summarize(rows, estimators, HORIZONS_S, pooled=_POOLED)
     return {"benchmark": "estimator", "transitions": sum(b.evaluate for p in people for b in p),
             "horizons_s": list(HORIZONS_S), "estimators": list(estimators), "summary": summary,
             "wall_s": time.perf_counter() - t0}
@@ -497,26 +629,40 @@ def _cmd_estimator(args: argparse.Namespace) -> int:
     console = Console(highlight=False, soft_wrap=True)
     with options():  # the command line's values (exit status 2); the replay file's are 1
         estimators = choices(args.estimators, ESTIMATORS, "estimator", list(ESTIMATORS))
-        if args.replay is not None and args.transitions is None:
-            raise ConfigError("--replay needs --transitions t1,t2,... (s on the file's clock)")
-        if args.replay is None and (args.transitions is not None or args.csv_columns is not None):
-            raise ConfigError("--transitions and --csv-columns go with --replay")
+        if args.replay is not None and (args.transitions is None) == (args.events is None):
+            raise ConfigError("--replay needs --transitions t1,t2,... or --events FILE (s on the file's "
+                              "clock), one of them")
+        if args.replay is None and any(v is not None for v in (args.transitions, args.csv_columns,
+                                                                args.events, args.score)):
+            raise ConfigError("--transitions, --events, --score and --csv-columns go with --replay")
+        if args.score is not None and args.events is None:
+            raise ConfigError("--score names bouts by label: it needs --events FILE")
+        if args.replay is None and args.bout_s is not None and not (
+                math.isfinite(args.bout_s) and args.bout_s > 0.0):
+            raise ConfigError(f"--bout-s {args.bout_s}; expected a duration > 0 s")
         if args.replay is None and args.wearer not in WEARERS:
             raise ConfigError(f"--wearer {args.wearer!r}; expected one of {sorted(WEARERS)}")
         if args.replay is None and args.n < 1:
             raise ConfigError(f"--n {args.n}; expected an integer >= 1")
         if args.replay is None and args.seed < 0:
             raise ConfigError(f"--seed {args.seed}; expected an integer >= 0")
-        if args.replay is not None:
+        if args.transitions is not None:
             trans = parse_transitions(args.transitions)
+        score = [x for x in args.score.split(",") if x] if args.score is not None else None
     if args.replay is not None:
         cols = args.csv_columns.split(",") if args.csv_columns else None
-        people = replay_people(args.replay, trans, cols)
-        source = f"--replay {args.replay} --transitions {args.transitions}" + (
+        labels = None
+        if args.events is not None:
+            trans, labels = read_events(args.events)
+        people = replay_people(args.replay, trans, cols, labels=labels, score=score)
+        source = f"--replay {args.replay} " + (
+            f"--events {args.events}" if args.events is not None else f"--transitions {args.transitions}") + (
+            f" --score {args.score}" if args.score is not None else "") + (
             f" --csv-columns {args.csv_columns}" if args.csv_columns else "")
     else:
-        people = WEARERS[args.wearer](args.n, args.seed)
-        source = f"--wearer {args.wearer} --n {args.n} --seed {args.seed}"
+        people = WEARERS[args.wearer](args.n, args.seed, bout_s=args.bout_s)
+        source = f"--wearer {args.wearer} --n {args.n} --seed {args.seed}" + (
+            f" --bout-s {args.bout_s:g}" if args.bout_s is not None else "")
     n_people = len(people)
     step = max(1, n_people // 10)
 
@@ -530,6 +676,12 @@ def _cmd_estimator(args: argparse.Namespace) -> int:
     doc["command"] = f"hilbo bench estimator {source} --estimators {','.join(estimators)} --out {args.out}"
     doc["machine"] = machine_info()
     out = Path(args.out)
+    if args.replay is not None:
+        # Which bouts are scored, and the truth of each with its own uncertainty.
+        doc["bouts"], bouts_md = bout_table(people)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "estimator_bouts.md").write_text(bouts_md)
+        console.print(bouts_md)
     write_json(out / "estimator.json", round_sig(doc))
     table = estimator_table(doc["summary"])
     (out / "estimator_table.md").write_text(table)
@@ -559,6 +711,16 @@ def add_estimator_bench_parser(bench_subparsers: Any) -> argparse.ArgumentParser
                         "`hilbo cart inspect` does)")
     p.add_argument("--transitions", default=None, metavar="T1,T2,...",
                    help="with --replay: setting-change times in s on the file's clock")
+    p.add_argument("--events", default=None, metavar="FILE",
+                   help="with --replay, instead of --transitions: a CSV of the changes with columns "
+                        "t_s,label (labels name the bouts they start)")
+    p.add_argument("--score", default=None, metavar="LABELS",
+                   help="with --events: score only the bouts with these labels (comma-separated); "
+                        "default: every bout after the first with at least 60 s of breaths after "
+                        "180 s (rests and warm-ups too short for a truth are skipped, and listed)")
+    p.add_argument("--bout-s", type=float, default=None,
+                   help="synthetic data: every bout this long in s (default: 45-120 s or 200-300 s, "
+                        "half each; 300 scores every horizon)")
     p.add_argument("--csv-columns", default=None, metavar="TIME,VO2,VCO2",
                    help="with --replay: the file is a CSV with these header names (s, ml/min)")
     p.add_argument("--estimators", default=None,

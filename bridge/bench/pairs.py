@@ -12,9 +12,12 @@ For every person the chained :class:`~hilbo_core.estimation.TransitionEstimator`
 optimizer's default; each setting starts from where the previous one left the body, as in a
 session) runs over every bout. Every scored bout with at least N breaths is a *candidate*
 against every other such bout of the same person as the *incumbent* (that bout's N-breath
-estimate). "Truly better": the candidate's truth below the incumbent's. A recording's truth is
-the mean of the bout's last 60 s of breaths (:func:`bridge.bench.estimator.replay_people`), so
-its bouts should last longer than N breaths; a simulated wearer's is the setting's true cost.
+estimate) whose true cost is 2-20 % away from the candidate's (``--diff-pct LOW,HIGH``, % of the
+incumbent's; ``0,inf`` for every pair): the differences an assistance change makes. Pooling every
+pair would mostly score easy ones (walk against run) and overstate what holds. "Truly better":
+the candidate's truth below the incumbent's. A recording's truth is the mean of the bout's
+breaths after 180 s (at most its last 3 minutes; :func:`bridge.bench.estimator.replay_people`),
+so its bouts should last 4 minutes or more; a simulated wearer's is the setting's true cost.
 
 Rules (replayed by :class:`bridge.bench.tune_sound.SoundReplay`, on Algorithm 2's W = 2 schedule
 built from up to 6 *other* bouts of the same person, standing in for a session's exploration):
@@ -28,10 +31,9 @@ built from up to 6 *other* bouts of the same person, standing in for a session's
 
 How hard the pairs are to rank (``measurement_error`` in ``pairs.json``, and a line of the
 output): the share of truly better candidates still ranked above their incumbent after N
-breaths, by the transition estimator and by a fresh seed UKF (Kim et al. 2019's filter) per
-setting. The real within-person pairs had 10.3 % with the seed UKF, so this places a lab's
-recordings, or simulated people (``--wearer synthetic --step-scale S`` scales the synthetic
-steps), beside them.
+breaths, by the transition estimator and by a fresh seed UKF per setting, on the same pairs as
+the rules (a figure from another set of pairs depends on how far apart their costs are, and is
+not printed beside it).
 
 What a replay leaves out (as :mod:`bridge.bench.tune_sound` says): in a session the candidate's
 estimate is fused with the GP's predictive at x_t and the incumbent is the GP posterior at x\\*;
@@ -58,17 +60,17 @@ from hilbo_core.errors import ConfigError, EstimatorError, MeasurementError
 from hilbo_core.metabolic import MetabolicUKF
 from hilbo_core.optimizer import OptimizerConfig
 
-__all__ = ["GRID_A_FLOOR", "GRID_MIN_DECISION_S", "ISSUE17_REAL_SEED_UKF_PCT", "PairsConfig", "PersonTraces",
-           "add_pairs_bench_parser", "measurement_error", "pair_stats", "person_traces", "run_pairs_bench",
-           "sound_grid"]
+__all__ = ["DEFAULT_DIFF_PCT", "GRID_A_FLOOR", "GRID_MIN_DECISION_S", "PairsConfig", "PersonTraces",
+           "add_pairs_bench_parser", "measurement_error", "pair_mask", "pair_stats", "person_traces",
+           "run_pairs_bench", "sound_grid"]
 
 # The project's targets for the stop statistics on within-person pairs (docs/benchmarks.md).
 TARGET_REJECTED_BETTER = 0.10
 TARGET_BREATH_FRACTION = 0.75
 TARGET_ENDED_30S = 0.05
-# On the real within-person pairs, Kim et al. 2019's UKF after 45 breaths put 10.3 % of truly better
-# candidates above their incumbent: the real data's measurement error, to place simulated pairs by.
-ISSUE17_REAL_SEED_UKF_PCT = 10.3
+# The pairs scored by default: true costs 2-20 % apart, the differences an assistance change
+# makes (a candidate against its incumbent); larger ones (walk against run) are easy to rank.
+DEFAULT_DIFF_PCT = (2.0, 20.0)
 _DEFAULTS = OptimizerConfig()
 # The sound rule's constants the trade-off grid covers (pairs.png, "grid" in pairs.json).
 GRID_MIN_DECISION_S = (30.0, 45.0, 60.0, 90.0)
@@ -89,6 +91,9 @@ class PairsConfig:
         window: Algorithm 2's window W.
         n_explore: Other bouts of the person behind each candidate's schedule.
         seed: Seeds the choice of those bouts.
+        min_diff_pct: Pairs count when their true costs differ by at least this (% of the
+            incumbent's)...
+        max_diff_pct: ...and at most this (``inf``: no upper bound).
     """
 
     n_max: int = _DEFAULTS.max_breaths
@@ -98,8 +103,15 @@ class PairsConfig:
     window: int = 2
     n_explore: int = 6
     seed: int = 0
+    min_diff_pct: float = DEFAULT_DIFF_PCT[0]
+    max_diff_pct: float = DEFAULT_DIFF_PCT[1]
 
     def __post_init__(self) -> None:
+        lo, hi = self.min_diff_pct, self.max_diff_pct
+        if any(isinstance(v, bool) or not isinstance(v, int | float) or math.isnan(v) for v in (lo, hi)) \
+                or not (math.isfinite(lo) and 0.0 <= lo < hi):
+            raise ConfigError(f"true-difference range {lo!r}-{hi!r} %; expected 0 <= low < high (high may "
+                              "be inf)")
         if isinstance(self.n_max, bool) or not isinstance(self.n_max, int) or self.n_max < 2:
             raise ConfigError(f"n_max={self.n_max!r}; expected an integer >= 2 breaths")
         for name in ("min_decision_s", "a_floor", "accept_z"):
@@ -180,14 +192,25 @@ def _seed_ukf_after(bout: Bout, n_max: int) -> float:
     return float(mean)
 
 
-def measurement_error(people: Sequence[PersonTraces]) -> dict[str, Any]:
+def pair_mask(truth_w: Sequence[float], config: PairsConfig) -> np.ndarray:
+    """Which ordered pairs count: ``[j, k]`` when candidate j's true cost differs from incumbent
+    k's by ``min_diff_pct``-``max_diff_pct`` % of k's, shape (n, n), False on the diagonal."""
+    truth = np.asarray(truth_w, dtype=float)
+    diff = 100.0 * np.abs(truth[:, None] - truth[None, :]) / truth[None, :]
+    mask = (diff >= config.min_diff_pct) & (diff <= config.max_diff_pct)
+    np.fill_diagonal(mask, False)
+    return mask
+
+
+def measurement_error(people: Sequence[PersonTraces], config: PairsConfig | None = None) -> dict[str, Any]:
     """How hard the pairs are to rank: the share of truly better candidates (every ordered pair of
     a person's full-length bouts) whose N-breath estimate is above the incumbent's, for the
     chained transition estimator and for the seed UKF.
 
-    The second was 10.3 % on the real within-person pairs (Kim et al. 2019's UKF after 45
-    breaths), so it places simulated pairs on the real data's scale of difficulty. It is None
-    when some person's traces carry no seed-UKF estimates (``seed_ukf_w`` empty).
+    Computed on the pairs the rules are scored on (:func:`pair_mask` with ``config``; every pair
+    without one), so it says how hard *these* pairs are; a figure from another set of pairs is not
+    comparable (it depends on how far apart their costs are). The seed UKF's is None when some
+    person's traces carry no seed-UKF estimates (``seed_ukf_w`` empty).
     """
     paired = [p for p in people if len(p.traces) >= 2]
     has_ukf = all(len(p.seed_ukf_w) == len(p.traces) for p in paired)
@@ -197,6 +220,8 @@ def measurement_error(people: Sequence[PersonTraces]) -> dict[str, Any]:
         final = np.array([tr.means[-1] for tr in p.traces])
         ukf = np.asarray(p.seed_ukf_w, dtype=float)
         better = truth[:, None] < truth[None, :]  # [j, k]: candidate j truly better than k
+        if config is not None:
+            better &= pair_mask(truth, config)
         n_better += int(better.sum())
         above_tr += int((better & (final[:, None] > final[None, :])).sum())
         if has_ukf:
@@ -206,26 +231,30 @@ def measurement_error(people: Sequence[PersonTraces]) -> dict[str, Any]:
         return 100.0 * k / n_better if n_better else None
 
     return {"n_better": n_better, "pct_above_transition": pct(above_tr),
-            "pct_above_seed_ukf": pct(above_ukf) if has_ukf else None,
-            "pct_above_seed_ukf_issue17_real": ISSUE17_REAL_SEED_UKF_PCT}
+            "pct_above_seed_ukf": pct(above_ukf) if has_ukf else None}
 
 
 def _replays(people: Sequence[PersonTraces], config: PairsConfig) -> list[SoundReplay]:
-    """One replay per person with two full-length scored bouts (Algorithm 2's schedules built).
+    """One replay per person with a pair in the true-difference range (Algorithm 2's schedules
+    built from all the person's full-length bouts, whatever their differences).
 
     Raises:
-        ConfigError: No person has two full-length scored bouts.
+        ConfigError: No person has such a pair.
     """
     out = []
     for p in people:
         if len(p.traces) < 2:
             continue
+        mask = pair_mask(p.truth_w, config)
+        if not mask.any():
+            continue
         groups = exploration_groups(len(p.traces), config.n_explore, config.seed)
         schedules = threshold_schedules(p.traces, min(config.window, config.n_max - 1), groups)
-        out.append(SoundReplay(p.traces, p.times, schedules, p.truth_w))
+        out.append(SoundReplay(p.traces, p.times, schedules, p.truth_w, pairs=mask))
     if not out:
-        raise ConfigError(f"no within-person pairs: every person needs at least 2 scored bouts of "
-                          f">= {config.n_max} breaths")
+        raise ConfigError(f"no within-person pairs {config.min_diff_pct:g}-{config.max_diff_pct:g} % apart: "
+                          f"every person needs at least 2 scored bouts of >= {config.n_max} breaths, "
+                          "and some of them that far apart")
     return out
 
 
@@ -318,7 +347,9 @@ def run_pairs_bench(people: Sequence[Sequence[Bout]], config: PairsConfig | None
     return {"benchmark": "pairs", "config": {k: getattr(cfg, k) for k in cfg.__dataclass_fields__},
             "people": len(traced), "people_with_pairs": sum(len(p.traces) >= 2 for p in traced),
             "full_length_bouts": sum(len(p.traces) for p in traced),
-            "short_bouts": sum(p.short for p in traced), "measurement_error": measurement_error(traced),
+            "short_bouts": sum(p.short for p in traced),
+            "pairs_all": sum(len(p.traces) * (len(p.traces) - 1) for p in traced),
+            "measurement_error": measurement_error(traced, cfg),
             "rules": stats, "grid": grid,
             "wall_s": time.perf_counter() - t0}
 
@@ -337,6 +368,14 @@ def _accept_z(text: str) -> float | None:
         raise ConfigError(f"--accept-z {text!r}; expected a number of σ >= 0 or none") from err
 
 
+def _diff_pct(text: str) -> tuple[float, float]:
+    try:
+        lo, hi = (float(x) for x in text.split(","))
+    except ValueError as err:
+        raise ConfigError(f"--diff-pct {text!r}; expected LOW,HIGH in % (e.g. 2,20 or 0,inf)") from err
+    return lo, hi
+
+
 def _cmd_pairs(args: argparse.Namespace) -> int:
     from rich.console import Console
 
@@ -347,8 +386,9 @@ def _cmd_pairs(args: argparse.Namespace) -> int:
     transitions = args.transitions or []
     with options():  # the command line's values (exit status 2); the files' are 1
         accept = _accept_z(args.accept_z)
+        lo, hi = _diff_pct(args.diff_pct)
         cfg = PairsConfig(n_max=args.n_max, min_decision_s=args.min_decision_s, a_floor=args.a_floor,
-                          accept_z=accept)
+                          accept_z=accept, min_diff_pct=lo, max_diff_pct=hi)
         if len(replays) != len(transitions):
             raise ConfigError(f"{len(replays)} --replay and {len(transitions)} --transitions: give one "
                               "--transitions t1,t2,... after each --replay FILE")
@@ -388,9 +428,11 @@ def _cmd_pairs(args: argparse.Namespace) -> int:
 
     who = "1 person" if n_people == 1 else f"{n_people} people"
     console.print(f"hilbo bench pairs: {who}, N = {cfg.n_max}, sound rule "
-                  f"{cfg.min_decision_s:g} s / {cfg.a_floor:g} σ / accept {_fmt_accept(cfg.accept_z)}")
+                  f"{cfg.min_decision_s:g} s / {cfg.a_floor:g} σ / accept {_fmt_accept(cfg.accept_z)}, "
+                  f"pairs with true costs {cfg.min_diff_pct:g}-{cfg.max_diff_pct:g} % apart")
     doc = run_pairs_bench(people, cfg, progress)
     doc["command"] = (f"hilbo bench pairs {source} --n-max {cfg.n_max} "
+                      f"--diff-pct {cfg.min_diff_pct:g},{cfg.max_diff_pct:g} "
                       f"--min-decision-s {cfg.min_decision_s:g} --a-floor {cfg.a_floor:g} "
                       f"--accept-z {_fmt_accept(cfg.accept_z)} --out {args.out}")
     doc["machine"] = machine_info()
@@ -419,11 +461,13 @@ def _cmd_pairs(args: argparse.Namespace) -> int:
         console.print(f"{doc['short_bouts']} scored bouts had fewer than {cfg.n_max} breaths and were "
                       "left out", style="yellow")
     err = doc["measurement_error"]
+    n_scored = doc["rules"]["sound"]["n_pairs"]
+    console.print(f"{n_scored} of {doc['pairs_all']} within-person pairs have true costs "
+                  f"{cfg.min_diff_pct:g}-{cfg.max_diff_pct:g} % apart; every figure here is on them")
     if err["n_better"] and err["pct_above_seed_ukf"] is not None:
         console.print(f"how hard these pairs are to rank: after {cfg.n_max} breaths the seed UKF puts "
-                      f"{err['pct_above_seed_ukf']:.1f} % of truly better candidates above their incumbent "
-                      f"(the real pairs: {ISSUE17_REAL_SEED_UKF_PCT:g} %), the transition estimator "
-                      f"{err['pct_above_transition']:.1f} %")
+                      f"{err['pct_above_seed_ukf']:.1f} % of truly better candidates above their incumbent, "
+                      f"the transition estimator {err['pct_above_transition']:.1f} %")
     met = doc["rules"]["sound"]["targets"]
     console.print("targets (sound): " + ", ".join(
         f"{k} {'met' if v else 'NOT met'}" for k, v in met.items()))
@@ -458,6 +502,11 @@ def add_pairs_bench_parser(bench_subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--bouts", type=int, default=10,
                    help="settings per simulated person, the first a warm-up (10)")
     p.add_argument("--bout-s", type=float, default=180.0, help="seconds per simulated setting (180)")
+    p.add_argument("--diff-pct", default=f"{DEFAULT_DIFF_PCT[0]:g},{DEFAULT_DIFF_PCT[1]:g}",
+                   metavar="LOW,HIGH",
+                   help="score only pairs whose true costs differ by LOW-HIGH %% of the incumbent's "
+                        f"({DEFAULT_DIFF_PCT[0]:g},{DEFAULT_DIFF_PCT[1]:g}: an assistance change's "
+                        "differences; 0,inf: every pair)")
     p.add_argument("--n-max", type=int, default=_DEFAULTS.max_breaths,
                    help=f"N, breaths of a full evaluation ({_DEFAULTS.max_breaths})")
     p.add_argument("--min-decision-s", type=float, default=_DEFAULTS.min_decision_s,

@@ -104,10 +104,12 @@ class SoundReplay:
         times: Per trace, the breath times since the setting began (s), shape (N,).
         schedules: Algorithm 2's schedule per trace, shape (n, N).
         truth: True cost per trace (W), or None to judge "better" by the final estimates.
+        pairs: Which ordered pairs count, ``pairs[j, k]`` for candidate j against incumbent k,
+            shape (n, n) (the diagonal is never used), or None for every pair.
     """
 
     def __init__(self, traces: Sequence[BreathTrace], times: Sequence[np.ndarray], schedules: np.ndarray,
-                 truth: Sequence[float] | None = None) -> None:
+                 truth: Sequence[float] | None = None, pairs: np.ndarray | None = None) -> None:
         if len(traces) < 2 or len(times) != len(traces) or len(schedules) != len(traces):
             raise ConfigError(f"need >= 2 traces with one time array and schedule each, got "
                               f"{len(traces)}, {len(times)}, {len(schedules)}")
@@ -123,6 +125,9 @@ class SoundReplay:
         self.better = finals[:, None] < finals[None, :] if truth is not None \
             else finals[:, None] <= finals[None, :]
         self.n, self.N = n, self.means.shape[1]
+        self.pairs = np.ones((n, n), dtype=bool) if pairs is None else np.asarray(pairs, dtype=bool)
+        if self.pairs.shape != (n, n):
+            raise ConfigError(f"pairs has shape {self.pairs.shape}; expected ({n}, {n})")
 
     def outcomes(self, j: int, min_decision_s: float, a_floor: float, accept_z: float | None = None
                  ) -> tuple[np.ndarray, np.ndarray]:
@@ -150,7 +155,8 @@ class SoundReplay:
 
     def stats(self, min_decision_s: float, a_floor: float, js: Sequence[int] | None = None,
               accept_z: float | None = None) -> dict[str, float]:
-        """Pooled replay statistics over the pairs (j, k ≠ j) for j in ``js`` (default all).
+        """Pooled replay statistics over the pairs (j, k ≠ j, ``pairs[j, k]``) for j in ``js``
+        (default all).
 
         ``a_floor`` may be ``-inf`` (Algorithm 2's schedule unfloored: Kim et al. 2019's rule, with
         ``min_decision_s`` 0). Rates, and the counts behind them (``n_pairs``,
@@ -163,14 +169,18 @@ class SoundReplay:
         final = self.means[:, -1]
         for j in (range(self.n) if js is None else js):
             steps, rejected = self.outcomes(j, min_decision_s, a_floor, accept_z)
-            s = np.delete(steps, j)
-            b = np.delete(self.better[j], j)
+            keep = self.pairs[j].copy()
+            keep[j] = False
+            s = steps[keep]
+            b = self.better[j][keep]
             used.append(s)
             end30.append(self.times[j][s - 1] < 30.0)
-            rej += int((np.delete(rejected, j) & b).sum())
+            rej += int((rejected[keep] & b).sum())
             nbetter += int(b.sum())
-            above += int((b & (final[j] > np.delete(final, j))).sum())
+            above += int((b & (final[j] > final[keep])).sum())
         u = np.concatenate(used)
+        if u.size == 0:
+            raise ConfigError("no pair to replay: every pair was filtered out")
         n_end30 = int(np.concatenate(end30).sum())
         return {"mean_breaths": float(u.mean()), "breath_fraction": float(u.mean() / self.N),
                 "early_stop_rate": float((u < self.N).mean()),

@@ -82,13 +82,13 @@ def test_summary_hand_computed() -> None:
 
 
 def _write_recording(path: Path) -> list[float]:
-    """Three bouts: 300 W, then 500 W and 350 W steady states, τ = 40 s, every 2.5 s."""
+    """Three 300-s bouts: 300 W, then 500 W and 350 W steady states, τ = 40 s, every 2.5 s."""
     rng = np.random.default_rng(0)
-    levels, starts = [300.0, 500.0, 350.0], [0.0, 200.0, 400.0]
+    levels, starts = [300.0, 500.0, 350.0], [0.0, 300.0, 600.0]
     lines, seq, body = [b"# hilbo-line recording\n"], 0, 300.0
     for c, t0 in zip(levels, starts, strict=True):
         b0 = body
-        for t in np.arange(1.0, 200.0, 2.5):
+        for t in np.arange(1.0, 300.0, 2.5):
             body = c + (b0 - c) * math.exp(-t / 40.0)
             w = body * (1.0 + 0.05 * rng.normal())
             vo2 = w / _W_PER_ML_MIN
@@ -99,7 +99,7 @@ def _write_recording(path: Path) -> list[float]:
     return starts[1:]
 
 
-def test_replay_reads_a_recording_and_takes_the_truth_from_the_last_minute(tmp_path: Path) -> None:
+def test_replay_reads_a_recording_and_takes_the_truth_after_the_last_horizon(tmp_path: Path) -> None:
     f = tmp_path / "rec.hbr"
     transitions = _write_recording(f)
     (person,) = replay_people(f, transitions)
@@ -107,23 +107,61 @@ def test_replay_reads_a_recording_and_takes_the_truth_from_the_last_minute(tmp_p
     assert person[1].truth_w == pytest.approx(500.0, rel=0.03)
     assert person[2].truth_w == pytest.approx(350.0, rel=0.03)
     assert person[1].t_s[0] == pytest.approx(1.0)
+    # The truth: the breaths after 180 s (181, 183.5, ..., 298.5 s: 48), with the SE of their mean
+    # (5 % noise: ≈ 0.05·500/√48 ≈ 3.6 W).
+    tail = person[1].watts[person[1].t_s > 180.0]
+    assert person[1].truth_n == tail.size == 48
+    assert person[1].truth_w == pytest.approx(float(tail.mean()), rel=1e-12)
+    assert person[1].truth_se_w == pytest.approx(float(tail.std(ddof=1)) / math.sqrt(48), rel=1e-12)
+    assert 2.0 < person[1].truth_se_w < 6.0
     with pytest.raises(ConfigError, match="increasing"):
         replay_people(f, [300.0, 200.0])
     with pytest.raises(ConfigError, match="cannot read"):
         replay_people(tmp_path / "missing.hbr", [10.0])
     with pytest.raises(ConfigError, match=r"no breaths between 5000 s and the end of the file \(its breaths "
-                                          r"run from 1 to 59\d\.\d+ s\)"):
-        replay_people(f, [200.0, 5000.0])
+                                          r"run from 1 to 89\d\.\d+ s\)"):
+        replay_people(f, [300.0, 5000.0])
     f.with_suffix(".csv").write_text("time,oxygen,co2\n1,300,270\n")
     with pytest.raises(ConfigError, match="here: --csv-columns TIME,VO2,VCO2"):
         replay_people(f.with_suffix(".csv"), [10.0])
+
+
+def test_replay_scores_by_label_or_skips_bouts_too_short_for_a_truth(tmp_path: Path) -> None:
+    f = tmp_path / "rec.hbr"
+    _write_recording(f)
+    # A 30-s "rest" inside the second bout: too short for a truth after 180 s, so not scored by
+    # default; the bout it interrupts is scored from 330 s on.
+    (person,) = replay_people(f, [300.0, 330.0, 600.0], labels=["rest", "walk", "walk"])
+    assert [(b.label, b.evaluate) for b in person] == [("", False), ("rest", False), ("walk", True),
+                                                        ("walk", True)]
+    assert "no truth window" in person[1].note and person[0].note.startswith("first bout")
+    (person,) = replay_people(f, [300.0, 600.0], labels=["up", "down"], score=["down"])
+    assert [b.evaluate for b in person] == [False, False, True]
+    assert person[1].note == "label 'up' not in --score"
+    with pytest.raises(ConfigError, match="too short for a truth"):
+        replay_people(f, [300.0, 330.0, 600.0], labels=["rest", "walk", "walk"], score=["rest"])
+    with pytest.raises(ConfigError, match=r"no bout is labelled \['run'\]"):
+        replay_people(f, [300.0, 600.0], labels=["up", "down"], score=["run"])
+    with pytest.raises(ConfigError, match="one label per transition"):
+        replay_people(f, [300.0, 600.0], labels=["up"])
+
+
+def test_summary_pools_the_horizons_it_is_asked_to() -> None:
+    rows = [{"estimator": "transition", "horizon_s": h, "step": "small", "truth": 100.0, "mean": 100.0 + d,
+             "sd": 1.0} for h, d in ((30.0, 9.0), (60.0, 1.0), (180.0, -1.0))]
+    pooled = [x for x in summarize(rows, ["transition"], [30.0, 60.0, 180.0], pooled=(60.0, 180.0))
+              if x["horizon_s"] == "60-180" and x["step"] == "all"]
+    assert len(pooled) == 1 and pooled[0]["n"] == 2  # 30 s left out
+    assert pooled[0]["z_mean"] == pytest.approx(0.0) and pooled[0]["mape_pct"] == pytest.approx(1.0)
 
 
 def test_replay_reads_a_vendor_export_as_a_session_would() -> None:
     # A COSMED CSV export (format detected as `hilbo cart inspect` does): 4 breaths, 3–62.5 s.
     data = Path(__file__).resolve().parents[1] / "data" / "cart" / "cosmed_k5.csv"
     (person,) = replay_people(data, [30.0])
-    assert [b.evaluate for b in person] == [False, True]
+    # Read and split; too short to be scored (its second bout ends 32.5 s in: no truth window).
+    assert [b.evaluate for b in person] == [False, False]
+    assert "no truth window" in person[1].note
     assert sum(b.t_s.size for b in person) == 4
     assert np.all(np.concatenate([b.watts for b in person]) > 0)
 
@@ -143,12 +181,23 @@ def test_cli_synthetic_and_replay(tmp_path: Path, capsys: pytest.CaptureFixture[
     doc = json.loads((out2 / "estimator.json").read_text())
     assert doc["transitions"] == 2
     assert {s["estimator"] for s in doc["summary"]} == {"transition", "first_order_42"}
+    assert [b["scored"] for b in doc["bouts"]] == [False, True, True]
     assert "MAPE" in capsys.readouterr().out
+    events = tmp_path / "events.csv"
+    events.write_text("t_s,label\n300,up\n600,down\n")
+    out3 = tmp_path / "ev"
+    assert bench_main(["estimator", "--replay", str(f), "--events", str(events), "--score", "down",
+                       "--estimators", "transition", "--out", str(out3)]) == 0
+    doc = json.loads((out3 / "estimator.json").read_text())
+    assert doc["transitions"] == 1 and "--events" in doc["command"] and "--score down" in doc["command"]
+    assert "not in --score" in (out3 / "estimator_bouts.md").read_text()
 
 
 @pytest.mark.parametrize("argv, message", [
     (["--replay", "x.hbr"], "needs --transitions"),
     (["--transitions", "10"], "go with --replay"),
+    (["--replay", "x.hbr", "--transitions", "10", "--score", "run"], "needs --events"),
+    (["--bout-s", "-5"], "--bout-s -5"),
     (["--n", "0"], "--n 0"),
     (["--wearer", "nobody"], "--wearer 'nobody'"),
     (["--estimators", "kalman"], "kalman"),

@@ -15,10 +15,10 @@ from bridge.bench.estimator import Bout, realistic_people, synthetic_people
 from bridge.bench.pairs import (
     GRID_A_FLOOR,
     GRID_MIN_DECISION_S,
-    ISSUE17_REAL_SEED_UKF_PCT,
     PairsConfig,
     PersonTraces,
     measurement_error,
+    pair_mask,
     pair_stats,
     person_traces,
     run_pairs_bench,
@@ -30,6 +30,8 @@ from hilbo_core.types import BreathRecord
 
 # Brockway at RER 0.9: W = VO2·(16.58 + 0.9·4.51)/60 with VO2 in ml/min.
 _W_PER_ML_MIN = (16.58 + 0.9 * 4.51) / 60.0
+# Every pair, whatever its true difference (the mechanics tests; the default is 2-20 %).
+ALL_PAIRS = {"min_diff_pct": 0.0, "max_diff_pct": math.inf}
 
 
 def _bout(level_w: float, n: int, *, evaluate: bool = True, dt: float = 3.0) -> Bout:
@@ -57,7 +59,7 @@ def _person(levels: list[float], truth: list[float]) -> PersonTraces:
 
 
 def test_pair_stats_pool_counts_over_people_and_skip_people_without_pairs() -> None:
-    cfg = PairsConfig(n_max=4, min_decision_s=30.0, a_floor=1.0, accept_z=None)
+    cfg = PairsConfig(n_max=4, min_decision_s=30.0, a_floor=1.0, accept_z=None, **ALL_PAIRS)
     # Estimates 400 and 500 (σ of a difference √50 ≈ 7 W): the 500 candidate is stopped at the
     # first breath >= 30 s (breath 1, 2 breaths), the 400 one never; truth agrees.
     a = _person([400.0, 500.0], [400.0, 500.0])
@@ -79,7 +81,7 @@ def test_pair_stats_pool_counts_over_people_and_skip_people_without_pairs() -> N
 
 
 def test_pair_stats_count_a_wrong_rejection_and_the_measurements_own_error() -> None:
-    cfg = PairsConfig(n_max=4, min_decision_s=0.0, a_floor=1.0, accept_z=None)
+    cfg = PairsConfig(n_max=4, min_decision_s=0.0, a_floor=1.0, accept_z=None, **ALL_PAIRS)
     # The estimates say 500 vs 400, the truth says the 500 one is better: it is rejected, and
     # its N-breath estimate is above the incumbent's.
     s = pair_stats([_person([400.0, 500.0], [400.0, 390.0])], cfg)["sound"]
@@ -88,7 +90,8 @@ def test_pair_stats_count_a_wrong_rejection_and_the_measurements_own_error() -> 
     assert s["targets"]["rejected_better_at_most_10pct"] is False
     # An accept stop shortens the better-looking candidate's evaluation without a rejection.
     acc = pair_stats([_person([400.0, 500.0], [400.0, 500.0])],
-                     PairsConfig(n_max=4, min_decision_s=30.0, a_floor=1.0, accept_z=3.0))["sound"]
+                     PairsConfig(n_max=4, min_decision_s=30.0, a_floor=1.0, accept_z=3.0,
+                                 **ALL_PAIRS))["sound"]
     assert acc["breaths_total"] == 2 + 2 and acc["n_rejected_better"] == 0
 
 
@@ -102,12 +105,31 @@ def test_measurement_error_counts_truly_better_candidates_ranked_above_per_estim
     assert err["n_better"] == 3
     assert err["pct_above_transition"] == pytest.approx(200.0 / 3)
     assert err["pct_above_seed_ukf"] == pytest.approx(100.0 / 3)
-    assert err["pct_above_seed_ukf_issue17_real"] == ISSUE17_REAL_SEED_UKF_PCT
+    assert set(err) == {"n_better", "pct_above_transition", "pct_above_seed_ukf"}  # no other pair set's
     # Traces without seed-UKF estimates (built by hand) give no UKF figure, not a wrong one.
     assert measurement_error([_person([430.0, 405.0], [400.0, 410.0])])["pct_above_seed_ukf"] is None
     # The transition estimator's figure is the fixed rule's own-error column.
     stats = pair_stats([p], PairsConfig(n_max=4))
     assert stats["fixed"]["pct_better_above_at_n"] == pytest.approx(err["pct_above_transition"])
+
+
+def test_pairs_are_filtered_by_their_true_difference_and_so_is_the_difficulty() -> None:
+    # Truths 400, 410, 500: 410 vs 400 is 2.5 % (kept), 500 vs 400 25 % and 500 vs 410 22 %
+    # (left out; 400 and 410 against 500 are 20 % and 18 % of the incumbent: kept).
+    p = _person([430.0, 405.0, 480.0], [400.0, 410.0, 500.0])
+    mask = pair_mask(p.truth_w, PairsConfig())
+    assert mask.tolist() == [[False, True, True], [True, False, True], [False, False, False]]
+    cfg = PairsConfig(n_max=4, min_decision_s=0.0, a_floor=1.0, accept_z=None)
+    stats = pair_stats([p], cfg)
+    assert stats["fixed"]["n_pairs"] == 4 and stats["fixed"]["n_better"] == 3
+    # The difficulty is counted on the same pairs: of the 3 truly better, 430 > 405 misranks one.
+    err = measurement_error([p], cfg)
+    assert err["n_better"] == 3 and err["pct_above_transition"] == pytest.approx(100.0 / 3)
+    assert stats["fixed"]["pct_better_above_at_n"] == pytest.approx(err["pct_above_transition"])
+    # Every pair: 6 pairs, 3 truly better (the same three here).
+    assert pair_stats([p], PairsConfig(n_max=4, **ALL_PAIRS))["fixed"]["n_pairs"] == 6
+    with pytest.raises(ConfigError, match="no within-person pairs 30-40 % apart"):
+        pair_stats([p], PairsConfig(n_max=4, min_diff_pct=30.0, max_diff_pct=40.0))
 
 
 def test_person_traces_run_a_fresh_seed_ukf_per_kept_bout() -> None:
@@ -134,9 +156,11 @@ def test_synthetic_step_scale_shrinks_the_steps() -> None:
 
 
 @pytest.mark.parametrize("bad", [{"n_max": 1}, {"min_decision_s": -1.0}, {"a_floor": math.nan},
-                                 {"accept_z": -0.5}, {"window": -1}, {"n_explore": 0}])
+                                 {"accept_z": -0.5}, {"window": -1}, {"n_explore": 0},
+                                 {"min_diff_pct": -1.0}, {"max_diff_pct": 1.0}])
 def test_config_rejects_bad_values(bad: dict) -> None:
-    with pytest.raises(ConfigError, match=next(iter(bad))):
+    name = next(iter(bad))
+    with pytest.raises(ConfigError, match="true-difference range" if "diff" in name else name):
         PairsConfig(**bad)
 
 
@@ -154,7 +178,7 @@ def test_fixed_length_people_for_pairs() -> None:
 
 
 def test_run_on_the_realistic_wearer_reports_every_rule() -> None:
-    doc = run_pairs_bench(realistic_people(2, 2, bouts=4, bout_s=170.0), PairsConfig())
+    doc = run_pairs_bench(realistic_people(2, 2, bouts=4, bout_s=170.0), PairsConfig(**ALL_PAIRS))
     assert doc["people"] == 2 and doc["people_with_pairs"] == 2
     assert doc["full_length_bouts"] == 6
     for rule in ("sound", "adaptive", "fixed"):
@@ -172,13 +196,14 @@ def test_run_on_the_realistic_wearer_reports_every_rule() -> None:
 
 
 def _write_recording(path: Path, levels: list[float], seed: int) -> list[float]:
-    """Bouts of 200 s at the given steady states, τ = 40 s, a breath every 2.5 s."""
+    """Bouts of 300 s at the given steady states, τ = 40 s, a breath every 2.5 s (a replay's truth
+    is the mean of a bout's breaths after 180 s)."""
     rng = np.random.default_rng(seed)
     lines, seq, body = [b"# hilbo-line recording\n"], 0, levels[0]
-    starts = [200.0 * k for k in range(len(levels))]
+    starts = [300.0 * k for k in range(len(levels))]
     for c, t0 in zip(levels, starts, strict=True):
         b0 = body
-        for t in np.arange(1.0, 200.0, 2.5):
+        for t in np.arange(1.0, 300.0, 2.5):
             body = c + (b0 - c) * math.exp(-t / 40.0)
             vo2 = body * (1.0 + 0.05 * rng.normal()) / _W_PER_ML_MIN
             rec = BreathRecord(t_s=t0 + float(t), vo2_ml_min=vo2, vco2_ml_min=0.9 * vo2)
@@ -195,7 +220,7 @@ def test_cli_replays_one_file_per_person(tmp_path: Path, capsys: pytest.CaptureF
         trans = _write_recording(f, levels, k)
         args += ["--replay", str(f), "--transitions", ",".join(f"{t:g}" for t in trans)]
     out = tmp_path / "out"
-    assert bench_main(["pairs", *args, "--out", str(out), "--no-progress"]) == 0
+    assert bench_main(["pairs", *args, "--diff-pct", "0,inf", "--out", str(out), "--no-progress"]) == 0
     doc = json.loads((out / "pairs.json").read_text())
     assert doc["people"] == 2 and doc["full_length_bouts"] == 3 + 2
     assert doc["rules"]["sound"]["n_pairs"] == 3 * 2 + 2 * 1
@@ -205,7 +230,8 @@ def test_cli_replays_one_file_per_person(tmp_path: Path, capsys: pytest.CaptureF
     assert (out / "pairs.png").read_bytes().startswith(b"\x89PNG")
     printed = capsys.readouterr().out
     assert "targets (sound)" in printed and "the trade-off: pairs.png" in printed
-    assert "how hard these pairs are to rank" in printed
+    assert "how hard these pairs are to rank" in printed and "the real pairs" not in printed
+    assert "8 of 8 within-person pairs have true costs 0-inf % apart" in printed
     assert doc["measurement_error"]["n_better"] == doc["rules"]["fixed"]["n_better"]
 
 
@@ -220,7 +246,9 @@ def test_cli_replays_one_file_per_person(tmp_path: Path, capsys: pytest.CaptureF
     (["--replay", "missing.hbr", "--transitions", "60,120"], 1, "cannot read breaths"),
     # A real vendor export's format is detected, but its settings are far shorter than N.
     (["--replay", str(Path(__file__).resolve().parents[1] / "data" / "cart" / "cosmed_k5.csv"),
-      "--transitions", "30"], 1, "no within-person pairs: every person needs at least 2 scored bouts"),
+      "--transitions", "30"], 1, "no within-person pairs 2-20 % apart: every person needs at least 2"),
+    (["--diff-pct", "20"], 2, "--diff-pct '20'; expected LOW,HIGH"),
+    (["--diff-pct", "20,5"], 2, "true-difference range 20.0-5.0 %"),
 ])
 def test_cli_errors(argv: list[str], code: int, message: str, tmp_path: Path,
                     capsys: pytest.CaptureFixture[str]) -> None:

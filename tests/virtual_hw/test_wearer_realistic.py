@@ -147,10 +147,51 @@ def test_breath_rates_span_the_walking_range_over_subjects() -> None:
 
 
 # ---------------------------------------------------------------------------- dynamics
-def test_tau_is_per_person_in_30_to_60_s() -> None:
+def test_tau_is_per_person_in_14_to_55_s_log_uniform() -> None:
     taus = [RealisticWearer(hip_6d(), s).tau_s for s in range(40)]
-    assert all(30.0 <= tau <= 60.0 for tau in taus)
-    assert min(taus) < 35.0 and max(taus) > 55.0
+    assert all(14.0 <= tau <= 55.0 for tau in taus)
+    assert min(taus) < 18.0 and max(taus) > 45.0  # a 16 s walker and a 50 s one both occur
+    assert 20.0 <= float(np.median(taus)) <= 36.0  # log-uniform: median √(14·55) ≈ 28 s
+
+
+def test_the_steady_state_drifts_about_1_percent_per_minute_and_is_smooth() -> None:
+    slopes, sds = [], []
+    for seed in range(20):
+        w = RealisticWearer(hip_6d(), seed)
+        assert 0.015 <= w.drift_sd <= 0.035
+        t = np.arange(0.0, 3600.0, 10.0)
+        d = np.array([w.drift_factor(float(x)) for x in t]) - 1.0
+        sds.append(float(np.std(d)) / w.drift_sd)
+        slopes.append(float(np.sqrt(np.mean((np.diff(d) / 10.0 * 60.0) ** 2))))
+        # It is the body's rate: metabolic_rate_w carries it, the same at every call.
+        assert w.metabolic_rate_w(600.0) == pytest.approx(w.baseline_cost_w * w.drift_factor(600.0)
+                                                          * w.adaptation_factor(600.0), rel=2e-3)
+    assert 0.5 <= float(np.median(sds)) <= 1.5  # the drawn SD, give or take an hour's sampling
+    assert 0.006 <= float(np.median(slopes)) <= 0.02  # RMS rate ≈ 1.3 %/min: about ±1 %/min
+    assert RealisticWearer(hip_6d(), 3, RealisticWearerConfig.noiseless()).drift_factor(900.0) == 1.0
+
+
+def test_a_partial_first_breath_after_a_change_and_every_other_breath_unchanged() -> None:
+    space = hip_6d()
+    x = space.to_dict(space.from_unit(np.full(6, 0.5)))
+    always = RealisticWearer(space, 5, RealisticWearerConfig(first_breath_p=(1.0, 1.0)))
+    never = RealisticWearer(space, 5, RealisticWearerConfig(first_breath_p=(0.0, 0.0)))
+    runs = []
+    for w in (always, never):
+        before = w.breaths_until(100.0)
+        t_change = w.t_s
+        w.apply_params(x, t_change)
+        runs.append((before + w.breaths_until(200.0), t_change))
+    (ba, t_change), (bn, _) = runs
+    a = np.array([r.watts for r in ba])
+    n = np.array([r.watts for r in bn])
+    assert [r.t_s for r in ba] == [r.t_s for r in bn]
+    changed = np.flatnonzero(a != n)
+    # Only the first breath after the change, and it is 20-60 % of the level.
+    first = next(i for i, r in enumerate(ba) if r.t_s > t_change)
+    assert changed.tolist() == [first] and always.n_partial_first_breaths == 1
+    assert 0.2 <= a[first] / always.metabolic_rate_w(ba[first].t_s) <= 0.6
+    assert never.n_partial_first_breaths == 0
 
 
 @given(seed=SEEDS)
