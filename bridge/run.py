@@ -26,7 +26,7 @@ from bridge.live import LiveServer
 from bridge.log import DEFAULT_FILE_MODE, SessionLog, new_session_id
 from bridge.log.resume import rebuild_optimizer
 from bridge.operator_view import run_operator_view
-from bridge.runtime import BridgeSession, Command, RuntimeSettings
+from bridge.runtime import BridgeSession, RuntimeSettings
 from drivers.cart import BreathStream
 from drivers.exosuit import CanEndpoint
 from drivers.signals import stop_signal_handlers
@@ -177,7 +177,7 @@ async def run_session(
     def stop() -> None:
         nonlocal stop_early
         if session is not None:
-            session.command(Command.STOP)
+            session.interrupt()
         else:
             stop_early = True
 
@@ -195,7 +195,7 @@ async def run_session(
                                         protocol=protocol)
                 session.status.budget_s = protocol.config.budget_s
                 if stop_early:
-                    session.command(Command.STOP)
+                    session.interrupt()
                 if live is not None:
                     session.status.event(f"live view: {live.url or 'off, ' + str(live.start_error)}")
                 if on_session is not None:

@@ -229,6 +229,12 @@ class BreathStream:
         return self.validator.accepted
 
     @property
+    def paced_by_reader(self) -> bool:
+        """The transport's breaths are paced by this stream's reader alone (a replay at
+        ``speed = "max"``): read it only as fast as the breaths can be used."""
+        return self.transport.paced_by_reader
+
+    @property
     def reconnects(self) -> int:
         """Times the transport reopened its link after a drop."""
         return self.transport.reconnects

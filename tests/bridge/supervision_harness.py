@@ -311,13 +311,25 @@ class Outcome:
 
 
 FAULTS = ("pause", "stop", "heartbeat_loss", "bus_error")
+
+
+def harness_protocol_config(n_evaluations: int = 4,
+                            pause_between_bouts: bool = False) -> SessionProtocolConfig:
+    """The protocol of :func:`run_session`: warm-ups 0, 2 exploration points of 3 breaths, an
+    optimisation budget in breaths of about ``n_evaluations - 2`` evaluations."""
+    return SessionProtocolConfig(
+        warmup_s=0.0, n_explore=2, max_breaths=3, budget_s=None,
+        budget_breaths=3 * max(n_evaluations - 2, 1), pause_between_bouts=pause_between_bouts)
 _RUNS = itertools.count()
 
 
 def run_session(tmp: Path, *, at: int | None = None, at_time_s: float | None = None,
                 fault: str = "pause", n_evaluations: int = 4, resume_after_s: float = 5.0,
                 end_after_s: float | None = None, cart_restart_at_s: float | None = None,
-                worker_start_s: float = 0.0, **settings_kw: Any) -> Outcome:
+                worker_start_s: float = 0.0, optimizer: HILOptimizer | None = None,
+                protocol: SessionProtocol | None = None,
+                on_session: Callable[[BridgeSession], None] | None = None,
+                **settings_kw: Any) -> Outcome:
     """One short session (warm-ups 0, 2 exploration points of 3 breaths, then optimisation).
 
     Args:
@@ -332,12 +344,15 @@ def run_session(tmp: Path, *, at: int | None = None, at_time_s: float | None = N
             session runs to its budget's end).
         cart_restart_at_s: The cart's clock restarts near 0 at this loop time.
         worker_start_s: The proposal worker answers its first call after this long (loop time).
+        optimizer: The optimizer to continue (a resumed session's); None: a new one.
+        protocol: Its protocol (:meth:`SessionProtocol.resumed`); None: a new one.
+        on_session: Called with the session before it runs.
         settings_kw: :class:`RuntimeSettings` fields to override, and ``pause_between_bouts``
             (the protocol's).
     """
     device = FakeExosuit()
     space = hip_6d()
-    opt = HILOptimizer(space, config=OptimizerConfig(
+    opt = optimizer or HILOptimizer(space, config=OptimizerConfig(
         n_explore=2, max_breaths=3, seed=1,
         n_candidates=64, n_local=0))
     gate = SafeProfileGate(space, ProfileLimits(), body_mass_kg=75.0)
@@ -348,9 +363,7 @@ def run_session(tmp: Path, *, at: int | None = None, at_time_s: float | None = N
         # The stall monitor measures real time, which a loop-time session does not have; at its
         # default 5 ms it was a third of each run's loop iterations.
         "loop_monitor_period_s": 0.04, **settings_kw})
-    protocol = SessionProtocol(SessionProtocolConfig(
-        warmup_s=0.0, n_explore=2, max_breaths=3, budget_s=None,
-        budget_breaths=3 * max(n_evaluations - 2, 1), pause_between_bouts=pause_between_bouts))
+    protocol = protocol or SessionProtocol(harness_protocol_config(n_evaluations, pause_between_bouts))
     holder: dict[str, BridgeSession] = {}
 
     def fire() -> None:
@@ -389,6 +402,8 @@ def run_session(tmp: Path, *, at: int | None = None, at_time_s: float | None = N
             device.is_paused = lambda: session.supervisor.paused
             if at_time_s is not None:
                 loop.call_at(at_time_s, fire)
+            if on_session is not None:
+                on_session(session)
             return await session.run()
 
     loop = looptime.new_event_loop(start=0.0, noop_cycles=1)
