@@ -33,6 +33,7 @@ import csv
 import dataclasses
 import difflib
 import enum
+import io
 import math
 import re
 import sys
@@ -1191,11 +1192,15 @@ def _cmd_check(args: argparse.Namespace, out: TextIO | None = None, err: TextIO 
     except BridgeConfigError as exc:
         err.write(f"hilbo config check: invalid config: {exc}\n")
         return 1
-    out.write(f"config OK: {cfg.source}\n{summarize(cfg)}\n")
+    # The cart file is part of the config: "config OK" only once it has been read as the
+    # session would read it.
+    cart = io.StringIO()
+    if _check_cart_file(cfg, cart, err) != 0:
+        out.write(cart.getvalue())
+        return 1
+    out.write(f"config OK: {cfg.source}\n{summarize(cfg)}\n{cart.getvalue()}")
     for warning in config_warnings(cfg):
         err.write(f"hilbo config check: warning: {warning}\n")
-    if _check_cart_file(cfg, out, err) != 0:
-        return 1
     if args.samples > 0:
         report = preflight(cfg.space.space, cfg.limits, body_mass_kg=cfg.session.body_mass_kg,
                            n=args.samples)
@@ -1228,6 +1233,15 @@ def _check_cart_file(cfg: HilboConfig, out: TextIO, err: TextIO) -> int:
         return 1
     if report is None:
         return 0
+    from drivers.cart.errors import CartError
+    from drivers.cart.pipeline import SPACING_BREATHS, check_breath_spacing
+
+    try:
+        check_breath_spacing([r.t_s for r in report.records[:SPACING_BREATHS]],
+                             source=f"cart file {report.path}")
+    except CartError as exc:
+        err.write(f"hilbo config check: {exc}\n")
+        return 1
     by_reason = ", ".join(f"{k} {v}" for k, v in report.rejects.most_common())
     out.write(f"cart file {report.path}: {len(report.records)} breaths read, {report.n_rejected} "
               f"rejected{f' ({by_reason})' if by_reason else ''}\n")

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import datetime as dt
 import json
 import logging
@@ -24,7 +25,8 @@ from rich.console import Console
 from bridge.config import HilboConfig
 from bridge.live import LiveServer
 from bridge.log import DEFAULT_FILE_MODE, SessionLog, new_session_id
-from bridge.log.resume import rebuild_optimizer
+from bridge.log.reader import read_log
+from bridge.log.resume import ResumeError, rebuild_optimizer
 from bridge.operator_view import run_operator_view
 from bridge.runtime import BridgeSession, RuntimeSettings
 from drivers.cart import BreathStream
@@ -33,7 +35,7 @@ from drivers.signals import stop_signal_handlers
 from hilbo_core import Evaluation, HILOptimizer
 from hilbo_core.protocol import SessionProtocol
 
-__all__ = ["RunResult", "run_session", "runtime_settings", "write_json_atomic"]
+__all__ = ["RunResult", "finished_session", "run_session", "runtime_settings", "write_json_atomic"]
 
 logger = logging.getLogger(__name__)
 
@@ -111,6 +113,20 @@ def _walked_lower_bound(evaluations: Sequence[Evaluation], warmup_s: float) -> f
     return float(walked + warmup_s * len(bouts))
 
 
+def finished_session(path: Path) -> str | None:
+    """Why the session of the log at ``path`` is over for good, or None when it can go on.
+
+    A session whose walking time or budget was spent (the protocol's end: the log's
+    ``budget_spent`` event) has nothing left to resume; one stopped by the operator, a signal,
+    the cart's end, the resume budget or a crash has.
+    """
+    events = read_log(path, topics=["/events"]).records("/events")
+    for e in events:
+        if getattr(e, "kind", None) == "budget_spent":
+            return e.message
+    return None
+
+
 async def run_session(
     cfg: HilboConfig,
     *,
@@ -139,9 +155,18 @@ async def run_session(
     Returns:
         Paths of the log and summary, and the summary.
     """
+    if auto_resume_s is not None and auto_resume_s != cfg.watchdog.auto_resume_s:
+        # The log records the config the session ran with: --auto-resume overrides the file's.
+        watchdog = dataclasses.replace(cfg.watchdog, auto_resume_s=auto_resume_s)
+        cfg = dataclasses.replace(cfg, watchdog=watchdog)
     space = cfg.space.space
     previous: str | None = None
     if resume is not None:
+        done = finished_session(resume)
+        if done is not None:
+            raise ResumeError(f"{resume} is a finished session ({done}); there is nothing to resume. "
+                              "Start a new session, or measure its recommendation with "
+                              f"hilbo validate CONFIG --from {resume}")
         opt, info = rebuild_optimizer(resume)
         session_id, previous = info.session_id, str(resume)
         # What the crashed session walked of its optimisation bout is known as the measured

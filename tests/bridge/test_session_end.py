@@ -21,6 +21,7 @@ import pytest
 
 from bridge.config import HilboConfig, parse_config
 from bridge.log.reader import read_log
+from bridge.log.resume import ResumeError
 from bridge.operator_view import render_status
 from bridge.run import RunResult, run_session
 from bridge.runtime import BridgeSession
@@ -58,7 +59,8 @@ def replay_config(tmp: Path, recording: Path) -> tuple[HilboConfig, str]:
     return cfg, channel
 
 
-def run_replay(tmp: Path, n_breaths: int, *, on_session: Any = None) -> tuple[RunResult, BridgeSession]:
+def run_replay(tmp: Path, n_breaths: int, *, on_session: Any = None, auto_resume_s: float = 0.0,
+               resume: Path | None = None, name: str = "s") -> tuple[RunResult, BridgeSession]:
     cfg, channel = replay_config(tmp, write_recording(tmp / "breaths.hbr", n_breaths))
     sessions: list[BridgeSession] = []
 
@@ -70,7 +72,8 @@ def run_replay(tmp: Path, n_breaths: int, *, on_session: Any = None) -> tuple[Ru
     async def run() -> RunResult:
         async with VirtualExosuit(CanBusConfig("virtual", channel), ScaledClock(1.0),
                                   joints=SUIT_JOINTS[SIM.preset], seed=1):
-            return await run_session(cfg, log_path=tmp / "s.mcap", auto_resume_s=0.0,
+            return await run_session(cfg, log_path=tmp / f"{name}.mcap", auto_resume_s=auto_resume_s,
+                                     resume=resume,
                                      operator_view=False, n_actuators=len(SUIT_JOINTS[SIM.preset]),
                                      on_session=hook)
 
@@ -113,3 +116,19 @@ def test_a_signal_stops_the_session_as_interrupted(tmp_path: Path) -> None:
     result, _ = run_replay(tmp_path, 400, on_session=on_session)
     assert result.summary["end_reason"] == "interrupted"
     assert result.summary["n_breaths"] < 400
+
+
+def test_the_logged_config_is_the_one_the_session_ran_with(tmp_path: Path) -> None:
+    # The file says auto_resume_s = 0.0; the command line (--auto-resume) says 0.5.
+    result, _ = run_replay(tmp_path, 40, auto_resume_s=0.5)
+    (config,) = read_log(result.log_path).records("/config")
+    assert config.config["watchdog"]["auto_resume_s"] == 0.5
+
+
+def test_resuming_a_finished_session_is_refused_clearly(tmp_path: Path) -> None:
+    # 260 breaths (13 minutes) of a 10-minute session: it ends by its walking time.
+    result, _ = run_replay(tmp_path, 260)
+    assert result.summary["end_reason"] == "session"
+    with pytest.raises(ResumeError, match=r"is a finished session .*nothing to resume.*hilbo validate"):
+        run_replay(tmp_path, 40, resume=result.log_path, name="again")
+    assert not (tmp_path / "again.mcap").exists()
