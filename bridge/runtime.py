@@ -404,7 +404,8 @@ class BridgeSession:
         reason = self.end_reason or SessionEnd.OPERATOR_STOP
         self._event("session_end", f"session ended ({reason.text}) after {len(self.records)} "
                     f"evaluations; worst event-loop stall {loop.worst_stall_ms:.1f} ms",
-                    loop=loop.to_json(), end_reason=reason.value)
+                    loop=loop.to_json(), end_reason=reason.value,
+                    walking=self.protocol.walking.to_json())
         return self.summary()
 
     def _status_from_optimizer(self) -> None:
