@@ -318,6 +318,9 @@ class BridgeSession:
         self._pull = bool(getattr(breaths, "paced_by_reader", False))
         self._breaths = _Breaths(queue=asyncio.Queue(maxsize=1 if self._pull else 0))
         self._ready_for_breaths = asyncio.Event()
+        #: Set while the protocol waits for a breath that has not arrived (nothing else is in
+        #: flight: a simulation may skip its clock to the next one, bridge/sim/virtual.py).
+        self.breath_wanted = asyncio.Event()
         self._commands: asyncio.Queue[Command] = asyncio.Queue()
         self._version = 0
         self._auto_resumes = 0
@@ -790,12 +793,15 @@ class BridgeSession:
         """The next breath, raising _Paused if the session pauses while waiting."""
         getter = asyncio.ensure_future(self._breaths.queue.get())
         pauser = asyncio.ensure_future(self.supervisor.wait_paused())
+        if self._breaths.queue.empty():
+            self.breath_wanted.set()
         try:
             done, _ = await asyncio.wait({getter, pauser}, return_when=asyncio.FIRST_COMPLETED)
         except BaseException:
             getter.cancel()  # cancelled (the session ends): no task left waiting on the queue
             raise
         finally:
+            self.breath_wanted.clear()
             pauser.cancel()
         if getter in done:
             return getter.result()

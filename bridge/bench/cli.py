@@ -432,7 +432,7 @@ def add_bench_parser(subparsers: Any) -> Any:
     _add_executor_args(st)
     st.set_defaults(func=_cmd_stopping)
 
-    from bridge.bench.hil import DEFAULT_HIL_METHODS, HIL_METHODS
+    from bridge.bench.methods import DEFAULT_HIL_METHODS, HIL_METHODS
 
     defaults = ",".join(DEFAULT_HIL_METHODS)
     others = ",".join(m for m in HIL_METHODS if m not in DEFAULT_HIL_METHODS)
