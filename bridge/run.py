@@ -18,7 +18,7 @@ import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from rich.console import Console
 
@@ -36,6 +36,9 @@ from hilbo_core import Evaluation, HILOptimizer
 from hilbo_core.protocol import SessionProtocol
 
 __all__ = ["RunResult", "finished_session", "run_session", "runtime_settings", "write_json_atomic"]
+
+if TYPE_CHECKING:
+    from bridge.validate import ValidationPlan
 
 logger = logging.getLogger(__name__)
 
@@ -137,6 +140,7 @@ async def run_session(
     operator_view: bool = True,
     n_actuators: int = 2,
     on_session: Callable[[BridgeSession], None] | None = None,
+    validation: ValidationPlan | None = None,
 ) -> RunResult:
     """Run one session from a config to its end.
 
@@ -151,6 +155,9 @@ async def run_session(
         operator_view: Show the live terminal view (when stderr is a terminal).
         n_actuators: Actuators whose heartbeat the watchdog requires.
         on_session: Called with the session before it runs (tests, simulation wiring).
+        validation: Measure this validation walk (``hilbo validate``, bridge/validate.py)
+            instead of optimising: its optimizer, protocol and gate; ``resume`` is then unused
+            (the plan was built from the log it continues).
 
     Returns:
         Paths of the log and summary, and the summary.
@@ -161,7 +168,10 @@ async def run_session(
         cfg = dataclasses.replace(cfg, watchdog=watchdog)
     space = cfg.space.space
     previous: str | None = None
-    if resume is not None:
+    if validation is not None:
+        opt, protocol = validation.optimizer, validation.protocol
+        session_id, previous = new_session_id(), None if resume is None else str(resume)
+    elif resume is not None:
         done = finished_session(resume)
         if done is not None:
             raise ResumeError(f"{resume} is a finished session ({done}); there is nothing to resume. "
@@ -216,8 +226,12 @@ async def run_session(
                     log.log_optimizer_state(opt, reason="resume")
                 elif cfg.prior.priors:
                     log.log_event("prior", cfg.prior.describe(), **cfg.prior.event_details())
-                session = BridgeSession(opt, cfg.make_gate(), endpoint, stream, log, settings,
-                                        protocol=protocol)
+                gate: Any = cfg.make_gate()
+                if validation is not None:
+                    gate = validation.gate(gate, lambda: session)  # type: ignore[arg-type,return-value]
+                session = BridgeSession(opt, gate, endpoint, stream, log, settings, protocol=protocol)
+                if validation is not None:
+                    validation.attach(session)
                 session.status.budget_s = protocol.config.budget_s
                 if stop_early:
                     session.interrupt()
@@ -232,6 +246,8 @@ async def run_session(
                     session.status.listeners.append(_headless_line(session))
                 try:
                     summary = await session.run()
+                    if validation is not None:
+                        summary["validation"] = validation.results(session)
                 finally:
                     if view is not None:
                         view.cancel()

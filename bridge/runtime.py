@@ -75,8 +75,10 @@ logger = logging.getLogger(__name__)
 class ProfileGate(Protocol):
     """What the session needs from the safety layer (bridge.safety.SafeProfileGate)."""
 
-    def admit(self, params: dict[str, float]) -> AdmittedProfile:
-        """Build and check the profiles of ``params``; raise when anything is out of limits."""
+    def admit(self, params: dict[str, float]) -> AdmittedProfile | None:
+        """Build and check the profiles of ``params``; raise when anything is out of limits.
+        None: the setting is walked without assistance (``hilbo validate``'s unassisted
+        condition): nothing is pushed and assistance is off."""
 
     def acknowledge(self, admitted: AdmittedProfile) -> None:
         """Record that the device acknowledged ``admitted`` (the reference for rate limits)."""
@@ -362,7 +364,12 @@ class BridgeSession:
     def interrupt(self) -> None:
         """Stop the session for a signal (Ctrl-C, SIGTERM): as the operator's stop, with its
         own end reason (``hilbo run`` exits 130)."""
-        self._ended_by(SessionEnd.INTERRUPTED)
+        self.finish(SessionEnd.INTERRUPTED)
+
+    def finish(self, reason: SessionEnd) -> None:
+        """Stop the session as the operator's stop does (assistance off, the log closed), with
+        ``reason`` as its end reason (``hilbo validate``: every condition measured)."""
+        self._ended_by(reason)
         self._commands.put_nowait(Command.STOP)
 
     def _ended_by(self, reason: SessionEnd) -> None:
@@ -617,13 +624,18 @@ class BridgeSession:
                                             "too many proposals rejected by the safety limits; "
                                             "check [limits] against [space]")
             return False
-        self._version = self._version % 255 + 1
-        await self._push(admitted, self._version, index, log_first=log_proposal)
-        latency = self._clock() - t_decided
-        self.latencies_s.append(latency)
-        if t_stop is not None:
-            self.stop_latencies_s.append(latency)
-        await self._wait_applied(self._version)
+        if admitted is None:
+            # Walked without assistance (hilbo validate's unassisted condition): nothing to push.
+            log_proposal()
+            await self.supervisor.assistance_off(AssistanceOffReason.SESSION_END, "unassisted condition")
+        else:
+            self._version = self._version % 255 + 1
+            await self._push(admitted, self._version, index, log_first=log_proposal)
+            latency = self._clock() - t_decided
+            self.latencies_s.append(latency)
+            if t_stop is not None:
+                self.stop_latencies_s.append(latency)
+            await self._wait_applied(self._version)
         # The new setting's measurement starts: the next stop decision is breaths away, so a
         # collection costs nothing now (bridge/collector.py).
         self.collector.quiet_point()

@@ -305,6 +305,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_config_parser(sub)
 
+    from bridge.cli.validate import add_validate_parser
+
+    add_validate_parser(sub)
+
     from bridge.bench.cli import add_bench_parser
     from bridge.bench.tune_stopping import add_tune_stopping_parser
     from bridge.bench.tutor import add_tutor_bench_parser

@@ -238,6 +238,27 @@ def _recommended_blocks(session: Session) -> list[_Block]:
     return blocks
 
 
+def _validation_blocks(session: Session) -> list[_Block]:
+    """The validation walk's result per condition (``hilbo validate``, bridge/validate.py)."""
+    rows = []
+    for r in session.validation or ():
+        ci = r.get("ci95_w") or [None, None]
+        red = r.get("reduction")
+        rci = r.get("reduction_ci95") or [None, None]
+        setting = str(r.get("setting") or "assistance off")
+        rows.append((str(r.get("order", "")), str(r.get("name", "")), setting,
+                     _num(r.get("mean_w"), ".1f"), f"{_num(ci[0], '.1f')} to {_num(ci[1], '.1f')}",
+                     "–" if red is None else f"{100 * red:.1f}",
+                     "–" if red is None else f"{100 * rci[0]:.1f} to {100 * rci[1]:.1f}",
+                     str(r.get("breaths", "–"))))
+    return [_p("Each condition measured in this order with the session's estimator, from the level "
+               "the previous one left (Kim et al. 2019 §IV.A.3: the optimised setting OPT, a generic "
+               "one FIX, walking without assistance). Reduction: 1 − cost / unassisted cost, its "
+               "interval by the delta method."),
+            _table(("order", "condition", "setting", "estimate (W)", "95 % CI (W)",
+                    "reduction vs unassisted (%)", "95 % CI (%)", "breaths"), rows)]
+
+
 def _pause_minutes(session: Session) -> float:
     end_s = session.breaths[-1].time_s if session.breaths else 0.0
     return sum((end_s if t1 is None else t1) - t0 for t0, t1 in session.pauses) / 60.0
@@ -300,6 +321,8 @@ def write_report(session: Session, out: Path, plots: Mapping[str, Path],
         f"optimisation), {session.n_early_stops} stopped early",
         f"reviewed with hilbo {hilbo_version()}",
     ]))
+    if session.validation is not None:
+        blocks += [_h(2, "Validation walk"), *_validation_blocks(session)]
     blocks += [_h(2, "Recommended setting"), *_recommended_blocks(session)]
     blocks.append(_h(2, "Plots"))
     for name, title_ in _TITLES.items():

@@ -347,6 +347,7 @@ class Session:
         pauses: (start, end) session times (s) of each pause; end None when the log ends paused.
         walked_s: The session's own minutes walked (its end event's ``walking``), s; None when
             the log does not say (then the last breath's session time stands in).
+        validation: A validation walk's result per condition (``hilbo validate``), or None.
     """
 
     files: tuple[LogFile, ...]
@@ -367,6 +368,7 @@ class Session:
     optimizer_config: Mapping[str, Any] = dataclasses.field(default_factory=dict)
     pauses: tuple[tuple[float, float | None], ...] = ()
     walked_s: float | None = None
+    validation: tuple[Mapping[str, Any], ...] | None = None
 
     @property
     def minutes_walked(self) -> float:
@@ -609,6 +611,8 @@ class _FileScan:
     end_s: float
     #: The session's own walked time (s) as its end event states it, or None (older logs).
     walked_s: float | None = None
+    #: A validation walk's per-condition results (its ``validation_result`` event), or None.
+    validation: list[Mapping[str, Any]] | None = None
 
 
 def _scan_file(c: LogContents, fi: int, offset: float) -> _FileScan:
@@ -696,6 +700,8 @@ def _scan_file(c: LogContents, fi: int, offset: float) -> _FileScan:
             walking = (r.details or {}).get("walking") if r.kind == "session_end" else None
             if isinstance(walking, Mapping) and _f(walking.get("session_s")) is not None:
                 scan.walked_s = float(walking["session_s"])
+            if r.kind == "validation_result" and isinstance((r.details or {}).get("conditions"), list):
+                scan.validation = [c for c in r.details["conditions"] if isinstance(c, Mapping)]
             scan.events.append(TimelineEvent(session_time(r.t_s, last), fi, _level_name(r.level), r.kind,
                                              r.message))
         elif topic == Topic.ACKS:
@@ -890,6 +896,7 @@ def load_session(paths: Sequence[str | os.PathLike[str]]) -> Session:
         recommended=recommended, feedback=feedback, notes=tuple(notes),
         optimizer_config=opt_config if isinstance(opt_config, Mapping) else {},
         pauses=_pauses(events), walked_s=scans[-1].walked_s,
+        validation=next((tuple(s.validation) for s in reversed(scans) if s.validation is not None), None),
     )
 
 
