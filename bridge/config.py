@@ -881,8 +881,6 @@ class ValidationConfig:
         condition_min: Each condition's length in minutes of walking, 1-30 (default 5, the
             seed's); measured as ``round(condition_min · 60 / breath_interval_s)`` breaths.
         breath_interval_s: The breath interval that turns minutes into breaths, 1-10 s.
-        zero_force: Also measure the suit worn at zero force (its transparency), besides
-            unassisted walking (assistance off).
         seed: Seeds the conditions' randomised order (0 or more; one per subject counterbalances
             a study).
     """
@@ -890,7 +888,6 @@ class ValidationConfig:
     generic: Mapping[str, float] | None = None
     condition_min: float = number(5.0, lo=1.0, hi=30.0)
     breath_interval_s: float = number(3.0, lo=1.0, hi=10.0)
-    zero_force: bool = boolean(False)
     seed: int = integer(0, lo=0)
 
     @property
