@@ -24,7 +24,7 @@ from rich.console import Console
 
 from bridge.config import HilboConfig
 from bridge.live import LiveServer
-from bridge.log import DEFAULT_FILE_MODE, SessionLog, new_session_id
+from bridge.log import DEFAULT_FILE_MODE, EventLevel, SessionLog, new_session_id
 from bridge.log.reader import read_log
 from bridge.log.resume import ResumeError, rebuild_optimizer
 from bridge.operator_view import run_operator_view
@@ -114,6 +114,20 @@ def _walked_lower_bound(evaluations: Sequence[Evaluation], warmup_s: float) -> f
     walked = sum(e.duration_s for e in evaluations)
     bouts = {e.phase for e in evaluations}
     return float(walked + warmup_s * len(bouts))
+
+
+def _sdk_lines_to(log: SessionLog, loop: asyncio.AbstractEventLoop) -> Callable[[str, int], None]:
+    """The live view's SDK log lines as the session log's ``live_view`` events (called from the
+    SDK's thread: handed to the loop, which owns the log)."""
+    def write(text: str, level: int) -> None:
+        if not log.closed:
+            log.log_event("live_view", f"live view: {text}",
+                          level=EventLevel.ERROR if level >= logging.ERROR else EventLevel.WARNING)
+
+    def forward(text: str, level: int) -> None:
+        with contextlib.suppress(RuntimeError):  # the loop has closed: the session is over
+            loop.call_soon_threadsafe(write, text, level)
+    return forward
 
 
 def finished_session(path: Path) -> str | None:
@@ -237,6 +251,7 @@ async def run_session(
                     session.interrupt()
                 if live is not None:
                     session.status.event(f"live view: {live.url or 'off, ' + str(live.start_error)}")
+                    live.on_sdk_log = _sdk_lines_to(log, loop)
                 if on_session is not None:
                     on_session(session)
                 view = asyncio.create_task(run_operator_view(session), name="operator-view") \
