@@ -176,9 +176,14 @@ async def test_malformed_frames_are_counted_by_the_bridge_and_valid_traffic_stil
 
 async def test_counted_malformed_burst_sends_exactly_that_many_frames() -> None:
     async with rig(["unknown-id@0.2x7"], malformed_rate_hz=100.0) as (exo, ep):
-        # The burst starts at 0.2 sim s and takes 70 ms wall at 100 Hz; wait well past it on the
-        # device's clock so that an 8th frame, if any, would have been sent and counted.
-        await exo.clock.sleep_until(0.8)
+        # The burst starts at 0.2 sim s and takes 70 ms wall at 100 Hz, longer on a busy machine
+        # (the loop skips the ticks it missed): wait for its 7 frames to be counted (bounded,
+        # generous), then 30 more periods, in which an 8th frame, if any, would be sent.
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + 20.0
+        while ep.counters["unknown_id"] < 7 and loop.time() < deadline:
+            await asyncio.sleep(0.01)
+        await asyncio.sleep(0.3)
         counted = ep.counters["unknown_id"]
     assert exo.stats["malformed_sent"] == 7
     assert counted == 7
