@@ -51,18 +51,18 @@ def test_the_reduction_and_its_interval_by_the_delta_method() -> None:
     assert opt["ci95_w"] == pytest.approx([300.0 - 1.959964 * 4.0, 300.0 + 1.959964 * 4.0], rel=1e-6)
 
 
-@pytest.mark.slow
-@pytest.mark.timeout(240)
-def test_validate_on_the_virtual_devices_matches_the_wearers_truth(tmp_path: Path) -> None:
-    # The optimisation session to validate: a short one (its recommendation is what matters).
-    source = harness_session(tmp_path, n_evaluations=4).log
+def validation_config(tmp_path: Path) -> tuple[VirtualSimConfig, Any]:
     sim = VirtualSimConfig(minutes=30.0, seed=4, warmup_s=60.0, wearer="legacy")
     text = sim_config_text(sim, tmp_path) + (
         "\n[validation]\ngeneric = { " + ", ".join(f"{k} = {v}" for k, v in GENERIC.items())
         + " }\ncondition_min = 4.0\nseed = 2\n")
-    cfg = parse_config(text, source="<test>")
-    wearer = make_wearer(sim.wearer, cfg.space.space, seed=sim.seed, body_mass_kg=sim.body_mass_kg)
-    plan = ValidationPlan.new(cfg, source)
+    return sim, parse_config(text, source="<test>")
+
+
+def run_validation(tmp_path: Path, sim: VirtualSimConfig, cfg: Any, plan: ValidationPlan, wearer: Any, *,
+                   name: str = "validate", resume: Path | None = None,
+                   on_session: Any = None) -> dict[str, Any]:
+    """The validation walk over the virtual exosuit and cart (in this process, 100x)."""
     channel = f"hilbo-validate-{uuid.uuid4().hex[:8]}"
 
     async def run() -> dict[str, Any]:
@@ -71,14 +71,25 @@ def test_validate_on_the_virtual_devices_matches_the_wearers_truth(tmp_path: Pat
             bus = CanBusConfig("virtual", channel)
             run_cfg = dataclasses.replace(cfg, cart=cart.client_config(),
                                           can=dataclasses.replace(cfg.can, bus=bus))
-            async with VirtualExosuit(CanBusConfig("virtual", channel), clock, joints=SUIT_JOINTS[sim.preset],
+            async with VirtualExosuit(bus, clock, joints=SUIT_JOINTS[sim.preset],
                                       seed=1, on_applied=cart.on_profile_applied):
-                result = await run_session(run_cfg, log_path=tmp_path / "validate.mcap", auto_resume_s=0.0,
+                result = await run_session(run_cfg, log_path=tmp_path / f"{name}.mcap", auto_resume_s=0.0,
                                            operator_view=False, n_actuators=len(SUIT_JOINTS[sim.preset]),
-                                           validation=plan)
+                                           validation=plan, resume=resume, on_session=on_session)
         return result.summary
 
-    summary = asyncio.run(run())
+    return asyncio.run(run())
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(240)
+def test_validate_on_the_virtual_devices_matches_the_wearers_truth(tmp_path: Path) -> None:
+    # The optimisation session to validate: a short one (its recommendation is what matters).
+    source = harness_session(tmp_path, n_evaluations=4).log
+    sim, cfg = validation_config(tmp_path)
+    wearer = make_wearer(sim.wearer, cfg.space.space, seed=sim.seed, body_mass_kg=sim.body_mass_kg)
+    plan = ValidationPlan.new(cfg, source)
+    summary = run_validation(tmp_path, sim, cfg, plan, wearer)
     assert summary["end_reason"] == "conditions_done"
     results = {r["name"]: r for r in summary["validation"]}
     assert set(results) == {"OPT", "FIX", "unassisted"} and all(r["measured"] for r in results.values())
@@ -126,3 +137,36 @@ def test_a_generic_setting_outside_the_space_is_refused_by_the_config() -> None:
         parse_config(text)
     with pytest.raises(BridgeConfigError, match=r"generic: expected every parameter .*missing F_f"):
         parse_config(text.replace(", F_f = 0.5", "").replace("t_p = 52.0", "t_p = 27.0"))
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_a_stopped_validation_walk_resumes_with_its_measured_conditions(tmp_path: Path) -> None:
+    from bridge.outcome import SessionEnd
+
+    source = harness_session(tmp_path, n_evaluations=4).log
+    sim, cfg = validation_config(tmp_path)
+
+    def wearer() -> Any:
+        return make_wearer(sim.wearer, cfg.space.space, seed=sim.seed, body_mass_kg=sim.body_mass_kg)
+
+    def stop_after_the_first(session: Any) -> None:
+        def check(_rec: Any) -> None:
+            if len(session.opt.evaluations) == 1 and session.end_reason is None:
+                session.finish(SessionEnd.OPERATOR_STOP)
+        session.breath_listeners.append(check)
+
+    plan = ValidationPlan.new(cfg, source)
+    first = run_validation(tmp_path, sim, cfg, plan, wearer(), name="first", on_session=stop_after_the_first)
+    assert first["end_reason"] == "operator_stop"
+    assert [r["measured"] for r in first["validation"]] == [True, False, False]
+    again = ValidationPlan.resumed(cfg, tmp_path / "first.mcap")
+    assert [c.to_json() for c in again.conditions] == [c.to_json() for c in plan.conditions]
+    assert again.source_log == str(source)
+    second = run_validation(tmp_path, sim, cfg, again, wearer(), name="second",
+                            resume=tmp_path / "first.mcap")
+    assert second["end_reason"] == "conditions_done"
+    assert all(r["measured"] for r in second["validation"])
+    assert second["validation"][0]["mean_w"] == first["validation"][0]["mean_w"]  # kept, not re-measured
+    with pytest.raises(Exception, match="every condition of this validation walk was measured"):
+        ValidationPlan.resumed(cfg, tmp_path / "second.mcap")
