@@ -116,8 +116,8 @@ EXIT_INTERRUPTED = 130
 _RUN_EXIT_STATUS = """\
 exit status: 0 the session ended with at least one completed evaluation; 1 an error (one line
 naming it); 2 a wrong command line; 3 the session ended without a completed evaluation (nothing
-to recommend); 130 stopped by Ctrl-C or SIGTERM. The log and the summary are written in every
-case but 2."""
+to recommend); 130 stopped by Ctrl-C or SIGTERM. A session that has started writes its log and
+its summary whatever its exit status."""
 
 
 def _ended_text(s: dict[str, Any]) -> str:
