@@ -95,7 +95,7 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     _print_done(console, summary)
     print(out / "summary.json")
     print(out / "session.mcap")
-    return 0
+    return EXIT_INTERRUPTED if summary.get("end_reason") == "interrupted" else 0
 
 
 def _print_done(console: Any, summary: dict[str, Any]) -> None:
@@ -181,7 +181,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
                       "--auto-resume S or set [watchdog] auto_resume_s")
     result = asyncio.run(run_session(cfg, resume=resume, out_dir=Path(args.out) if args.out else None,
                                      operator_view=not args.no_view, auto_resume_s=args.auto_resume))
-    console.print(_ended_text(result.summary), markup=False, highlight=False)
+    console.print(_ended_text(result.summary), markup=False, highlight=False, soft_wrap=True)
     print(result.log_path)
     print(result.summary_path)
     return _run_exit_status(result.summary)

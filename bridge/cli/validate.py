@@ -49,9 +49,9 @@ def _cmd_validate(args: argparse.Namespace) -> int:
                                      validation=plan))
     summary: dict[str, Any] = result.summary
     console.print(_ended_text({**summary, "recommendation": None, "n_evaluations": summary["n_evaluations"]}
-                              ).splitlines()[0], markup=False, highlight=False)
+                              ).splitlines()[0], markup=False, highlight=False, soft_wrap=True)
     for line in result_lines(summary.get("validation") or []):
-        console.print(line, markup=False, highlight=False)
+        console.print(line, markup=False, highlight=False, soft_wrap=True)
     print(result.log_path)
     print(result.summary_path)
     return _run_exit_status(summary)
