@@ -107,7 +107,7 @@ def _mark_pauses(ax: Any, session: Session, *, label: bool) -> None:
 
 def _timeline(session: Session, path: Path) -> str | None:
     """(a) breath-by-breath power, the session's estimate with its ±1 σ band, setting changes
-    and pauses (seed 000 Fig. 1)."""
+    and pauses (Kim et al. 2019 Fig. 1)."""
     if not session.breaths:
         return "the log holds no breaths"
     fig = _figure("timeline")

@@ -8,7 +8,7 @@
 
     * ``timeline.png``: breath-by-breath metabolic power (W) with the session's estimate of
       each setting (labelled by the estimator it used) and its ±1 σ band on one continuous time
-      axis, setting changes and pauses marked (seed 000 Fig. 1), and the estimate's σ below;
+      axis, setting changes and pauses marked (Kim et al. 2019 Fig. 1), and the estimate's σ below;
     * ``best_so_far.png``: best estimated cost so far (W) against minutes walked;
     * ``parameters.png``: each parameter against evaluation number, early stops marked;
     * ``thresholds.png``: the threshold schedule the session used (Algorithm 2's A, floored
