@@ -33,6 +33,7 @@ import csv
 import dataclasses
 import difflib
 import enum
+import io
 import math
 import re
 import sys
@@ -112,7 +113,7 @@ __all__ = [
 ]
 
 #: The tables a config may have, in the order the example shows them.
-TABLES = ("session", "space", "protocol", "cart", "can", "limits", "watchdog", "prior", "live")
+TABLES = ("session", "space", "protocol", "cart", "can", "limits", "watchdog", "prior", "live", "validation")
 _REQUIRED_TABLES = ("session", "space", "cart", "can")
 
 _SUBJECT = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
@@ -869,6 +870,61 @@ def _parse_live(data: object) -> LiveConfig:
     return LiveConfig(**read_fields(LiveConfig, t))
 
 
+@dataclass(frozen=True)
+class ValidationConfig:
+    """``[validation]``: the validation walk of ``hilbo validate`` (Kim et al. 2019 §IV.A.3: the
+    optimised setting against a generic one and walking without assistance, 5 minutes each).
+
+    Attributes:
+        generic: The generic setting (FIX): every parameter of ``[space]`` by name, feasible;
+            None: no generic condition.
+        condition_min: Each condition's length in minutes of walking, 1-30 (default 5, the
+            seed's); measured as ``round(condition_min · 60 / breath_interval_s)`` breaths.
+        breath_interval_s: The breath interval that turns minutes into breaths, 1-10 s.
+        seed: Seeds the conditions' randomised order (0 or more; one per subject counterbalances
+            a study).
+    """
+
+    generic: Mapping[str, float] | None = None
+    condition_min: float = number(5.0, lo=1.0, hi=30.0)
+    breath_interval_s: float = number(3.0, lo=1.0, hi=10.0)
+    seed: int = integer(0, lo=0)
+
+    @property
+    def condition_breaths(self) -> int:
+        """Breaths each condition is measured for."""
+        return max(2, round(self.condition_min * 60.0 / self.breath_interval_s))
+
+
+def _parse_validation(data: object, space: ParameterSpace) -> ValidationConfig:
+    t = _table(data, "validation", ALLOWED_KEYS["validation"])
+    fields_ = read_fields(ValidationConfig, t, skip=("generic",))
+    generic = None
+    if t.has("generic"):
+        raw = t.raw("generic", None, "a table of parameter = value")
+        if not isinstance(raw, Mapping):
+            raise BridgeConfigError(f"validation.generic = {raw!r:.60}: expected a table such as "
+                                    f"{{ {', '.join(f'{n} = ...' for n in space.names)} }}")
+        missing = [n for n in space.names if n not in raw]
+        unknown = [k for k in raw if k not in space.names]
+        if missing or unknown:
+            raise BridgeConfigError(
+                f"validation.generic: expected every parameter of [space] ({', '.join(space.names)})"
+                + (f"; missing {', '.join(missing)}" if missing else "")
+                + (f"; unknown {', '.join(unknown)}" if unknown else ""))
+        values = {}
+        for k, v in raw.items():
+            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+                raise BridgeConfigError(f"validation.generic.{k} = {v!r}: expected a number")
+            values[k] = float(v)
+        try:
+            space.check(values)
+        except InfeasibleError as err:
+            raise BridgeConfigError(f"validation.generic is not a feasible setting: {err}") from err
+        generic = MappingProxyType(values)
+    return ValidationConfig(generic=generic, **fields_)
+
+
 # --------------------------------------------------------------------------------------------
 # The whole config
 # --------------------------------------------------------------------------------------------
@@ -893,6 +949,7 @@ class HilboConfig:
     watchdog: WatchdogConfig
     prior: PriorConfig = field(default_factory=PriorConfig)
     live: LiveConfig = field(default_factory=LiveConfig)
+    validation: ValidationConfig = field(default_factory=ValidationConfig)
     source: str = field(default="<string>", compare=False)
     text: str = field(default="", compare=False, repr=False)
 
@@ -913,6 +970,9 @@ class HilboConfig:
             "watchdog": self.watchdog.to_json(),
             "prior": _jsonable(self.prior),
             "live": _jsonable(self.live),
+            "validation": {**_jsonable(dataclasses.replace(self.validation, generic=None)),
+                           "generic": None if self.validation.generic is None
+                           else dict(self.validation.generic)},
             "toml": self.text,
         }
 
@@ -1029,6 +1089,7 @@ def parse_config(text: str, source: str = "<string>") -> HilboConfig:
         watchdog=_parse_watchdog(data.get("watchdog", {})),
         prior=_parse_prior(data.get("prior", {}), space.space),
         live=_parse_live(data.get("live", {})),
+        validation=_parse_validation(data.get("validation", {}), space.space),
         source=source,
         text=text,
     )
@@ -1191,11 +1252,15 @@ def _cmd_check(args: argparse.Namespace, out: TextIO | None = None, err: TextIO 
     except BridgeConfigError as exc:
         err.write(f"hilbo config check: invalid config: {exc}\n")
         return 1
-    out.write(f"config OK: {cfg.source}\n{summarize(cfg)}\n")
+    # The cart file is part of the config: "config OK" only once it has been read as the
+    # session would read it.
+    cart = io.StringIO()
+    if _check_cart_file(cfg, cart, err) != 0:
+        out.write(cart.getvalue())
+        return 1
+    out.write(f"config OK: {cfg.source}\n{summarize(cfg)}\n{cart.getvalue()}")
     for warning in config_warnings(cfg):
         err.write(f"hilbo config check: warning: {warning}\n")
-    if _check_cart_file(cfg, out, err) != 0:
-        return 1
     if args.samples > 0:
         report = preflight(cfg.space.space, cfg.limits, body_mass_kg=cfg.session.body_mass_kg,
                            n=args.samples)
@@ -1228,6 +1293,15 @@ def _check_cart_file(cfg: HilboConfig, out: TextIO, err: TextIO) -> int:
         return 1
     if report is None:
         return 0
+    from drivers.cart.errors import CartError
+    from drivers.cart.pipeline import SPACING_BREATHS, check_breath_spacing
+
+    try:
+        check_breath_spacing([r.t_s for r in report.records[:SPACING_BREATHS]],
+                             source=f"cart file {report.path}")
+    except CartError as exc:
+        err.write(f"hilbo config check: {exc}\n")
+        return 1
     by_reason = ", ".join(f"{k} {v}" for k, v in report.rejects.most_common())
     out.write(f"cart file {report.path}: {len(report.records)} breaths read, {report.n_rejected} "
               f"rejected{f' ({by_reason})' if by_reason else ''}\n")
@@ -1284,4 +1358,5 @@ ALLOWED_KEYS: Mapping[str, tuple[str, ...]] = MappingProxyType({
     "watchdog": tuple(f.name for f in dataclasses.fields(WatchdogConfig)),
     "prior": ("observations", "logs", "table", "table_baseline_w", "inflation"),
     "live": tuple(f.name for f in dataclasses.fields(LiveConfig)),
+    "validation": tuple(f.name for f in dataclasses.fields(ValidationConfig)),
 })

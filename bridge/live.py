@@ -15,6 +15,12 @@ Slow clients: ``Channel.log`` only hands the bytes to the SDK, which queues them
 whose control queue fills is disconnected). tests/bridge/test_live.py measures publishing to a
 client that never reads.
 
+The SDK's own log lines (a client refused at the handshake: an older client that offers only
+the ``foxglove.websocket.v1`` subprotocol gets HTTP 400 from this SDK; a dropped slow client)
+go through Python logging (``foxglove.set_log_level``) to :attr:`LiveServer.on_sdk_log` — the
+session log's events in ``hilbo run`` — and never to the terminal, where they were printed over
+the operator view.
+
 Binds 127.0.0.1 by default: the stream carries the session's data, and nothing here
 authenticates a client. Open it in Foxglove with "Open connection" → "Foxglove WebSocket" →
 ``ws://127.0.0.1:8765``.
@@ -25,7 +31,7 @@ from __future__ import annotations
 import json
 import logging
 from collections import Counter
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -113,6 +119,10 @@ class LiveServer:
         self._context: Any = None
         self._channels: dict[str, Any] = {}
         self._schemas: dict[str, str] = {}
+        #: Called with each line the SDK logs (text, logging level), from the SDK's thread;
+        #: None: counted in :attr:`stats` only.
+        self.on_sdk_log: Callable[[str, int], None] | None = None
+        self._sdk_handler: _SdkLogHandler | None = None
 
     # ------------------------------------------------------------------ lifecycle
     def __enter__(self) -> LiveServer:
@@ -133,6 +143,7 @@ class LiveServer:
         try:
             import foxglove  # deferred: a session without the live view never loads the SDK
 
+            self._route_sdk_logging(foxglove)
             self._context = foxglove.Context()
             self._server = foxglove.start_server(
                 name=self.name, host=self.host, port=self._requested_port, context=self._context,
@@ -158,6 +169,30 @@ class LiveServer:
         if server is not None:
             server.stop()
         self._context = None
+        handler, self._sdk_handler = self._sdk_handler, None
+        if handler is not None:
+            sdk = logging.getLogger(_SDK_LOGGER)
+            sdk.removeHandler(handler)
+            sdk.propagate = handler.propagated
+
+    def _route_sdk_logging(self, foxglove: Any) -> None:
+        """The SDK's log lines to :attr:`on_sdk_log` instead of the terminal."""
+        # Without it the SDK writes its lines to stderr itself. The first call in a process
+        # decides (a later one has no effect); WARNING: refusals and drops, not each client.
+        foxglove.set_log_level(logging.WARNING)
+        sdk = logging.getLogger(_SDK_LOGGER)
+        self._sdk_handler = _SdkLogHandler(self, propagated=sdk.propagate)
+        sdk.addHandler(self._sdk_handler)
+        sdk.propagate = False
+
+    def _sdk_line(self, text: str, level: int) -> None:
+        self.stats.errors["sdk_" + logging.getLevelName(level).lower()] += 1
+        callback = self.on_sdk_log
+        if callback is not None:
+            try:
+                callback(text, level)
+            except Exception:  # the live view never ends a session (module docstring)
+                logger.debug("live view: forwarding an SDK log line failed", exc_info=True)
 
     @property
     def running(self) -> bool:
@@ -222,6 +257,21 @@ class LiveServer:
         self.stats.errors[kind] += 1
         if self.stats.errors[kind] == 1:
             logger.error("live view: %s (further %s errors are only counted)", text, kind)
+
+
+_SDK_LOGGER = "foxglove"
+
+
+class _SdkLogHandler(logging.Handler):
+    """Hands the SDK's log records to their :class:`LiveServer` (from the SDK's thread)."""
+
+    def __init__(self, server: LiveServer, *, propagated: bool) -> None:
+        super().__init__(logging.WARNING)
+        self.server = server
+        self.propagated = propagated
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.server._sdk_line(record.getMessage(), record.levelno)
 
 
 def _log_time(log_time_ns: int) -> int | None:

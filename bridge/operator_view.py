@@ -26,6 +26,7 @@ from rich.panel import Panel
 from rich.table import Table
 from rich.text import Text
 
+from bridge.outcome import format_params
 from bridge.runtime import BridgeSession, Command, SessionStatus
 from drivers.exosuit import DeviceFault
 from drivers.exosuit.faults import FAULT_INFO
@@ -79,7 +80,7 @@ def _best(st: SessionStatus) -> str:
     if st.best_sd_w is not None:
         text = f"{st.best_mean_w:.0f} ± {1.96 * st.best_sd_w:.0f} W (95 %)"
     if st.best_params:
-        text += " at " + ", ".join(f"{k}={v:.3g}" for k, v in st.best_params.items())
+        text += " at " + format_params(st.best_params, st.units)
     return text
 
 
@@ -96,7 +97,7 @@ def render_status(st: SessionStatus, now_unix_s: float | None = None) -> Panel:
     t.add_row("expected end", _expected_end(st, time.time() if now_unix_s is None else now_unix_s))
     t.add_row("evaluation", str(st.evaluation))
     if st.params:
-        t.add_row("setting", ", ".join(f"{k}={v:.3g}" for k, v in st.params.items()))
+        t.add_row("setting", format_params(st.params, st.units))
     estimate = "—" if st.mean_w is None else f"{st.mean_w:.0f} ± {1.96 * (st.sd_w or 0):.0f} W (95 %)"
     t.add_row("estimate", f"{estimate}  after {st.breaths_in_setting} breaths")
     t.add_row("decision", st.last_decision or "—")
@@ -178,11 +179,15 @@ async def run_operator_view(session: BridgeSession, console: Console | None = No
         terminal = sys.stderr
         with Live(render_status(session.status), console=console, refresh_per_second=4) as live, \
                 _log_above_the_view(terminal):
-            while True:
-                await asyncio.sleep(refresh_s)
-                live.update(render_status(session.status))
-                if keys_task is not None and keys_task.done():
-                    keys_task.result()  # surface a key-reader error instead of losing keys silently
+            try:
+                while True:
+                    await asyncio.sleep(refresh_s)
+                    live.update(render_status(session.status))
+                    if keys_task is not None and keys_task.done():
+                        keys_task.result()  # surface a key-reader error instead of losing keys
+            finally:
+                # The last frame stays on the screen: it says how the session ended, not "running".
+                live.update(render_status(session.status), refresh=True)
     finally:
         if keys_task is not None:
             keys_task.cancel()

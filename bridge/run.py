@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import datetime as dt
 import json
 import logging
@@ -18,23 +19,27 @@ import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from rich.console import Console
 
 from bridge.config import HilboConfig
 from bridge.live import LiveServer
-from bridge.log import DEFAULT_FILE_MODE, SessionLog, new_session_id
-from bridge.log.resume import rebuild_optimizer
+from bridge.log import DEFAULT_FILE_MODE, EventLevel, SessionLog, new_session_id
+from bridge.log.reader import read_log
+from bridge.log.resume import ResumeError, rebuild_optimizer
 from bridge.operator_view import run_operator_view
-from bridge.runtime import BridgeSession, Command, RuntimeSettings
+from bridge.runtime import BridgeSession, RuntimeSettings
 from drivers.cart import BreathStream
 from drivers.exosuit import CanEndpoint
 from drivers.signals import stop_signal_handlers
 from hilbo_core import Evaluation, HILOptimizer
 from hilbo_core.protocol import SessionProtocol
 
-__all__ = ["RunResult", "run_session", "runtime_settings", "write_json_atomic"]
+__all__ = ["RunResult", "finished_session", "run_session", "runtime_settings", "write_json_atomic"]
+
+if TYPE_CHECKING:
+    from bridge.validate import ValidationPlan
 
 logger = logging.getLogger(__name__)
 
@@ -114,6 +119,34 @@ def _walked_lower_bound(evaluations: Sequence[Evaluation], warmup_s: float) -> f
     return float(walked + warmup_s * len(bouts))
 
 
+def _sdk_lines_to(log: SessionLog, loop: asyncio.AbstractEventLoop) -> Callable[[str, int], None]:
+    """The live view's SDK log lines as the session log's ``live_view`` events (called from the
+    SDK's thread: handed to the loop, which owns the log)."""
+    def write(text: str, level: int) -> None:
+        if not log.closed:
+            log.log_event("live_view", f"live view: {text}",
+                          level=EventLevel.ERROR if level >= logging.ERROR else EventLevel.WARNING)
+
+    def forward(text: str, level: int) -> None:
+        with contextlib.suppress(RuntimeError):  # the loop has closed: the session is over
+            loop.call_soon_threadsafe(write, text, level)
+    return forward
+
+
+def finished_session(path: Path) -> str | None:
+    """Why the session of the log at ``path`` is over for good, or None when it can go on.
+
+    A session whose walking time or budget was spent (the protocol's end: the log's
+    ``budget_spent`` event) has nothing left to resume; one stopped by the operator, a signal,
+    the cart's end, the resume budget or a crash has.
+    """
+    events = read_log(path, topics=["/events"]).records("/events")
+    for e in events:
+        if getattr(e, "kind", None) == "budget_spent":
+            return e.message
+    return None
+
+
 async def run_session(
     cfg: HilboConfig,
     *,
@@ -124,6 +157,7 @@ async def run_session(
     operator_view: bool = True,
     n_actuators: int = 2,
     on_session: Callable[[BridgeSession], None] | None = None,
+    validation: ValidationPlan | None = None,
 ) -> RunResult:
     """Run one session from a config to its end.
 
@@ -138,13 +172,28 @@ async def run_session(
         operator_view: Show the live terminal view (when stderr is a terminal).
         n_actuators: Actuators whose heartbeat the watchdog requires.
         on_session: Called with the session before it runs (tests, simulation wiring).
+        validation: Measure this validation walk (``hilbo validate``, bridge/validate.py)
+            instead of optimising: its optimizer, protocol and gate; ``resume`` is then unused
+            (the plan was built from the log it continues).
 
     Returns:
         Paths of the log and summary, and the summary.
     """
+    if auto_resume_s is not None and auto_resume_s != cfg.watchdog.auto_resume_s:
+        # The log records the config the session ran with: --auto-resume overrides the file's.
+        watchdog = dataclasses.replace(cfg.watchdog, auto_resume_s=auto_resume_s)
+        cfg = dataclasses.replace(cfg, watchdog=watchdog)
     space = cfg.space.space
     previous: str | None = None
-    if resume is not None:
+    if validation is not None:
+        opt, protocol = validation.optimizer, validation.protocol
+        session_id, previous = new_session_id(), None if resume is None else str(resume)
+    elif resume is not None:
+        done = finished_session(resume)
+        if done is not None:
+            raise ResumeError(f"{resume} is a finished session ({done}); there is nothing to resume. "
+                              "Start a new session, or measure its recommendation with "
+                              f"hilbo validate CONFIG --from {resume}")
         opt, info = rebuild_optimizer(resume)
         session_id, previous = info.session_id, str(resume)
         # What the crashed session walked of its optimisation bout is known as the measured
@@ -183,7 +232,7 @@ async def run_session(
     def stop() -> None:
         nonlocal stop_early
         if session is not None:
-            session.command(Command.STOP)
+            session.interrupt()
         else:
             stop_early = True
 
@@ -197,13 +246,18 @@ async def run_session(
                     log.log_optimizer_state(opt, reason="resume")
                 elif cfg.prior.priors:
                     log.log_event("prior", cfg.prior.describe(), **cfg.prior.event_details())
-                session = BridgeSession(opt, cfg.make_gate(), endpoint, stream, log, settings,
-                                        protocol=protocol)
+                gate: Any = cfg.make_gate()
+                if validation is not None:
+                    gate = validation.gate(gate, lambda: session)  # type: ignore[arg-type,return-value]
+                session = BridgeSession(opt, gate, endpoint, stream, log, settings, protocol=protocol)
+                if validation is not None:
+                    validation.attach(session)
                 session.status.budget_s = protocol.config.budget_s
                 if stop_early:
-                    session.command(Command.STOP)
+                    session.interrupt()
                 if live is not None:
                     session.status.event(f"live view: {live.url or 'off, ' + str(live.start_error)}")
+                    live.on_sdk_log = _sdk_lines_to(log, loop)
                 if on_session is not None:
                     on_session(session)
                 view = asyncio.create_task(run_operator_view(session), name="operator-view") \
@@ -213,6 +267,8 @@ async def run_session(
                     session.status.listeners.append(_headless_line(session))
                 try:
                     summary = await session.run()
+                    if validation is not None:
+                        summary["validation"] = validation.results(session)
                 finally:
                     if view is not None:
                         view.cancel()

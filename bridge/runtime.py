@@ -38,6 +38,7 @@ from bridge.errors import UnsafeProfileError
 from bridge.log import EventLevel, LogError, SessionLog
 from bridge.loop_monitor import DEFAULT_PERIOD_S as DEFAULT_LOOP_MONITOR_PERIOD_S
 from bridge.loop_monitor import LoopMonitor
+from bridge.outcome import SessionEnd, recommendation, session_end
 from bridge.proposals import ProposalWorker, WorkerKind
 from bridge.safety import AdmittedProfile
 from bridge.supervisor import PushRefused, Supervisor
@@ -77,8 +78,10 @@ logger = logging.getLogger(__name__)
 class ProfileGate(Protocol):
     """What the session needs from the safety layer (bridge.safety.SafeProfileGate)."""
 
-    def admit(self, params: dict[str, float]) -> AdmittedProfile:
-        """Build and check the profiles of ``params``; raise when anything is out of limits."""
+    def admit(self, params: dict[str, float]) -> AdmittedProfile | None:
+        """Build and check the profiles of ``params``; raise when anything is out of limits.
+        None: the setting is walked without assistance (``hilbo validate``'s unassisted
+        condition): nothing is pushed and assistance is off."""
 
     def acknowledge(self, admitted: AdmittedProfile) -> None:
         """Record that the device acknowledged ``admitted`` (the reference for rate limits)."""
@@ -213,10 +216,16 @@ class SessionStatus:
     best_params: dict[str, float] | None = None  # opt.best()'s setting
     best_sd_w: float | None = None  # sqrt of opt.best()'s variance, W
     device_faults: dict[int, int] = field(default_factory=dict)  # actuator -> DeviceFault bits
+    #: Why the session ended, once it has (the last frame of the operator view says so).
+    ended: SessionEnd | None = None
+    #: The parameters' units, for the display.
+    units: dict[str, str] = field(default_factory=dict)
 
     @property
     def state(self) -> str:
-        """The supervision state line ("starting", "running", "paused: why", "stopped")."""
+        """The supervision state line ("starting", "running", "paused: why", "ended: why")."""
+        if self.ended is not None:
+            return f"ended: {self.ended.text}"
         return "starting" if self.supervisor is None else self.supervisor.describe()
 
     def event(self, text: str) -> None:
@@ -311,8 +320,17 @@ class BridgeSession:
         #: The one owner of pause, stop, assistance, the heartbeat's state and the gate's
         #: baseline (bridge/supervisor.py); every other task asks it.
         self.supervisor = Supervisor(endpoint, gate, on_event=self._event, health=self._health)
-        self.status = SessionStatus(supervisor=self.supervisor)
-        self._breaths = _Breaths()
+        self.status = SessionStatus(supervisor=self.supervisor, units=optimizer.space.units)
+        # A source paced by its reader (a replay at speed = "max") gets back-pressure: one
+        # breath waits in the queue at most, and none is read before the session is ready for
+        # it, so the session takes every breath it is given instead of finding a whole file
+        # queued (or dropped) by the time its proposal worker answers.
+        self._pull = bool(getattr(breaths, "paced_by_reader", False))
+        self._breaths = _Breaths(queue=asyncio.Queue(maxsize=1 if self._pull else 0))
+        self._ready_for_breaths = asyncio.Event()
+        #: Set while the protocol waits for a breath that has not arrived (nothing else is in
+        #: flight: a simulation may skip its clock to the next one, bridge/sim/virtual.py).
+        self.breath_wanted = asyncio.Event()
         self._commands: asyncio.Queue[Command] = asyncio.Queue()
         self._version = 0
         self._auto_resumes = 0
@@ -336,6 +354,10 @@ class BridgeSession:
         self._next_ask: asyncio.Task[Any] | None = None  # started at a stop decision
         self.records: list[dict[str, Any]] = []  # completed evaluations with session times
         self._t_session0: float | None = None
+        #: Why the session ended (the first cause wins); None while it runs.
+        self.end_reason: SessionEnd | None = None
+        #: Called with every breath the protocol accounts (hilbo validate's conditions).
+        self.breath_listeners: list[Callable[[BreathRecord], None]] = []
 
     @property
     def proposal_worker(self) -> ProposalWorker:
@@ -347,6 +369,21 @@ class BridgeSession:
         """Queue an operator command (call from the event loop's thread)."""
         self._commands.put_nowait(cmd)
 
+    def interrupt(self) -> None:
+        """Stop the session for a signal (Ctrl-C, SIGTERM): as the operator's stop, with its
+        own end reason (``hilbo run`` exits 130)."""
+        self.finish(SessionEnd.INTERRUPTED)
+
+    def finish(self, reason: SessionEnd) -> None:
+        """Stop the session as the operator's stop does (assistance off, the log closed), with
+        ``reason`` as its end reason (``hilbo validate``: every condition measured)."""
+        self._ended_by(reason)
+        self._commands.put_nowait(Command.STOP)
+
+    def _ended_by(self, reason: SessionEnd) -> None:
+        if self.end_reason is None:
+            self.end_reason = reason
+
     async def run(self) -> dict[str, Any]:
         """Run the session to its end (budget spent, stop command, or fatal error).
 
@@ -356,14 +393,20 @@ class BridgeSession:
         # The starting point of a resume: without it a crash before the first completed
         # evaluation could not be resumed.
         self.log.log_optimizer_state(self.opt, reason="start")
+        self._status_from_optimizer()
         self._event("session_start", f"session started ({self.opt.phase.value})")
+        ok = False
         try:
             with self.collector:
                 async with self._worker:  # the session's walking starts once it answers
                     await self._run_tasks()
+            ok = True
         except* _Stopped:
-            pass
+            ok = True
         finally:
+            # A stop whose cause was not recorded is the operator's; anything else an error.
+            self._ended_by(SessionEnd.OPERATOR_STOP if ok else SessionEnd.ERROR)
+            self.status.ended = self.end_reason
             await self.supervisor.assistance_off(
                 AssistanceOffReason.OPERATOR_STOP if self.supervisor.stopped
                 else AssistanceOffReason.SESSION_END, "session end")
@@ -376,9 +419,23 @@ class BridgeSession:
         # applied since the last evaluation's snapshot): `hilbo review` recommends from it too.
         self.log.log_optimizer_state(self.opt, reason="end")
         loop = self.loop_monitor.stats
-        self._event("session_end", f"session ended after {len(self.records)} evaluations; worst "
-                    f"event-loop stall {loop.worst_stall_ms:.1f} ms", loop=loop.to_json())
+        reason = self.end_reason or SessionEnd.OPERATOR_STOP
+        self._event("session_end", f"session ended ({reason.text}) after {len(self.records)} "
+                    f"evaluations; worst event-loop stall {loop.worst_stall_ms:.1f} ms",
+                    loop=loop.to_json(), end_reason=reason.value,
+                    walking=self.protocol.walking.to_json())
         return self.summary()
+
+    def _status_from_optimizer(self) -> None:
+        """The operator view of a resumed session starts from what the log holds: the
+        evaluations done, the best so far, the optimisation time walked."""
+        n = len(self.opt.evaluations)
+        if n == 0:
+            return
+        self.status.evaluation = n
+        self.status.best_params, self.status.best_mean_w, best_var = self.opt.best()
+        self.status.best_sd_w = math.sqrt(best_var)
+        self.status.budget_used_s = float(self.opt.budget_used["seconds"])
 
     async def _run_tasks(self) -> None:
         try:
@@ -416,6 +473,7 @@ class BridgeSession:
         if self._worker.in_process:  # a process starts; a thread would need no wait
             self.status.event("starting the proposal worker")
             await self._worker.worker_pid()
+        self._ready_for_breaths.set()
         b = self._breaths
         dropped = 0
         while not b.queue.empty():
@@ -439,12 +497,16 @@ class BridgeSession:
             "stop_to_ack_ms": _quantiles_ms(self.stop_latencies_s),
             # Session time is walking time (a lab has the hour it has): where every walked second went.
             "walking": self.protocol.walking.to_json(),
-            "end_reason": None if self.protocol.end_reason is None else self.protocol.end_reason.value,
+            "end_reason": None if self.end_reason is None else self.end_reason.value,
+            "recommendation": None,
             "loop": self.loop_monitor.stats.to_json(),
         }
         if self.opt.evaluations:
             params, mean, var = self.opt.best()
             out.update(best_params=params, best_mean=mean, best_var=var)
+            out["recommendation"] = recommendation(
+                params, mean, var, evaluations=[e.to_json() for e in self.opt.evaluations],
+                method=self.opt.config.recommend.value, units=self.opt.space.units)
         return out
 
     # ------------------------------------------------------------------ main protocol
@@ -463,6 +525,8 @@ class BridgeSession:
             except (_Paused, _Remeasure) as err:
                 act = await self._abandon(err)
         self.opt.cancel_current()  # a setting proposed but never measured
+        if p.end_reason is not None:
+            self._ended_by(session_end(p.end_reason))
         reason = p.end_reason.value if p.end_reason is not None else "stopped"
         self._event("budget_spent", f"session time spent ({reason}): "
                     f"{p.walking.session_s / 60:.1f} min walked")
@@ -488,7 +552,7 @@ class BridgeSession:
         elif act.kind is ActionKind.PROPOSE:
             # No warm-up and no breath yet (or only breaths dropped at the start): the clock starts.
             if self._breaths.last_t is None:
-                act = p.on_breath((await self._next_breath()).t_s)
+                act = self._on_breath(await self._next_breath())
                 if act.kind is not ActionKind.TRANSITION:
                     return act
             if not await self._propose(act):
@@ -497,7 +561,7 @@ class BridgeSession:
         rec = await self._next_breath()
         if self._setting is not None and self._breaths.reanchors != self._setting.reanchors:
             raise _Remeasure
-        act = p.on_breath(rec.t_s)
+        act = self._on_breath(rec)
         if act.kind is ActionKind.MEASURE:
             return await self._measure(rec, act)
         return act
@@ -568,13 +632,18 @@ class BridgeSession:
                                             "too many proposals rejected by the safety limits; "
                                             "check [limits] against [space]")
             return False
-        self._version = self._version % 255 + 1
-        await self._push(admitted, self._version, index, log_first=log_proposal)
-        latency = self._clock() - t_decided
-        self.latencies_s.append(latency)
-        if t_stop is not None:
-            self.stop_latencies_s.append(latency)
-        await self._wait_applied(self._version)
+        if admitted is None:
+            # Walked without assistance (hilbo validate's unassisted condition): nothing to push.
+            log_proposal()
+            await self.supervisor.assistance_off(AssistanceOffReason.SESSION_END, "unassisted condition")
+        else:
+            self._version = self._version % 255 + 1
+            await self._push(admitted, self._version, index, log_first=log_proposal)
+            latency = self._clock() - t_decided
+            self.latencies_s.append(latency)
+            if t_stop is not None:
+                self.stop_latencies_s.append(latency)
+            await self._wait_applied(self._version)
         # The new setting's measurement starts: the next stop decision is breaths away, so a
         # collection costs nothing now (bridge/collector.py).
         self.collector.quiet_point()
@@ -744,12 +813,15 @@ class BridgeSession:
         """The next breath, raising _Paused if the session pauses while waiting."""
         getter = asyncio.ensure_future(self._breaths.queue.get())
         pauser = asyncio.ensure_future(self.supervisor.wait_paused())
+        if self._breaths.queue.empty():
+            self.breath_wanted.set()
         try:
             done, _ = await asyncio.wait({getter, pauser}, return_when=asyncio.FIRST_COMPLETED)
         except BaseException:
             getter.cancel()  # cancelled (the session ends): no task left waiting on the queue
             raise
         finally:
+            self.breath_wanted.clear()
             pauser.cancel()
         if getter in done:
             return getter.result()
@@ -778,7 +850,7 @@ class BridgeSession:
             with contextlib.suppress(TimeoutError):
                 async with asyncio.timeout(0.05):
                     rec = await self._breaths.queue.get()
-                    act = self.protocol.on_breath(rec.t_s)
+                    act = self._on_breath(rec)
                     if act.kind is ActionKind.END:
                         return act
         return None
@@ -787,6 +859,8 @@ class BridgeSession:
     async def _cart_task(self) -> None:
         b = self._breaths
         validator = getattr(self._stream, "validator", None)
+        if self._pull:
+            await self._ready_for_breaths.wait()
         async for rec in self._stream:
             if validator is not None and validator.reanchors != b.reanchors:
                 b.reanchors = validator.reanchors
@@ -802,9 +876,16 @@ class BridgeSession:
             self.status.breath_time_s = self._session_time(rec.t_s)
             self.status.cart = "ok"
             self.log.log_breath(rec)
-            b.queue.put_nowait(rec)
+            await b.queue.put(rec)  # waits only with back-pressure (a bounded queue)
+            if self._pull:  # the wait was the session's, not a silent cart
+                b.last_wall = self._clock()
         b.ended = True
-        self._event("cart_ended", "the cart stream ended")
+        self._ended_by(SessionEnd.CART_ENDED)
+        walked = self.protocol.walking.session_s / 60
+        end = self._expected_end_s()
+        early = "" if end is None else f", {max(end / 60 - walked, 0.0):.1f} min before the expected end"
+        self._event("cart_ended", f"the cart stream ended after {walked:.1f} min walked{early} "
+                    f"({b.count} breaths): stopping", walked_s=self.protocol.walking.session_s)
         self._commands.put_nowait(Command.STOP)
 
     async def _status_task(self) -> None:
@@ -958,6 +1039,7 @@ class BridgeSession:
             if self._auto_resumes >= s.max_auto_resumes:
                 text = (f"{s.max_auto_resumes} automatic resumes used; stopping instead of "
                         f"waiting ({sup.pause_reason})")
+                self._ended_by(SessionEnd.RESUME_BUDGET)
                 self._event("auto_resume_exhausted", text)
                 await sup.stop(AssistanceOffReason.SESSION_END, text)
                 return
@@ -975,6 +1057,7 @@ class BridgeSession:
 
     async def _bus_failure_task(self) -> None:
         err = await self.endpoint.wait_failed()
+        self._ended_by(SessionEnd.BUS_FAILED)
         self._event("bus_error", f"CAN bus failed: {err}")
         await self.supervisor.stop(AssistanceOffReason.INTERNAL_ERROR, f"CAN bus failed: {err}")
         raise _Stopped from err
@@ -987,6 +1070,7 @@ class BridgeSession:
             elif cmd is Command.RESUME:
                 await self._resume("operator", by_person=True)
             elif cmd is Command.STOP:
+                self._ended_by(SessionEnd.OPERATOR_STOP)
                 await self.supervisor.stop(AssistanceOffReason.OPERATOR_STOP, "operator stop")
                 raise _Stopped
 
@@ -1046,6 +1130,16 @@ class BridgeSession:
             deadline = self._clock() + 0.2
             while self.device.faults(s.n_actuators) & mask and self._clock() < deadline:
                 await asyncio.sleep(s.watchdog_period_s)
+
+    def _on_breath(self, rec: BreathRecord) -> Action:
+        """Give a breath to the protocol; keep the operator view's times current (the expected
+        end, the optimisation minutes: at every breath, a pause's too)."""
+        act = self.protocol.on_breath(rec.t_s)
+        self.status.budget_used_s = self.protocol.walking.optimization_s
+        self.status.expected_end_s = self._expected_end_s()
+        for listener in self.breath_listeners:
+            listener(rec)
+        return act
 
     def _expected_end_s(self) -> float | None:
         """The protocol's expected end in session time (s), or None."""

@@ -771,6 +771,8 @@ class VirtualCart:
         if isinstance(history_size, bool) or not isinstance(history_size, int) or history_size < 1:
             raise VirtualConfigError(f"history_size={history_size!r}: expected an integer >= 1")
         self.history: deque[EmittedBreath] = deque(maxlen=history_size)
+        #: The simulated time of the tick the cart sleeps until (None before it serves).
+        self.next_tick_s: float | None = None
         self.stats: Counter[str] = Counter()
         self._rng = np.random.default_rng(fault_seed)
         self._seq = 0
@@ -1001,6 +1003,7 @@ class VirtualCart:
                           start, len(skipped))
         tick = self._next_tick(start)
         while self.end_s is None or tick <= self.end_s:
+            self.next_tick_s = tick
             await me.sleep_until(tick)
             await self._step(tick)
             if self.end_s is not None and tick >= self.end_s:

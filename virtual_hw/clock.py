@@ -78,6 +78,7 @@ __all__ = [
     "ParticipantState",
     "ScaledClock",
     "SimClock",
+    "SkippingClock",
     "VirtualClock",
     "make_clock",
     "parse_speed",
@@ -348,6 +349,62 @@ class ScaledClock:
 
     def __repr__(self) -> str:
         return f"ScaledClock(speed={self._speed:g}, epoch_wall={self.epoch_wall!r})"
+
+
+class SkippingClock(ScaledClock):
+    """A :class:`ScaledClock` that can also jump ahead (:meth:`skip_to`), for one process.
+
+    ``hilbo sim --speed max`` runs the devices at a real-time factor, and the bridge then spends
+    most of the wall time waiting for the next breath (three quarters of ``make sim``). When the
+    bridge waits for a breath and nothing else needs time to pass (no profile pending, no fault
+    scheduled), the simulation skips the clock to the cart's next tick: the same session, bound
+    by its computing instead of by the factor. The epoch moves, so this clock cannot be shared
+    with another process (they would disagree); sleepers wake at every skip and re-check.
+    """
+
+    def __init__(self, speed: float, epoch_wall: float | None = None, *,
+                 wall_time: Callable[[], float] = time.time) -> None:
+        super().__init__(speed, epoch_wall, wall_time=wall_time)
+        self._moved: asyncio.Event | None = None
+        #: Simulated seconds skipped so far.
+        self.skipped_s = 0.0
+
+    def skip_to(self, t_sim: float) -> float:
+        """Jump to ``t_sim`` if it is ahead (never back); wake every sleeper to re-check.
+
+        Returns:
+            The simulated seconds skipped (0 when ``t_sim`` is not ahead).
+        """
+        ahead = _check_time("t_sim", t_sim) - self.now()
+        if ahead <= 0:
+            return 0.0
+        self.epoch_wall -= ahead / self._speed
+        self.skipped_s += ahead
+        moved, self._moved = self._moved, None
+        if moved is not None:
+            moved.set()
+        return ahead
+
+    async def sleep_until(self, t_sim: float) -> None:
+        """Sleep until ``now() >= t_sim``: the wall time it takes, or less after a skip."""
+        t = _check_time("t_sim", t_sim)
+        remaining = (t - self.now()) / self._speed
+        if remaining <= 0:
+            await asyncio.sleep(0)
+            return
+        while remaining > 0:
+            if self._moved is None:
+                self._moved = asyncio.Event()
+            moved = self._moved
+            try:
+                async with asyncio.timeout(remaining):
+                    await moved.wait()
+            except TimeoutError:
+                pass
+            remaining = (t - self.now()) / self._speed
+
+    def __repr__(self) -> str:
+        return f"SkippingClock(speed={self._speed:g}, epoch_wall={self.epoch_wall!r})"
 
 
 class VirtualClock:

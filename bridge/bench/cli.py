@@ -418,10 +418,14 @@ def add_bench_parser(subparsers: Any) -> Any:
     _add_executor_args(st)
     st.set_defaults(func=_cmd_stopping)
 
+    from bridge.bench.methods import DEFAULT_HIL_METHODS, HIL_METHODS
+
+    defaults = ",".join(DEFAULT_HIL_METHODS)
+    others = ",".join(m for m in HIL_METHODS if m not in DEFAULT_HIL_METHODS)
     hil = bsub.add_parser(
         "hil", help="whole simulated sessions: stopping BO, fixed BO, CMA-ES, random search",
         description="Whole HIL sessions on simulated wearers; regret of the recommended setting "
-                    "against minutes walked. Besides the four default methods, adaptive-ahead "
+                    f"against minutes walked. Besides the default methods ({defaults}), adaptive-ahead "
                     "(adaptive with the GP hyperparameters fitted ahead, as hilbo run does) and "
                     "the Antonova 2016 ones: "
                     "adaptive-day2 (a second day, no prior), adaptive-prior and adaptive-prior-e3 "
@@ -433,9 +437,7 @@ def add_bench_parser(subparsers: Any) -> Any:
     hil.add_argument("--spaces", default=None,
                      help="comma-separated, from hip_6d,hip_ankle_4d (default both)")
     hil.add_argument("--methods", default=None,
-                     help="comma-separated, from adaptive,fixed,cmaes,random (the default) and "
-                          "adaptive-ahead,adaptive-day2,adaptive-prior,adaptive-prior-e3,adaptive-features,"
-                          "adaptive-features-only,adaptive-tuned-k")
+                     help=f"comma-separated, from {defaults} (the default) and {others}")
     hil.add_argument("--minutes", type=float, default=60.0, help="session length incl. warm-ups (60)")
     hil.add_argument("--warmup-s", type=float, default=180.0, help="each of the two warm-ups (180 s)")
     hil.add_argument("--condition-s", type=float, default=120.0,

@@ -74,6 +74,7 @@ import numpy as np
 from scipy.optimize import linprog, minimize
 
 from bridge.bench.common import blas_threads, markdown_table, round_sig
+from bridge.bench.methods import DEFAULT_HIL_METHODS, HIL_METHODS, PRIOR_METHODS, THESIS_METHODS
 from bridge.bench.thesis_session import Arm, run_session
 from bridge.sim.core import SimConfig, SimEvaluation, run_insim
 from bridge.sim.devices import RealisticWearerConfig, WearerConfig, WearerKind, make_wearer, wearer_kind
@@ -103,13 +104,6 @@ __all__ = [
     "tune_constant_k",
 ]
 
-DEFAULT_HIL_METHODS: tuple[str, ...] = ("sound", "adaptive", "fixed", "cmaes", "random")
-"""What ``hilbo bench hil`` runs without ``--methods``."""
-PRIOR_METHODS: tuple[str, ...] = ("adaptive-prior", "adaptive-prior-e3")
-THESIS_METHODS: tuple[str, ...] = ("adaptive-day2", *PRIOR_METHODS, "adaptive-features",
-                                   "adaptive-features-only", "adaptive-tuned-k")
-"""The Antonova 2016 methods (module docstring)."""
-HIL_METHODS: tuple[str, ...] = (*DEFAULT_HIL_METHODS, "adaptive-ahead", *THESIS_METHODS)
 _PRIOR_E3 = 3  # exploration points of adaptive-prior-e3 (docs/results_thesis.md §2)
 _BO_METHODS = ("sound", "adaptive", "fixed")
 _CMA_STREAM = 0xC3A

@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import logging
-import math
 import os
 import sys
 from collections.abc import Sequence
@@ -96,7 +95,7 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     _print_done(console, summary)
     print(out / "summary.json")
     print(out / "session.mcap")
-    return 0
+    return EXIT_INTERRUPTED if summary.get("end_reason") == "interrupted" else 0
 
 
 def _print_done(console: Any, summary: dict[str, Any]) -> None:
@@ -109,19 +108,45 @@ def _print_done(console: Any, summary: dict[str, Any]) -> None:
     console.print(line)
 
 
+#: ``hilbo run``'s exit status for a session that ended without a completed evaluation.
+EXIT_NOTHING_MEASURED = 3
+#: Exit statuses of a session stopped by a signal (128 + the signal's number, as shells report).
+EXIT_INTERRUPTED = 130
+
+_RUN_EXIT_STATUS = """\
+exit status: 0 the session ended with at least one completed evaluation; 1 an error (one line
+naming it); 2 a wrong command line; 3 the session ended without a completed evaluation (nothing
+to recommend); 130 stopped by Ctrl-C or SIGTERM. A session that has started writes its log and
+its summary whatever its exit status."""
+
+
 def _ended_text(s: dict[str, Any]) -> str:
-    """The last line of ``hilbo run``: evaluations, the best setting's estimate, minutes walked."""
-    text = f"session ended: {s['n_evaluations']} evaluations ({s['n_early_stops']} early stops)"
-    if s.get("best_mean") is not None:
-        var = s.get("best_var")
-        sd = f" ± {math.sqrt(var):.1f}" if isinstance(var, int | float) and var >= 0 else ""
-        text += f"; best {s['best_mean']:.1f}{sd} W"
+    """The last lines of ``hilbo run``: why the session ended, evaluations, minutes walked, and
+    the recommended setting (parameters with units, estimate with its 95 % interval, how it was
+    measured)."""
+    from bridge.outcome import SessionEnd, recommendation_text
+
+    reason = s.get("end_reason")
+    why = SessionEnd(reason).text if reason in {e.value for e in SessionEnd} else str(reason)
+    text = f"session ended: {why}; {s['n_evaluations']} evaluations ({s['n_early_stops']} early stops)"
     walking = s.get("walking") or {}
     if "session_s" in walking:
         text += f"; {walking['session_s'] / 60:.1f} min walked"
         if walking.get("optimization_s"):
             text += f", {walking['optimization_s'] / 60:.1f} of them in the optimisation bout"
+    rec = s.get("recommendation")
+    if rec is not None:
+        text += "\n" + recommendation_text(rec)
+    elif not s["n_evaluations"]:
+        text += f"\nno evaluation completed: nothing to recommend (exit status {EXIT_NOTHING_MEASURED})"
     return text
+
+
+def _run_exit_status(summary: dict[str, Any]) -> int:
+    """0, or 130 for a signal's stop, or 3 for a session that measured nothing."""
+    if summary.get("end_reason") == "interrupted":
+        return EXIT_INTERRUPTED
+    return 0 if summary["n_evaluations"] else EXIT_NOTHING_MEASURED
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
@@ -156,10 +181,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
                       "--auto-resume S or set [watchdog] auto_resume_s")
     result = asyncio.run(run_session(cfg, resume=resume, out_dir=Path(args.out) if args.out else None,
                                      operator_view=not args.no_view, auto_resume_s=args.auto_resume))
-    console.print(_ended_text(result.summary))
+    console.print(_ended_text(result.summary), markup=False, highlight=False, soft_wrap=True)
     print(result.log_path)
     print(result.summary_path)
-    return 0
+    return _run_exit_status(result.summary)
 
 
 def _cmd_sim_core(args: argparse.Namespace) -> int:
@@ -258,7 +283,8 @@ def build_parser() -> argparse.ArgumentParser:
                          description="Run a HIL session: read the cart, estimate, stop, propose and "
                                      "push profiles to the exosuit as CONFIG.toml says. Keys in the "
                                      "live view: p pause (assistance off), r resume, q stop; Ctrl-C "
-                                     "stops safely too.")
+                                     "stops safely too.",
+                         epilog=_RUN_EXIT_STATUS)
     run.add_argument("config", help="the session config (see: hilbo config example)")
     run.add_argument("--resume", metavar="LOG.mcap", default=None,
                      help="continue the session of this log (also one cut off by a crash) in a new log")
@@ -278,6 +304,10 @@ def build_parser() -> argparse.ArgumentParser:
     from bridge.config import add_config_parser
 
     add_config_parser(sub)
+
+    from bridge.cli.validate import add_validate_parser
+
+    add_validate_parser(sub)
 
     from bridge.bench.cli import add_bench_parser
     from bridge.bench.tune_stopping import add_tune_stopping_parser

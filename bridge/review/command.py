@@ -100,8 +100,9 @@ def add_review_parser(subparsers: Any) -> argparse.ArgumentParser:
     """Register ``hilbo review`` on the top-level ``add_subparsers()`` object (sets ``func``)."""
     p = subparsers.add_parser(
         "review", help="plots, a report and CSV tables of a session from its log",
-        description="Review a session from its MCAP log: PNG plots (breath-by-breath power with the UKF "
-                    "estimate, best so far against minutes walked, parameters per evaluation, threshold "
+        description="Review a session from its MCAP log: PNG plots (breath-by-breath power with the "
+                    "session's estimate and its pauses, best so far against minutes walked, "
+                    "parameters per evaluation, threshold "
                     "schedule, desired vs measured force of the recommended setting), report.md and "
                     "report.html (self-contained), evaluations.csv and breaths.csv. Give both files of a "
                     "session resumed after a crash to review it as one; a log cut off by a crash is read "

@@ -97,8 +97,17 @@ def session_plots(session: Session, out: Path) -> tuple[dict[str, Path], dict[st
     return drawn, skipped
 
 
+def _mark_pauses(ax: Any, session: Session, *, label: bool) -> None:
+    """Shade each pause (assistance off: the operator's, a fault's, the one between the bouts)."""
+    end_s = session.breaths[-1].time_s if session.breaths else 0.0
+    for k, (t0, t1) in enumerate(session.pauses):
+        ax.axvspan(t0 / 60.0, (end_s if t1 is None else t1) / 60.0, color="tab:red", alpha=0.08, lw=0,
+                   label="paused (assistance off)" if label and k == 0 else None)
+
+
 def _timeline(session: Session, path: Path) -> str | None:
-    """(a) breath power, the estimate with its ±1 σ band, setting changes (Kim et al. 2019, Fig. 1)."""
+    """(a) breath-by-breath power, the session's estimate with its ±1 σ band, setting changes
+    and pauses (Kim et al. 2019 Fig. 1)."""
     if not session.breaths:
         return "the log holds no breaths"
     fig = _figure("timeline")
@@ -111,7 +120,7 @@ def _timeline(session: Session, path: Path) -> str | None:
         x = np.asarray(tr.time_s) / 60.0
         mean, sd = np.asarray(tr.mean_w), np.asarray(tr.sd_w)
         colour = _PHASE_COLOURS.get(tr.phase, "tab:green") if tr.completed else "0.4"
-        label = (f"UKF estimate ({tr.phase})" if tr.completed else "abandoned setting") \
+        label = (f"{session.estimator_label} ({tr.phase})" if tr.completed else "abandoned setting") \
             if (tr.phase if tr.completed else "abandoned") not in labelled else None
         labelled.add(tr.phase if tr.completed else "abandoned")
         ax.plot(x, mean, color=colour, lw=1.6, ls="-" if tr.completed else ":", marker=".", ms=4,
@@ -134,9 +143,11 @@ def _timeline(session: Session, path: Path) -> str | None:
         ax.set_ylim(lo - pad, hi + pad)
     _mark_resumes(ax, session)
     _mark_resumes(ax_sd, session)
+    _mark_pauses(ax, session, label=True)
+    _mark_pauses(ax_sd, session, label=False)
     ax.set_ylabel("metabolic power (W)")
     ax.set_title(f"{session.label}: breath-by-breath power and the estimate of each setting "
-                 "(grey lines: setting changes, numbers: evaluations)", fontsize=10)
+                 "(grey lines: setting changes, numbers: evaluations, red: paused)", fontsize=10)
     ax.legend(loc="lower center", fontsize=8, ncol=5, framealpha=0.8)
     ax.grid(alpha=0.3)
     ax_sd.set_ylabel("estimate σ (W)")
@@ -155,7 +166,8 @@ def _best_so_far(session: Session, path: Path) -> str | None:
     ax = fig.subplots()
     pts = session.best_so_far()
     t = np.array([p[0] for p in pts])
-    ax.step(t, [p[1] for p in pts], where="post", color="k", lw=2, label="best so far")
+    ax.step(t, [p[1] for p in pts], where="post", color="k", lw=2,
+            label="best so far (lowest raw estimate)")
     for phase, colour in _PHASE_COLOURS.items():
         es = [(tt, e) for tt, e in zip(t, session.evaluations, strict=True) if e.phase == phase]
         if es:
@@ -166,7 +178,12 @@ def _best_so_far(session: Session, path: Path) -> str | None:
         ax.scatter(*zip(*early, strict=True), label="stopped early", **_EARLY)
     rec = session.recommended
     if rec is not None:
-        ax.axhline(rec.mean_w, color="tab:green", ls="--", lw=1.2, label=f"recommended: {rec.mean_w:.1f} W")
+        label = f"recommended: {rec.mean_w:.1f} W"
+        if not math.isclose(rec.mean_w, pts[-1][1], rel_tol=1e-9):
+            # The recommendation is the GP's estimate over every evaluation, not the lowest raw
+            # estimate (the winner's curse biases that one low): the two lines differ on purpose.
+            label += " (GP posterior; differs from the best raw estimate)"
+        ax.axhline(rec.mean_w, color="tab:green", ls="--", lw=1.2, label=label)
     _mark_resumes(ax, session)
     ax.set_xlabel("minutes walked (end of each evaluation)")
     ax.set_ylabel("estimated cost (W)")
@@ -242,7 +259,16 @@ def _thresholds(session: Session, path: Path) -> str | None:
             ax.scatter([b[-1]], [z.z[-1]], **_EARLY)
     if any(z.stopped_early for z in th.z_traces):
         ax.scatter([], [], label="stopped early", **_EARLY)
-    ax.plot(i, th.thresholds, "o-", color="k", lw=2, ms=4, label="threshold A")
+    floor = session.threshold_floor
+    if floor is None:
+        ax.plot(i, th.thresholds, "o-", color="k", lw=2, ms=4, label="threshold A (used as is)")
+        title = "threshold schedule (Algorithm 2); stop when z > A_i"
+    else:
+        # The session's sound rule stops on max(A_i, a_floor): the floored schedule is what it used.
+        ax.plot(i, th.thresholds, "--", color="0.35", lw=1, label="Algorithm 2's A (before the floor)")
+        ax.plot(i, np.maximum(th.thresholds, floor), "o-", color="k", lw=2, ms=4,
+                label=f"threshold used: max(A_i, {floor:g})")
+        title = f"threshold schedule used (Algorithm 2 floored at {floor:g} σ); stop when z > it"
     ax.axhline(0.0, color="0.3", lw=0.6)
     finite = np.concatenate([th.thresholds, th.traces.ravel()] + [np.asarray(z.z) for z in th.z_traces])
     finite = finite[np.isfinite(finite)]
@@ -252,7 +278,7 @@ def _thresholds(session: Session, path: Path) -> str | None:
         ax.set_ylim(min(lo, 0.0) - pad, hi + pad)
     ax.set_xlabel("breath index i (within an evaluation)")
     ax.set_ylabel("standardised distance")
-    ax.set_title(f"{session.label}: threshold schedule (Algorithm 2); stop when z > A_i", fontsize=10)
+    ax.set_title(f"{session.label}: {title}", fontsize=10)
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     fig.subplots_adjust(left=0.1, right=0.97, top=0.92, bottom=0.11)

@@ -32,24 +32,30 @@ __all__ = [
 ]
 
 EVALUATION_FIXED_COLUMNS = ("evaluation", "phase", "mean_w", "var_w2", "sd_w", "breaths", "duration_s",
-                            "stopped_early", "reason", "t_start_s", "t_end_s", "log", "source")
-"""Columns of ``evaluations.csv`` besides the parameters (which follow ``phase``)."""
+                            "stopped_early", "reason", "t_start_s", "t_end_s", "log", "source", "index")
+"""Columns of ``evaluations.csv`` besides the parameters (which follow ``phase``). ``evaluation``
+counts from 1, as the report, the plots and the operator view do; ``index`` is the log's and the
+summary's 0-based index of the same evaluation."""
 
 BREATH_COLUMNS = ("breath", "log", "t_s", "time_s", "vo2_ml_min", "vco2_ml_min", "ve_l_min", "rer",
-                  "hr_bpm", "watts", "evaluation", "breath_in_evaluation", "mean_w", "sd_w")
-"""Columns of ``breaths.csv``: ``t_s`` on the cart's clock, ``time_s`` session time (s)."""
+                  "hr_bpm", "watts", "evaluation", "breath_in_evaluation", "mean_w", "sd_w", "index")
+"""Columns of ``breaths.csv``: ``t_s`` on the cart's clock, ``time_s`` session time (s); ``breath``,
+``evaluation`` and ``breath_in_evaluation`` count from 1 (as the report and the threshold plot),
+``index`` is the evaluation's 0-based index in the log."""
 
 _CAPTIONS = {
-    "timeline": "Breath-by-breath metabolic power (Brockway) with the UKF estimate of each setting and its "
-                "±1 σ band; grey lines mark setting changes (numbers: evaluations); "
-                "below, the estimate's σ.",
-    "best_so_far": "Best estimated cost so far against minutes walked; dots are the evaluations (±1 σ), "
-                   "crosses the early stops, the dashed line the recommended setting's estimate.",
+    "timeline": "Breath-by-breath metabolic power (Brockway) with the {estimator} of each setting and "
+                "its ±1 σ band; grey lines mark setting changes (numbers: evaluations), red bands the "
+                "pauses; below, the estimate's σ.",
+    "best_so_far": "Best estimated cost so far (the lowest raw estimate) against minutes walked; dots are "
+                   "the evaluations (±1 σ), crosses the early stops, the dashed line the recommended "
+                   "setting's estimate (the GP posterior over every evaluation: it differs from the "
+                   "lowest raw estimate, which the winner's curse biases low).",
     "parameters": "Each parameter against evaluation number; crosses mark early stops, the circle the "
                   "recommended setting, the shaded band the exploration bout.",
-    "thresholds": "Algorithm 2's threshold schedule A over breath index (black), the standardised "
-                  "exploration traces it is the envelope of (grey), and z = (μ − μ*)/σ of the optimisation "
-                  "evaluations (orange; crosses: stopped early).",
+    "thresholds": "The threshold schedule the session used over breath index (black: {threshold}), the "
+                  "standardised exploration traces Algorithm 2 takes its envelope of (grey), and "
+                  "z = (μ − μ*)/σ of the optimisation evaluations (orange; crosses: stopped early).",
     "force_tracking": "Desired vs measured force over the gait cycle while the recommended setting was "
                       "measured (controller feedback samples).",
 }
@@ -216,12 +222,54 @@ def _recommended_blocks(session: Session) -> list[_Block]:
         ev = next((e for e in session.evaluations if e.index == rec.index), None)
         if ev is not None:
             source = f" It is evaluation {ev.index + 1} ({ev.phase}, {ev.breaths} breaths, {ev.reason})."
-    return [
+    blocks = [
         _table(("parameter", "value", "unit"), rows),
         _p(f"Estimated cost: {rec.mean_w:.2f} W ± {sd:.2f} W (1 σ; variance {rec.var_w2:.1f} W²; 95 % "
            f"interval {rec.mean_w - 1.96 * sd:.1f}–{rec.mean_w + 1.96 * sd:.1f} W).{source} "
            f"Chosen by {rec.method}."),
     ]
+    lowest = min(session.evaluations, key=lambda e: e.mean_w)
+    if not math.isclose(lowest.mean_w, rec.mean_w, rel_tol=1e-9):
+        blocks.append(_p(
+            f"The best so far (the lowest raw estimate, {lowest.mean_w:.1f} W at evaluation "
+            f"{lowest.index + 1}) differs from the recommendation: the recommendation weighs every "
+            "evaluation through the GP, and the lowest of many noisy estimates is biased low (the "
+            "winner's curse)."))
+    return blocks
+
+
+def _validation_blocks(session: Session) -> list[_Block]:
+    """The validation walk's result per condition (``hilbo validate``, bridge/validate.py)."""
+    rows = []
+    for r in session.validation or ():
+        ci = r.get("ci95_w") or [None, None]
+        red = r.get("reduction")
+        rci = r.get("reduction_ci95") or [None, None]
+        setting = str(r.get("setting") or "assistance off")
+        rows.append((str(r.get("order", "")), str(r.get("name", "")), setting,
+                     _num(r.get("mean_w"), ".1f"), f"{_num(ci[0], '.1f')} to {_num(ci[1], '.1f')}",
+                     "–" if red is None else f"{100 * red:.1f}",
+                     "–" if red is None else f"{100 * rci[0]:.1f} to {100 * rci[1]:.1f}",
+                     str(r.get("breaths", "–"))))
+    return [_p("Each condition measured in this order with the session's estimator, from the level "
+               "the previous one left (Kim et al. 2019 §IV.A.3: the optimised setting OPT, a generic "
+               "one FIX, walking without assistance). Reduction: 1 − cost / unassisted cost, its "
+               "interval by the delta method."),
+            _table(("order", "condition", "setting", "estimate (W)", "95 % CI (W)",
+                    "reduction vs unassisted (%)", "95 % CI (%)", "breaths"), rows)]
+
+
+def _pause_minutes(session: Session) -> float:
+    end_s = session.breaths[-1].time_s if session.breaths else 0.0
+    return sum((end_s if t1 is None else t1) - t0 for t0, t1 in session.pauses) / 60.0
+
+
+def _caption(name: str, session: Session) -> str:
+    floor = session.threshold_floor
+    threshold = ("Algorithm 2's A as is" if floor is None
+                 else f"max(A_i, {floor:g}), Algorithm 2's A floored by the sound rule; dashed: A "
+                      "before the floor")
+    return _CAPTIONS[name].format(estimator=session.estimator_label, threshold=threshold)
 
 
 def _names(session: Session) -> list[str]:
@@ -265,16 +313,21 @@ def write_report(session: Session, out: Path, plots: Mapping[str, Path],
     blocks.append(_ul([
         f"subject: {sess_cfg.get('subject', '?')}; parameter space: {space.get('preset', '?')} "
         f"({', '.join(session.param_names)})",
-        f"walked {session.minutes_walked:.1f} min, {len(session.breaths)} breaths",
+        f"walked {session.minutes_walked:.1f} min, {len(session.breaths)} breaths; "
+        f"{len(session.pauses)} pause{'' if len(session.pauses) == 1 else 's'}"
+        + (f" ({_pause_minutes(session):.1f} min in all)" if session.pauses else ""),
+        f"estimator: {session.estimator_label}",
         f"{len(session.evaluations)} evaluations ({n_exp} exploration, {len(session.evaluations) - n_exp} "
         f"optimisation), {session.n_early_stops} stopped early",
         f"reviewed with hilbo {hilbo_version()}",
     ]))
+    if session.validation is not None:
+        blocks += [_h(2, "Validation walk"), *_validation_blocks(session)]
     blocks += [_h(2, "Recommended setting"), *_recommended_blocks(session)]
     blocks.append(_h(2, "Plots"))
     for name, title_ in _TITLES.items():
         if name in plots:
-            blocks.append(_Block("img", text=title_, items=(_CAPTIONS[name],), path=plots[name]))
+            blocks.append(_Block("img", text=title_, items=(_caption(name, session),), path=plots[name]))
         elif name in skipped:
             blocks.append(_p(f"{title_}: not drawn: {skipped[name]}."))
     headers, rows = _evaluation_rows(session)
@@ -329,10 +382,14 @@ def write_evaluations_csv(session: Session, path: Path) -> Path:
         w.writerow(cols)
         for e in session.evaluations:
             w.writerow([_cell(v) for v in (
-                e.index, e.phase, *(e.params.get(n) for n in names), e.mean_w, e.var_w2, e.sd_w, e.breaths,
-                e.duration_s, e.stopped_early, e.reason, e.t_start_s, e.t_end_s, session.files[e.file].name,
-                e.source)])
+                e.index + 1, e.phase, *(e.params.get(n) for n in names), e.mean_w, e.var_w2, e.sd_w,
+                e.breaths, e.duration_s, e.stopped_early, e.reason, e.t_start_s, e.t_end_s,
+                session.files[e.file].name, e.source, e.index)])
     return path
+
+
+def _from_one(index: int | None) -> int | None:
+    return None if index is None else index + 1
 
 
 def write_breaths_csv(session: Session, path: Path) -> Path:
@@ -342,8 +399,9 @@ def write_breaths_csv(session: Session, path: Path) -> Path:
         w.writerow(BREATH_COLUMNS)
         for k, b in enumerate(session.breaths):
             w.writerow([_cell(v) for v in (
-                k, session.files[b.file].name, b.t_s, b.time_s, b.vo2_ml_min, b.vco2_ml_min, b.ve_l_min,
-                b.rer, b.hr_bpm, b.watts, b.evaluation, b.breath, b.mean_w, b.sd_w)])
+                k + 1, session.files[b.file].name, b.t_s, b.time_s, b.vo2_ml_min, b.vco2_ml_min, b.ve_l_min,
+                b.rer, b.hr_bpm, b.watts, _from_one(b.evaluation), _from_one(b.breath), b.mean_w, b.sd_w,
+                b.evaluation)])
     return path
 
 

@@ -6,12 +6,13 @@
     A log cut off by a crash is read up to its last intact record (:func:`bridge.log.reader.read_log`).
     Writes into DIR (default ``<log dir>/<log stem>-review/``):
 
-    * ``timeline.png``: breath-by-breath metabolic power (W) with the UKF estimate of each
-      setting and its ±1 σ band on one continuous time axis, setting changes
-      marked (Kim et al. 2019 Fig. 1), and the estimate's σ below;
+    * ``timeline.png``: breath-by-breath metabolic power (W) with the session's estimate of
+      each setting (labelled by the estimator it used) and its ±1 σ band on one continuous time
+      axis, setting changes and pauses marked (Kim et al. 2019 Fig. 1), and the estimate's σ below;
     * ``best_so_far.png``: best estimated cost so far (W) against minutes walked;
     * ``parameters.png``: each parameter against evaluation number, early stops marked;
-    * ``thresholds.png``: Algorithm 2's threshold schedule A over breath index with the
+    * ``thresholds.png``: the threshold schedule the session used (Algorithm 2's A, floored
+      by the sound rule when it was the rule) over breath index with the
       standardised exploration traces X it is the envelope of (Kim et al. 2019 Algorithm 2) and the
       z of the optimisation evaluations (skipped when exploration did not complete);
     * ``force_tracking.png``: desired vs measured force over the gait cycle while the
@@ -341,6 +342,12 @@ class Session:
         recommended: The recommended setting, or None without evaluations.
         feedback: Force feedback of the recommended setting, or None.
         notes: Why something is missing or odd (for the report).
+        optimizer_config: The optimizer's config (``OptimizerConfig.to_json`` of the last
+            snapshot): its estimator, stopping rule and threshold floor.
+        pauses: (start, end) session times (s) of each pause; end None when the log ends paused.
+        walked_s: The session's own minutes walked (its end event's ``walking``), s; None when
+            the log does not say (then the last breath's session time stands in).
+        validation: A validation walk's result per condition (``hilbo validate``), or None.
     """
 
     files: tuple[LogFile, ...]
@@ -358,11 +365,33 @@ class Session:
     recommended: Recommendation | None
     feedback: FeedbackData | None
     notes: tuple[str, ...]
+    optimizer_config: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+    pauses: tuple[tuple[float, float | None], ...] = ()
+    walked_s: float | None = None
+    validation: tuple[Mapping[str, Any], ...] | None = None
 
     @property
     def minutes_walked(self) -> float:
-        """Session time of the last breath, min."""
+        """Minutes walked as the session counted them (the summary's ``walking.session_s``);
+        for a log that does not say, the session time of the last breath."""
+        if self.walked_s is not None:
+            return self.walked_s / 60.0
         return (self.breaths[-1].time_s / 60.0) if self.breaths else 0.0
+
+    @property
+    def estimator_label(self) -> str:
+        """The estimator's name as the review labels it (the session's, not always the seed's UKF)."""
+        kind = self.optimizer_config.get("estimator", "transition")
+        return _ESTIMATOR_LABELS.get(str(kind), f"{kind} estimate")
+
+    @property
+    def threshold_floor(self) -> float | None:
+        """The floor the sound stopping rule put under Algorithm 2's thresholds (σ), or None
+        when the session's rule used the raw thresholds."""
+        if str(self.optimizer_config.get("stopping", "sound")) != "sound":
+            return None
+        floor = _f(self.optimizer_config.get("a_floor"))
+        return 1.0 if floor is None else floor
 
     @property
     def n_early_stops(self) -> int:
@@ -391,6 +420,29 @@ class Session:
             t = e.t_end_s if e.t_end_s is not None else (out[-1][0] * 60.0 if out else 0.0)
             out.append((t / 60.0, best))
         return out
+
+
+#: The review's name of each estimator (hilbo_core.estimation.EstimatorKind values).
+_ESTIMATOR_LABELS = {
+    "transition": "transition estimate (Bayesian first-order fit)",
+    "seed_ukf": "UKF estimate (Kim et al. 2019 §II.C)",
+}
+
+
+def _pauses(events: Sequence[TimelineEvent]) -> tuple[tuple[float, float | None], ...]:
+    """(start, end) of each pause: from a ``pause`` event to the next ``resume`` (or a resumed
+    file's start, or the end of the log)."""
+    out: list[tuple[float, float | None]] = []
+    start: float | None = None
+    for e in events:
+        if e.kind == "pause" and start is None:
+            start = e.time_s
+        elif e.kind in ("resume", "resumed") and start is not None:
+            out.append((start, e.time_s))
+            start = None
+    if start is not None:
+        out.append((start, None))
+    return tuple(out)
 
 
 @dataclass(frozen=True)
@@ -557,6 +609,10 @@ class _FileScan:
     feedback: list[tuple[int, rec.ForceFeedback]]
     snapshots: list[rec.OptimizerState]
     end_s: float
+    #: The session's own walked time (s) as its end event states it, or None (older logs).
+    walked_s: float | None = None
+    #: A validation walk's per-condition results (its ``validation_result`` event), or None.
+    validation: list[Mapping[str, Any]] | None = None
 
 
 def _scan_file(c: LogContents, fi: int, offset: float) -> _FileScan:
@@ -641,6 +697,11 @@ def _scan_file(c: LogContents, fi: int, offset: float) -> _FileScan:
             if r.index in runs:
                 scan.orphan_runs.append(runs.pop(r.index).trace(fi, completed=False))
         elif topic == Topic.EVENTS:
+            walking = (r.details or {}).get("walking") if r.kind == "session_end" else None
+            if isinstance(walking, Mapping) and _f(walking.get("session_s")) is not None:
+                scan.walked_s = float(walking["session_s"])
+            if r.kind == "validation_result" and isinstance((r.details or {}).get("conditions"), list):
+                scan.validation = [c for c in r.details["conditions"] if isinstance(c, Mapping)]
             scan.events.append(TimelineEvent(session_time(r.t_s, last), fi, _level_name(r.level), r.kind,
                                              r.message))
         elif topic == Topic.ACKS:
@@ -827,11 +888,15 @@ def load_session(paths: Sequence[str | os.PathLike[str]]) -> Session:
         feedback = _feedback(scans[fi], recommended.index, pos, notes)
     elif recommended is not None:
         notes.append("no force feedback plot: the recommended setting's evaluation is not on /observations")
+    opt_config = snapshot.state.get("config") if snapshot is not None else None
     return Session(
         files=tuple(files), session_id=first.session_id, config=config, param_names=names,
         param_units=units, param_bounds=bounds, breaths=breaths, traces=tuple(traces),
         evaluations=evaluations, events=events, rejects=rejects, thresholds=thresholds,
         recommended=recommended, feedback=feedback, notes=tuple(notes),
+        optimizer_config=opt_config if isinstance(opt_config, Mapping) else {},
+        pauses=_pauses(events), walked_s=scans[-1].walked_s,
+        validation=next((tuple(s.validation) for s in reversed(scans) if s.validation is not None), None),
     )
 
 

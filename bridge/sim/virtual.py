@@ -16,6 +16,8 @@ active) excludes.
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import dataclasses
 import logging
 import math
@@ -33,7 +35,7 @@ from drivers.exosuit import CanBusConfig
 from hilbo_core.errors import ConfigError
 from hilbo_core.presets import preset
 from virtual_hw.cart import CartLink, LinkKind, VirtualCart
-from virtual_hw.clock import ScaledClock
+from virtual_hw.clock import ScaledClock, SkippingClock
 from virtual_hw.exosuit import SUIT_JOINTS, VirtualExosuit
 from virtual_hw.wearer import Wearer, WearerKind, make_wearer, wearer_kind
 
@@ -190,7 +192,11 @@ async def run_virtual_sim(cfg: VirtualSimConfig, out: Path, *, operator_view: bo
         log_path.unlink()  # the simulation's log is regenerated; a lab log never is
     space = preset(cfg.preset)
     speed = cfg.speed or MAX_SPEED
-    clock = ScaledClock(speed)
+    # --speed max without faults: the clock skips ahead while the bridge waits for a breath
+    # (_skip_idle_time). Faults are scheduled in simulated time and watched in wall time, so a
+    # session with faults keeps the plain factor.
+    skipping = cfg.speed is None and not cfg.exosuit_faults and not cfg.cart_faults
+    clock = SkippingClock(speed) if skipping else ScaledClock(speed)
     wearer = make_wearer(cfg.wearer, space, seed=cfg.seed, body_mass_kg=cfg.body_mass_kg)
     channel = f"hilbo-sim-{uuid.uuid4().hex[:8]}"
     hcfg: HilboConfig = parse_config(sim_config_text(cfg, out), source="<hilbo sim>")
@@ -208,15 +214,55 @@ async def run_virtual_sim(cfg: VirtualSimConfig, out: Path, *, operator_view: bo
                                   feedback_hz=cfg.feedback_hz, faults=cfg.exosuit_faults) as exo:
             if on_exosuit is not None:
                 on_exosuit(exo)
-            result: RunResult = await run_session(
-                hcfg, log_path=log_path, auto_resume_s=0.0, operator_view=operator_view,
-                n_actuators=len(SUIT_JOINTS[cfg.preset]), on_session=on_session)
+            skipper: list[asyncio.Task[None]] = []
+
+            def started(session: BridgeSession) -> None:
+                if isinstance(clock, SkippingClock):
+                    skipper.append(asyncio.create_task(_skip_idle_time(session, clock, cart),
+                                                       name="sim-clock-skipper"))
+                if on_session is not None:
+                    on_session(session)
+
+            try:
+                result: RunResult = await run_session(
+                    hcfg, log_path=log_path, auto_resume_s=0.0, operator_view=operator_view,
+                    n_actuators=len(SUIT_JOINTS[cfg.preset]), on_session=started)
+            finally:
+                for task in skipper:
+                    task.cancel()
+                    with contextlib.suppress(asyncio.CancelledError):
+                        await task
     summary = add_simulation_truth(result.summary, wearer)
-    summary["sim"] = {**dataclasses.asdict(cfg), "speed": speed}
+    summary["sim"] = {**dataclasses.asdict(cfg), "speed": speed,
+                      "clock_skipped_s": clock.skipped_s if isinstance(clock, SkippingClock) else 0.0}
     summary["wall_time_s"] = time.perf_counter() - wall0
     write_json_atomic(out / "summary.json", summary)
     result.summary_path.unlink(missing_ok=True)  # summary.json is the simulation's summary
     return summary
+
+
+#: Event-loop turns the skipper lets pass before it skips: a breath already written to the
+#: loopback socket reaches the bridge's queue in 3 (virtual_hw/clock.py, DEFAULT_SETTLE_TURNS).
+_SETTLE_TURNS = 8
+
+
+async def _skip_idle_time(session: BridgeSession, clock: SkippingClock, cart: VirtualCart) -> None:
+    """While the bridge waits for a breath, skip the clock to the cart's next tick.
+
+    The wait for a breath is the one wait of a simulated session that stands for walking (the
+    bridge's other waits are its own work: a push, the device applying at its gait-cycle
+    boundary, a proposal). Nothing is pending at the exosuit then (the setting is applied before
+    its breaths are awaited), so the wearer's breaths and the applied profile stay in order.
+    """
+    while True:
+        await session.breath_wanted.wait()
+        for _ in range(_SETTLE_TURNS):
+            await asyncio.sleep(0)
+        tick = cart.next_tick_s
+        if not session.breath_wanted.is_set() or tick is None:
+            continue
+        if clock.skip_to(tick) == 0.0:
+            await asyncio.sleep(0.001)  # the cart has not taken its tick yet (or has ended)
 
 
 def add_simulation_truth(summary: dict[str, Any], wearer: Wearer,

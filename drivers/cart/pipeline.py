@@ -7,6 +7,7 @@ async :class:`~drivers.cart.stream.BreathStream` and the whole-file reader
 
 from __future__ import annotations
 
+import itertools
 import logging
 from collections import Counter
 from collections.abc import Iterable, Iterator
@@ -24,7 +25,9 @@ from hilbo_core.types import BreathRecord
 __all__ = [
     "DEFAULT_MAX_LEADING_REJECTS",
     "BreathParser",
+    "BreathSpacingGuard",
     "LeadingRejectGuard",
+    "check_breath_spacing",
     "describe_record",
     "iter_breaths",
     "process_line",
@@ -96,6 +99,61 @@ class LeadingRejectGuard:
                 f"accepted: {n} x {top}{f' (also {others})' if others else ''}; e.g. "
                 f"{self.examples[top]}. Check {_HINTS.get(top, 'the [cart] table')}"
             )
+
+
+#: Breaths whose spacing is checked at a stream's start.
+SPACING_BREATHS = 8
+#: Plausible median breath spacing (s). Walking adults breathe every 2-5 s (15-30 breaths a
+#: minute; the simulated population, virtual_hw/wearer.py, 2.5-3.5 s), at rest up to ~10 s;
+#: averaged exports (10-30 s bins) stay inside. A time column read in the wrong unit is 60x off
+#: (seconds read as minutes: 3 s becomes 180 s; minutes read as seconds: 0.05 s), far outside.
+PLAUSIBLE_SPACING_S = (0.25, 60.0)
+
+
+def check_breath_spacing(times_s: Iterable[float], *, source: str = "cart") -> None:
+    """Refuse breath times whose median spacing no person breathes at.
+
+    Args:
+        times_s: Accepted breath times (s), in order; at least two to check anything.
+        source: Names the stream in the message.
+
+    Raises:
+        CartError: The median spacing is outside :data:`PLAUSIBLE_SPACING_S`; names it and the
+            config keys to check.
+    """
+    t = sorted(float(x) for x in times_s)
+    gaps = sorted(b - a for a, b in itertools.pairwise(t))
+    if not gaps:
+        return
+    mid = len(gaps) // 2
+    median = gaps[mid] if len(gaps) % 2 else 0.5 * (gaps[mid - 1] + gaps[mid])
+    lo, hi = PLAUSIBLE_SPACING_S
+    if not lo <= median <= hi:
+        guess = ("seconds read as minutes?" if median > hi else "minutes read as seconds?")
+        raise CartError(
+            f"{source}: the first {len(t)} breaths are a median {median:.3g} s apart; a person "
+            f"breathes every {lo:g}-{hi:g} s ({guess}). Check the time format ([cart.csv] "
+            "time_format: s, min, hh:mm:ss or mm:ss) and the time column")
+
+
+class BreathSpacingGuard:
+    """Checks the spacing of a stream's first :data:`SPACING_BREATHS` accepted breaths
+    (:func:`check_breath_spacing`): a time column in the wrong unit passes every per-breath
+    check but would make a session's breaths minutes apart."""
+
+    def __init__(self, n: int = SPACING_BREATHS, *, source: str = "cart") -> None:
+        self.n = n
+        self.source = source
+        self.times_s: list[float] | None = []
+
+    def accepted(self, t_s: float) -> None:
+        """Note an accepted breath's time; raise CartError at the n-th if they are implausible."""
+        if self.times_s is None:
+            return
+        self.times_s.append(t_s)
+        if len(self.times_s) >= self.n:
+            times, self.times_s = self.times_s, None
+            check_breath_spacing(times, source=self.source)
 
 
 def describe_record(record: BreathRecord) -> str:

@@ -6,7 +6,9 @@ every breath it accepts, and the transport waits until ``(t - t_first) / speed``
 the first breath. Pacing on validated times (not on whatever the line says) means one corrupted
 time stamp cannot stall the replay for an hour. The schedule is anchored on the first breath, so
 processing time does not accumulate as drift. ``speed = "max"`` never sleeps but still yields to
-the event loop after every breath, so a fast replay cannot starve the bridge's other tasks.
+the event loop after every breath, so a fast replay cannot starve the bridge's other tasks; it is
+paced by its reader (:attr:`ReplayTransport.paced_by_reader`: the bridge takes the next breath
+once it is ready for it, so a file is not read to its end before the session starts).
 
 Sleep and clock come from :class:`~drivers.cart.transport.TransportHooks`, so tests replay on a
 simulated clock.
@@ -96,6 +98,11 @@ class ReplayTransport(CartTransport):
         self._file: BinaryIO | None = None
         self._t0_s: float | None = None
         self._wall0_s = 0.0
+
+    @property
+    def paced_by_reader(self) -> bool:
+        """A replay at ``speed = "max"`` is paced by its reader alone."""
+        return self.options.is_max_speed
 
     def describe(self) -> str:
         speed = "max" if self.options.is_max_speed else f"{self.options.speed:g}x"

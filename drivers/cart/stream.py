@@ -31,6 +31,7 @@ from drivers.cart.line import HbrLineParser
 from drivers.cart.pipeline import (
     DEFAULT_MAX_LEADING_REJECTS,
     BreathParser,
+    BreathSpacingGuard,
     LeadingRejectGuard,
     process_line,
 )
@@ -197,6 +198,7 @@ class BreathStream:
         self.parser = parser
         self.validator = validator if validator is not None else BreathValidator()
         self.guard: LeadingRejectGuard | None = None
+        self.spacing: BreathSpacingGuard | None = None
 
     @classmethod
     def from_config(cls, config: CartConfig, hooks: TransportHooks | None = None) -> BreathStream:
@@ -211,9 +213,9 @@ class BreathStream:
         if vendor is not None and isinstance(transport, ReplayTransport):
             transport.loader = vendor.loader  # xlsx/XML presets replay their line image
         stream = cls(transport, config.make_parser(), BreathValidator(config.limits))
-        stream.guard = LeadingRejectGuard(
-            config.max_leading_rejects, source=f"cart ({transport.describe()}, format {config.format.value})"
-        )
+        source = f"cart ({transport.describe()}, format {config.format.value})"
+        stream.guard = LeadingRejectGuard(config.max_leading_rejects, source=source)
+        stream.spacing = BreathSpacingGuard(source=source)
         return stream
 
     @property
@@ -227,6 +229,12 @@ class BreathStream:
     def accepted(self) -> int:
         """Breaths delivered so far."""
         return self.validator.accepted
+
+    @property
+    def paced_by_reader(self) -> bool:
+        """The transport's breaths are paced by this stream's reader alone (a replay at
+        ``speed = "max"``): read it only as fast as the breaths can be used."""
+        return self.transport.paced_by_reader
 
     @property
     def reconnects(self) -> int:
@@ -253,6 +261,8 @@ class BreathStream:
         async for line in self.transport:
             record = process_line(line, self.parser, self.validator, self.guard)
             if record is not None:
+                if self.spacing is not None:
+                    self.spacing.accepted(record.t_s)
                 await self.transport.pace(record.t_s)
                 return record
         raise StopAsyncIteration

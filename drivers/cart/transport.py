@@ -199,6 +199,13 @@ class CartTransport(ABC):
         """Wait until the breath at cart time ``t_s`` is due (replay); live transports return."""
         return None
 
+    @property
+    def paced_by_reader(self) -> bool:
+        """True when nothing but the reader paces the breaths (a replay at ``speed = "max"``):
+        the reader must then take them no faster than it can use them (back-pressure), or a
+        whole file arrives before the session is ready for its first breath."""
+        return False
+
     # -- lifecycle -------------------------------------------------------------------------------
 
     @property

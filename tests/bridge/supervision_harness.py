@@ -349,6 +349,15 @@ class Outcome:
 #: What ``run_session(fault=...)`` can inject; ``"device:<name>"`` latches that device fault bit
 #: (drivers/exosuit/faults.py names) with its cause present for ``fault_s``.
 FAULTS = ("pause", "stop", "heartbeat_loss", "bus_error", "device:<fault name>")
+
+
+def harness_protocol_config(n_evaluations: int = 4,
+                            pause_between_bouts: bool = False) -> SessionProtocolConfig:
+    """The protocol of :func:`run_session`: warm-ups 0, 2 exploration points of 3 breaths, an
+    optimisation budget in breaths of about ``n_evaluations - 2`` evaluations."""
+    return SessionProtocolConfig(
+        warmup_s=0.0, n_explore=2, max_breaths=3, budget_s=None,
+        budget_breaths=3 * max(n_evaluations - 2, 1), pause_between_bouts=pause_between_bouts)
 _RUNS = itertools.count()
 _FAULT_BITS = {info.name: bit for bit, info in FAULT_INFO.items()}
 
@@ -357,7 +366,10 @@ def run_session(tmp: Path, *, at: int | None = None, at_time_s: float | None = N
                 fault: str = "pause", n_evaluations: int = 4, resume_after_s: float = 5.0,
                 end_after_s: float | None = None, cart_restart_at_s: float | None = None,
                 worker_start_s: float = 0.0, fault_s: float = 0.5,
-                operator_r_s: tuple[float, ...] = (), **settings_kw: Any) -> Outcome:
+                operator_r_s: tuple[float, ...] = (), optimizer: HILOptimizer | None = None,
+                protocol: SessionProtocol | None = None,
+                on_session: Callable[[BridgeSession], None] | None = None,
+                **settings_kw: Any) -> Outcome:
     """One short session (warm-ups 0, 2 exploration points of 3 breaths, then optimisation).
 
     Args:
@@ -374,12 +386,15 @@ def run_session(tmp: Path, *, at: int | None = None, at_time_s: float | None = N
         worker_start_s: The proposal worker answers its first call after this long (loop time).
         fault_s: How long a ``device:<name>`` fault's cause lasts (loop time).
         operator_r_s: The operator presses "r" at these loop times as well.
+        optimizer: The optimizer to continue (a resumed session's); None: a new one.
+        protocol: Its protocol (:meth:`SessionProtocol.resumed`); None: a new one.
+        on_session: Called with the session before it runs.
         settings_kw: :class:`RuntimeSettings` fields to override, and ``pause_between_bouts``
             (the protocol's).
     """
     device = FakeExosuit()
     space = hip_6d()
-    opt = HILOptimizer(space, config=OptimizerConfig(
+    opt = optimizer or HILOptimizer(space, config=OptimizerConfig(
         n_explore=2, max_breaths=3, seed=1,
         n_candidates=64, n_local=0))
     gate = SafeProfileGate(space, ProfileLimits(), body_mass_kg=75.0)
@@ -390,9 +405,7 @@ def run_session(tmp: Path, *, at: int | None = None, at_time_s: float | None = N
         # The stall monitor measures real time, which a loop-time session does not have; at its
         # default 5 ms it was a third of each run's loop iterations.
         "loop_monitor_period_s": 0.04, **settings_kw})
-    protocol = SessionProtocol(SessionProtocolConfig(
-        warmup_s=0.0, n_explore=2, max_breaths=3, budget_s=None,
-        budget_breaths=3 * max(n_evaluations - 2, 1), pause_between_bouts=pause_between_bouts))
+    protocol = protocol or SessionProtocol(harness_protocol_config(n_evaluations, pause_between_bouts))
     holder: dict[str, BridgeSession] = {}
 
     def fire() -> None:
@@ -436,6 +449,8 @@ def run_session(tmp: Path, *, at: int | None = None, at_time_s: float | None = N
                 loop.call_at(at_time_s, fire)
             for t in operator_r_s:
                 loop.call_at(t, session.command, Command.RESUME)
+            if on_session is not None:
+                on_session(session)
             return await session.run()
 
     loop = looptime.new_event_loop(start=0.0, noop_cycles=1)

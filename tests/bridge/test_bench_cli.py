@@ -100,3 +100,16 @@ def test_perf_toy_run_writes_the_required_keys(tmp_path: Path) -> None:
     assert set(doc["proposal_latency_ms"]) == {"5", "8"}
     assert set(doc["proposal_latency_ms"]["8"]) >= {"median", "p95"}
     assert "session_60min_wall_s" in doc and doc["command"].startswith("hilbo bench perf")
+
+
+def test_bench_hil_help_lists_the_methods_that_run_by_default(capsys: pytest.CaptureFixture[str]) -> None:
+    from bridge.bench.hil import DEFAULT_HIL_METHODS
+
+    parser = argparse.ArgumentParser(prog="hilbo")
+    add_bench_parser(parser.add_subparsers(dest="command"))
+    with pytest.raises(SystemExit):
+        parser.parse_args(["bench", "hil", "--help"])
+    text = "".join(capsys.readouterr().out.split())  # argparse wraps anywhere
+    assert f"from{','.join(DEFAULT_HIL_METHODS)}(thedefault)" in text
+    assert f"thedefaultmethods({','.join(DEFAULT_HIL_METHODS)})" in text
+    assert len(DEFAULT_HIL_METHODS) == 5 and "sound" in DEFAULT_HIL_METHODS

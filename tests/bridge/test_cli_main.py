@@ -26,11 +26,36 @@ def test_errors_of_the_packages_are_exit_1_with_one_line(capsys: pytest.CaptureF
     assert err.startswith("hilbo vcan-setup: error:") and len(err.strip().splitlines()) == 1
 
 
-def test_the_last_line_of_hilbo_run_gives_the_best_estimate_and_the_minutes_walked() -> None:
-    summary = {"n_evaluations": 32, "n_early_stops": 15, "best_mean": 344.0799, "best_var": 20.25,
+def test_the_end_of_hilbo_run_says_why_what_to_set_and_the_minutes_walked() -> None:
+    from bridge.outcome import recommendation
+
+    evals = [{"params": {"t_on": 1.66e-11, "F_p": 152.37}, "breaths": 45},
+             {"params": {"t_on": 20.0, "F_p": 100.0}, "breaths": 12}]
+    rec = recommendation({"t_on": 1.66e-11, "F_p": 152.37}, 344.0799, 20.25, evaluations=evals,
+                         method="posterior", units={"t_on": "%GC", "F_p": "N"})
+    summary = {"n_evaluations": 2, "n_early_stops": 1, "end_reason": "budget", "recommendation": rec,
                "walking": {"session_s": 4009.26, "optimization_s": 2400.99}}
-    assert cli._ended_text(summary) == ("session ended: 32 evaluations (15 early stops); best 344.1 ± 4.5 W; "
-                                    "66.8 min walked, 40.0 of them in the optimisation bout")
-    # A session stopped before any evaluation or any breath.
-    assert cli._ended_text({"n_evaluations": 0, "n_early_stops": 0, "best_mean": None, "walking": {}}) \
-        == "session ended: 0 evaluations (0 early stops)"
+    assert cli._ended_text(summary).splitlines() == [
+        "session ended: the optimisation bout's budget ([protocol] budget_min) was spent; "
+        "2 evaluations (1 early stops); 66.8 min walked, 40.0 of them in the optimisation bout",
+        "recommended setting: t_on = 0.00 %GC, F_p = 152.4 N; estimated 344.1 W (95 % CI 335.3 to "
+        "352.9 W; GP posterior over all 2 evaluations; this setting measured 1 time, 45 breaths)"]
+    assert cli._run_exit_status(summary) == 0
+    # A session stopped before any evaluation or any breath: it says so, and exits 3.
+    nothing = {"n_evaluations": 0, "n_early_stops": 0, "end_reason": "operator_stop",
+               "recommendation": None, "walking": {}}
+    assert cli._ended_text(nothing) == (
+        "session ended: stopped by the operator; 0 evaluations (0 early stops)\n"
+        "no evaluation completed: nothing to recommend (exit status 3)")
+    assert cli._run_exit_status(nothing) == 3
+    # Ctrl-C (or SIGTERM): 130, as the README says, whatever was measured.
+    assert cli._run_exit_status({**summary, "end_reason": "interrupted"}) == 130
+    assert cli._run_exit_status({**nothing, "end_reason": "interrupted"}) == 130
+
+
+def test_hilbo_run_help_documents_its_exit_statuses(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        cli.main(["run", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "3 the session ended without a completed evaluation" in text
+    assert "130 stopped by Ctrl-C or SIGTERM" in text

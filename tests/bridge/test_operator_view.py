@@ -66,7 +66,7 @@ def test_the_expected_end_is_shown_in_walking_time_else_from_the_budget() -> Non
 def test_best_so_far_is_what_opt_best_returns() -> None:
     # opt.best() is the GP's choice, not the lowest raw mean; the view shows what it is given.
     st = SessionStatus(best_mean_w=312.4, best_sd_w=5.0, best_params={"t_p": 30.0, "F_p": 150.0})
-    assert row(text_of(st), "best so far") == "312 ± 10 W (95 %) at t_p=30, F_p=150"
+    assert row(text_of(st), "best so far") == "312 ± 10 W (95 %) at t_p = 30.0, F_p = 150.0"
     assert row(text_of(SessionStatus(best_mean_w=300.0)), "best so far") == "300 W"
     assert row(text_of(SessionStatus()), "best so far") == "—"
 
@@ -100,3 +100,33 @@ async def test_log_lines_are_printed_above_the_live_view_not_past_it(
     assert "event loop stalled 84.2 ms" in screen.getvalue()  # through Rich, above the frame
     assert terminal.getvalue() == ""
     assert handler.stream is terminal  # given back when the view ends
+
+
+def test_parameters_show_with_units_and_without_exponents() -> None:
+    st = SessionStatus(params={"t_on": 1.66e-11, "F_p": 152.37, "F_r": 0.254},
+                       units={"t_on": "%GC", "F_p": "N", "F_r": ""})
+    assert row(text_of(st), "setting") == "t_on = 0.00 %GC, F_p = 152.4 N, F_r = 0.25"
+
+
+def test_an_ended_session_says_so_and_why() -> None:
+    from bridge.outcome import SessionEnd
+
+    st = SessionStatus(supervisor=SimpleNamespace(describe=lambda: "running"))  # type: ignore[arg-type]
+    assert row(text_of(st), "state") == "running"
+    st.ended = SessionEnd.BUDGET
+    assert row(text_of(st), "state").startswith("ended: the optimisation bout's budget")
+
+
+async def test_the_last_frame_is_drawn_when_the_view_ends() -> None:
+    from bridge.outcome import SessionEnd
+
+    screen = io.StringIO()
+    console = Console(file=screen, force_terminal=True, width=140, color_system=None)
+    session = SimpleNamespace(status=SessionStatus(), command=lambda cmd: None)
+    view = asyncio.create_task(run_operator_view(session, console=console, refresh_s=60.0))  # type: ignore[arg-type]
+    await asyncio.sleep(0)
+    session.status.ended = SessionEnd.OPERATOR_STOP  # the session ends, then the view is cancelled
+    view.cancel()
+    with contextlib.suppress(asyncio.CancelledError):
+        await view
+    assert "ended: stopped by the operator" in screen.getvalue()

@@ -94,7 +94,7 @@ def test_csv_rows_match_the_log(reviewed) -> None:
     assert len(evs) == len(log.data("/observations")) == summary["n_evaluations"]
     assert len(breaths) == len(log.data("/breaths")) == summary["n_breaths"]
     for row, e in zip(evs, summary["evaluations"], strict=True):
-        assert int(row["evaluation"]) == e["index"]
+        assert int(row["evaluation"]) == e["index"] + 1 and int(row["index"]) == e["index"]
         assert float(row["mean_w"]) == e["mean"] and int(row["breaths"]) == e["breaths"]
         assert float(row["F_p"]) == e["params"]["F_p"]
         assert (row["stopped_early"] == "true") == e["stopped_early"]
@@ -176,6 +176,8 @@ def test_compare_puts_two_sessions_side_by_side(sims: dict[int, Path], tmp_path:
     sa, sb = (json.loads((d / "summary.json").read_text()) for d in (sims[2], sims[3]))
     assert f"| evaluations | {sa['n_evaluations']} | {sb['n_evaluations']} |" in table
     assert f"| early stops | {sa['n_early_stops']} | {sb['n_early_stops']} |" in table
+    walked = (sa["walking"]["session_s"] / 60, sb["walking"]["session_s"] / 60)
+    assert f"| minutes walked | {walked[0]:.1f} | {walked[1]:.1f} |" in table
     assert f"| session id | {sa['session_id']} | {sb['session_id']} |" in table
     row = re.search(r"^\| recommended cost \(W, ± 1 σ\) \| ([\d.]+) ± [\d.]+ \| ([\d.]+) ± [\d.]+ \|",
                     table, re.M)

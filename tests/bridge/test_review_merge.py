@@ -121,7 +121,8 @@ def test_both_files_merge_in_order_with_every_evaluation_once(full, tmp_path: Pa
     assert any(e.kind == "resumed" for e in s.events) and any(e.kind == "log_cut_off" for e in s.events)
     with open(result.out_dir / "evaluations.csv", newline="") as f:
         rows = list(csv.DictReader(f))
-    assert [int(r["evaluation"]) for r in rows] == list(range(len(evs)))
+    assert [int(r["evaluation"]) for r in rows] == list(range(1, len(evs) + 1))
+    assert [int(r["index"]) for r in rows] == list(range(len(evs)))
     with open(result.out_dir / "breaths.csv", newline="") as f:
         breaths = list(csv.DictReader(f))
     assert len(breaths) == len(read_log(crashed).data("/breaths")) + len(read_log(resumed).data("/breaths"))

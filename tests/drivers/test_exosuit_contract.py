@@ -141,8 +141,8 @@ async def test_101_point_profile_pushes_commits_and_acks(rig: Rig) -> None:
     assert result.crc32 == expected.crc32
     assert rig.responder.seen.acked == [(17, expected.forces_n)]
     # Paced: the commit goes 34 paces after the first segment (1 ms each by default, ≈ 34 ms);
-    # well under the 250 ms ack timeout.
-    assert 34 * DEFAULT_PACE_S - 0.001 < result.elapsed_s < 1.0
+    # the upper bound is only a sanity bound (a busy machine may take longer than the pacing).
+    assert 34 * DEFAULT_PACE_S - 0.001 < result.elapsed_s < 20.0
 
 
 async def test_corrupted_transfer_is_nacked_bad_crc(rig: Rig) -> None:
@@ -170,7 +170,10 @@ async def test_push_retries_transient_failures(
     nacks: tuple[NackReason, ...], timeouts: int,
 ) -> None:
     async for rig in _rig(link, behaviour):
-        result = await rig.endpoint.push_profile(TABLE, 19, timeout_s=0.2, pace_s=0.0005)
+        # The ack timeout is the point only where an ack is lost; elsewhere a generous one, so an
+        # ack that a busy machine delays is not counted as a timeout (an extra attempt).
+        result = await rig.endpoint.push_profile(TABLE, 19, timeout_s=1.0 if timeouts else 10.0,
+                                                 pace_s=0.0005)
         assert result.attempts == len(nacks) + timeouts + 1
         assert (result.nacks, result.timeouts) == (nacks, timeouts)
         assert [v for v, _ in rig.responder.seen.acked] == [19]
@@ -182,14 +185,14 @@ async def test_push_gives_up_after_bounded_retries(link: tuple[CanBusConfig, Can
         t0 = loop.time()
         with pytest.raises(ProfilePushError, match="no ack after 3 attempt"):
             await rig.endpoint.push_profile(TABLE, 20, timeout_s=0.1, retries=2, pace_s=0)
-        assert 0.3 <= loop.time() - t0 < 2.0
+        assert 0.3 <= loop.time() - t0 < 20.0  # three timeouts at least; the rest is scheduling
         assert rig.responder.seen.commits == 3
 
 
 async def test_out_of_limits_is_not_retried(link: tuple[CanBusConfig, CanBusConfig]) -> None:
     async for rig in _rig(link, Behaviour(max_force_n=200.0)):
         with pytest.raises(ProfileNackError) as info:
-            await rig.endpoint.push_profile(TABLE, 21, pace_s=0)
+            await rig.endpoint.push_profile(TABLE, 21, pace_s=0, timeout_s=10.0)  # a late nack is no timeout
         assert (info.value.reason, info.value.attempts) == (NackReason.OUT_OF_LIMITS, 1)
         assert info.value.detail == int(np.argmax(TABLE > 200.0))
         assert rig.responder.seen.commits == 1

@@ -214,14 +214,16 @@ async def test_tcp_serves_several_clients_and_refuses_beyond_the_limit() -> None
 async def test_a_cart_joining_a_shared_clock_late_reports_only_breaths_from_then_on() -> None:
     udp = UdpTransport(UdpOptions(port=0))
     async with BreathStream(udp, HbrLineParser()) as stream:
-        clock = ScaledClock(100.0, epoch_wall=time.time() - 1.0)  # the session is ~100 s old
+        # The session is ~100 s old. 10x, not faster: the cart serves 30 s of it (3 s of wall),
+        # so a busy machine that descheduled this test for a second still sees breaths.
+        clock = ScaledClock(10.0, epoch_wall=time.time() - 10.0)
         start = clock.now()
-        cart = VirtualCart(SimulatedWearer(SPACE, 2), clock, end_s=start + 15.0,
+        cart = VirtualCart(SimulatedWearer(SPACE, 2), clock, end_s=start + 30.0,
                            link=CartLink(LinkKind.UDP, port=udp.local_address[1]))
         async with cart:
-            await asyncio.wait_for(cart.wait(), timeout=10.0)
+            await asyncio.wait_for(cart.wait(), timeout=60.0)
         sent = [e.record for e in cart.history]
-        got = [await asyncio.wait_for(anext(stream), timeout=5.0) for _ in sent]
+        got = [await asyncio.wait_for(anext(stream), timeout=20.0) for _ in sent]
     assert cart.stats["breaths_before_start"] > 25  # ~100 s of breaths nobody measured
     assert len(sent) >= 3 and got == sent
     assert sent[0].t_s >= start and [e.seq for e in cart.history] == list(range(len(sent)))

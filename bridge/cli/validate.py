@@ -1,0 +1,86 @@
+"""``hilbo validate``: the validation walk (bridge/validate.py) on the command line."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+__all__ = ["add_validate_parser"]
+
+
+def _cmd_validate(args: argparse.Namespace) -> int:
+    import asyncio
+    import dataclasses
+    import sys
+
+    from rich.console import Console
+
+    from bridge.cli.main import _ended_text, _run_exit_status
+    from bridge.config import check_out_dir, load_config
+    from bridge.errors import UsageError
+    from bridge.run import run_session
+    from bridge.validate import ValidationPlan, result_lines
+
+    if (args.source is None) == (args.resume is None):
+        raise UsageError("give --from LOG (the optimisation session to validate) or --resume LOG "
+                         "(a validation walk to continue), not both")
+    console = Console(stderr=True)
+    cfg = load_config(args.config)
+    check_out_dir(args.out or cfg.session.out_dir, "--out" if args.out else "[session] out_dir")
+    if args.live:
+        cfg = dataclasses.replace(cfg, live=dataclasses.replace(cfg.live, enabled=True))
+    resume = Path(args.resume) if args.resume else None
+    plan = (ValidationPlan.resumed(cfg, resume) if resume is not None
+            else ValidationPlan.new(cfg, Path(args.source)))
+    v = cfg.validation
+    console.print(f"hilbo validate: {cfg.source} (subject {cfg.session.subject}), the recommendation of "
+                  f"{plan.source_log}; {len(plan.conditions)} conditions of {v.condition_min:g} min "
+                  f"({v.condition_breaths} breaths) in the order "
+                  + ", ".join(c.name for c in plan.conditions) + f" (seed {v.seed})", highlight=False)
+    if v.generic is None:
+        console.print("hilbo validate: note: no [validation] generic setting: OPT against unassisted only")
+    if (args.auto_resume is None and cfg.watchdog.auto_resume_s is None
+            and (args.no_view or not sys.stdin.isatty())):
+        console.print("hilbo validate: note: no keyboard: a pause lasts until SIGTERM/Ctrl-C; give "
+                      "--auto-resume S or set [watchdog] auto_resume_s")
+    result = asyncio.run(run_session(cfg, resume=resume, out_dir=Path(args.out) if args.out else None,
+                                     operator_view=not args.no_view, auto_resume_s=args.auto_resume,
+                                     validation=plan))
+    summary: dict[str, Any] = result.summary
+    console.print(_ended_text({**summary, "recommendation": None, "n_evaluations": summary["n_evaluations"]}
+                              ).splitlines()[0], markup=False, highlight=False, soft_wrap=True)
+    for line in result_lines(summary.get("validation") or []):
+        console.print(line, markup=False, highlight=False, soft_wrap=True)
+    print(result.log_path)
+    print(result.summary_path)
+    return _run_exit_status(summary)
+
+
+def add_validate_parser(subparsers: Any) -> argparse.ArgumentParser:
+    """Register ``hilbo validate`` on the top-level ``add_subparsers()`` object."""
+    from bridge.cli.main import _RUN_EXIT_STATUS, _seconds
+
+    p = subparsers.add_parser(
+        "validate", help="the validation walk: the recommended setting vs a generic one vs unassisted",
+        description="Measure the recommended setting of an optimisation session (its log, --from), "
+                    "the generic setting of [validation] generic and unassisted walking, each for "
+                    "[validation] condition_min minutes in a randomised order ([validation] seed), "
+                    "with the session's estimator and cart, as hilbo run measures (the same "
+                    "safety limits, pauses, keys and resume policy). Prints each condition's "
+                    "estimate with its 95 % interval and its reduction against unassisted walking; "
+                    "the log and the summary hold them, and hilbo review reports them.",
+        epilog=_RUN_EXIT_STATUS)
+    p.add_argument("config", help="the session config (with a [validation] table)")
+    p.add_argument("--from", dest="source", metavar="LOG.mcap", default=None,
+                   help="the optimisation session whose recommendation is validated")
+    p.add_argument("--resume", metavar="LOG.mcap", default=None,
+                   help="continue a validation walk cut off by a crash or a stop (its measured "
+                        "conditions are kept)")
+    p.add_argument("--out", default=None, help="output directory (default: [session] out_dir)")
+    p.add_argument("--no-view", action="store_true", help="no live terminal view (as hilbo run)")
+    p.add_argument("--auto-resume", type=_seconds, default=None, metavar="S",
+                   help="the resume policy, as hilbo run --auto-resume")
+    p.add_argument("--live", action="store_true", help="stream the walk to Foxglove (as hilbo run --live)")
+    p.set_defaults(func=_cmd_validate)
+    return p

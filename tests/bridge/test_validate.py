@@ -1,0 +1,172 @@
+"""``hilbo validate`` (bridge/validate.py): the validation walk on the virtual devices measures
+each condition with the session machinery, and its reductions against unassisted walking hold
+the simulated wearer's truth within their 95 % intervals."""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import uuid
+from pathlib import Path
+from typing import Any
+
+import pytest
+from supervision_harness import run_session as harness_session
+
+from bridge.config import parse_config
+from bridge.log.reader import read_log
+from bridge.review.command import review_session
+from bridge.run import run_session
+from bridge.sim.virtual import VirtualSimConfig, sim_config_text
+from bridge.validate import ConditionKind, ValidationPlan, condition_results, plan_conditions
+from drivers.exosuit import CanBusConfig
+from virtual_hw.cart import CartLink, LinkKind, VirtualCart
+from virtual_hw.clock import ScaledClock
+from virtual_hw.exosuit import SUIT_JOINTS, VirtualExosuit
+from virtual_hw.wearer import make_wearer
+
+GENERIC = {"t_on": 10.0, "t_p": 27.0, "t_off": 45.0, "F_p": 120.0, "F_r": 0.5, "F_f": 0.5}
+
+
+def test_the_order_is_randomised_by_the_seed_and_complete() -> None:
+    rec = {"t_on": 5.0, "t_p": 30.0, "t_off": 50.0, "F_p": 200.0, "F_r": 0.5, "F_f": 0.5}
+    orders = {tuple(c.name for c in plan_conditions(rec, GENERIC, seed)) for seed in range(12)}
+    assert all(sorted(o) == ["FIX", "OPT", "unassisted"] for o in orders)
+    assert len(orders) > 2  # the seed changes the order
+    again = [c.name for c in plan_conditions(rec, GENERIC, 3)]
+    assert [c.name for c in plan_conditions(rec, GENERIC, 3)] == again
+    assert [c.name for c in plan_conditions(rec, None, 0)] in (["OPT", "unassisted"], ["unassisted", "OPT"])
+
+
+def test_the_reduction_and_its_interval_by_the_delta_method() -> None:
+    rec = {"t_on": 5.0}
+    conditions = plan_conditions(rec, None, 0)
+    records = [{"index": k, "mean": 300.0 if c.kind is ConditionKind.RECOMMENDED else 400.0,
+                "var": 16.0 if c.kind is ConditionKind.RECOMMENDED else 25.0, "breaths": 100}
+               for k, c in enumerate(conditions)]
+    (opt,) = [r for r in condition_results(conditions, records) if r["name"] == "OPT"]
+    assert opt["reduction"] == pytest.approx(0.25)
+    sd = 0.75 * (16.0 / 300.0**2 + 25.0 / 400.0**2) ** 0.5
+    assert opt["reduction_ci95"] == pytest.approx([0.25 - 1.959964 * sd, 0.25 + 1.959964 * sd], rel=1e-5)
+    assert opt["ci95_w"] == pytest.approx([300.0 - 1.959964 * 4.0, 300.0 + 1.959964 * 4.0], rel=1e-6)
+
+
+def validation_config(tmp_path: Path) -> tuple[VirtualSimConfig, Any]:
+    sim = VirtualSimConfig(minutes=30.0, seed=4, warmup_s=60.0, wearer="legacy")
+    text = sim_config_text(sim, tmp_path) + (
+        "\n[validation]\ngeneric = { " + ", ".join(f"{k} = {v}" for k, v in GENERIC.items())
+        + " }\ncondition_min = 4.0\nseed = 2\n")
+    return sim, parse_config(text, source="<test>")
+
+
+def run_validation(tmp_path: Path, sim: VirtualSimConfig, cfg: Any, plan: ValidationPlan, wearer: Any, *,
+                   name: str = "validate", resume: Path | None = None,
+                   on_session: Any = None) -> dict[str, Any]:
+    """The validation walk over the virtual exosuit and cart (in this process, 100x)."""
+    channel = f"hilbo-validate-{uuid.uuid4().hex[:8]}"
+
+    async def run() -> dict[str, Any]:
+        clock = ScaledClock(100.0)
+        async with VirtualCart(wearer, clock, link=CartLink(kind=LinkKind.TCP)) as cart:
+            bus = CanBusConfig("virtual", channel)
+            run_cfg = dataclasses.replace(cfg, cart=cart.client_config(),
+                                          can=dataclasses.replace(cfg.can, bus=bus))
+            async with VirtualExosuit(bus, clock, joints=SUIT_JOINTS[sim.preset],
+                                      seed=1, on_applied=cart.on_profile_applied):
+                result = await run_session(run_cfg, log_path=tmp_path / f"{name}.mcap", auto_resume_s=0.0,
+                                           operator_view=False, n_actuators=len(SUIT_JOINTS[sim.preset]),
+                                           validation=plan, resume=resume, on_session=on_session)
+        return result.summary
+
+    return asyncio.run(run())
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(240)
+def test_validate_on_the_virtual_devices_matches_the_wearers_truth(tmp_path: Path) -> None:
+    # The optimisation session to validate: a short one (its recommendation is what matters).
+    source = harness_session(tmp_path, n_evaluations=4).log
+    sim, cfg = validation_config(tmp_path)
+    wearer = make_wearer(sim.wearer, cfg.space.space, seed=sim.seed, body_mass_kg=sim.body_mass_kg)
+    plan = ValidationPlan.new(cfg, source)
+    summary = run_validation(tmp_path, sim, cfg, plan, wearer)
+    assert summary["end_reason"] == "conditions_done"
+    results = {r["name"]: r for r in summary["validation"]}
+    assert set(results) == {"OPT", "FIX", "unassisted"} and all(r["measured"] for r in results.values())
+    assert [r["name"] for r in summary["validation"]] == [c.name for c in plan.conditions]
+    baseline = wearer.baseline_cost_w
+    lo, hi = results["unassisted"]["ci95_w"]
+    assert lo <= baseline <= hi, (baseline, results["unassisted"])
+    for name in ("OPT", "FIX"):
+        r = results[name]
+        truth = 1.0 - wearer.true_cost_w(r["params"]) / baseline
+        rlo, rhi = r["reduction_ci95"]
+        assert rlo <= truth <= rhi, (name, truth, r)
+        assert r["breaths"] == cfg.validation.condition_breaths
+    # The log holds the plan and the result, and hilbo review reports them.
+    kinds = [e.kind for e in read_log(tmp_path / "validate.mcap").records("/events")]
+    assert "validation_plan" in kinds and "validation_result" in kinds
+    review = review_session([tmp_path / "validate.mcap"], tmp_path / "review")
+    s = review.session
+    assert s.validation is not None and [r["name"] for r in s.validation] == [c.name for c in plan.conditions]
+    md = (review.out_dir / "report.md").read_text()
+    assert "## Validation walk" in md
+    assert f"{100 * results['OPT']['reduction']:.1f}" in md.split("## Validation walk")[1].split("\n## ")[0]
+
+
+def test_validate_needs_one_source(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from bridge.cli.main import main
+
+    config = tmp_path / "s.toml"
+    config.write_text(sim_config_text(VirtualSimConfig(minutes=30.0), tmp_path))
+    assert main(["validate", str(config)]) == 2
+    assert "give --from LOG" in capsys.readouterr().err
+    source = harness_session(tmp_path, n_evaluations=4).log
+    # An optimisation log is not a validation walk to resume.
+    assert main(["validate", str(config), "--resume", str(source)]) == 1
+    assert "is not a validation walk's log" in capsys.readouterr().err
+
+
+def test_a_generic_setting_outside_the_space_is_refused_by_the_config() -> None:
+    from bridge.errors import BridgeConfigError
+
+    text = sim_config_text(VirtualSimConfig(minutes=30.0), Path("/tmp")) + (
+        "\n[validation]\ngeneric = { t_on = 10.0, t_p = 52.0, t_off = 45.0, F_p = 120.0, F_r = 0.5, "
+        "F_f = 0.5 }\n")
+    with pytest.raises(BridgeConfigError, match=r"generic is not a feasible setting: parameter t_p"):
+        parse_config(text)
+    with pytest.raises(BridgeConfigError, match=r"generic: expected every parameter .*missing F_f"):
+        parse_config(text.replace(", F_f = 0.5", "").replace("t_p = 52.0", "t_p = 27.0"))
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_a_stopped_validation_walk_resumes_with_its_measured_conditions(tmp_path: Path) -> None:
+    from bridge.outcome import SessionEnd
+
+    source = harness_session(tmp_path, n_evaluations=4).log
+    sim, cfg = validation_config(tmp_path)
+
+    def wearer() -> Any:
+        return make_wearer(sim.wearer, cfg.space.space, seed=sim.seed, body_mass_kg=sim.body_mass_kg)
+
+    def stop_after_the_first(session: Any) -> None:
+        def check(_rec: Any) -> None:
+            if len(session.opt.evaluations) == 1 and session.end_reason is None:
+                session.finish(SessionEnd.OPERATOR_STOP)
+        session.breath_listeners.append(check)
+
+    plan = ValidationPlan.new(cfg, source)
+    first = run_validation(tmp_path, sim, cfg, plan, wearer(), name="first", on_session=stop_after_the_first)
+    assert first["end_reason"] == "operator_stop"
+    assert [r["measured"] for r in first["validation"]] == [True, False, False]
+    again = ValidationPlan.resumed(cfg, tmp_path / "first.mcap")
+    assert [c.to_json() for c in again.conditions] == [c.to_json() for c in plan.conditions]
+    assert again.source_log == str(source)
+    second = run_validation(tmp_path, sim, cfg, again, wearer(), name="second",
+                            resume=tmp_path / "first.mcap")
+    assert second["end_reason"] == "conditions_done"
+    assert all(r["measured"] for r in second["validation"])
+    assert second["validation"][0]["mean_w"] == first["validation"][0]["mean_w"]  # kept, not re-measured
+    with pytest.raises(Exception, match="every condition of this validation walk was measured"):
+        ValidationPlan.resumed(cfg, tmp_path / "second.mcap")
