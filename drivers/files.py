@@ -1,4 +1,5 @@
-"""Opening an input file: a regular file of bounded size, else the caller's error, at once.
+"""Opening an input file: a regular file of bounded size, else the caller's error, at once;
+and creating an output file with exact permission bits.
 
 Every file hilbo reads (a cart export or recording, a session log, a prior table, the config)
 goes through :func:`open_regular_file` or :func:`read_regular_file`. Without the check,
@@ -9,6 +10,11 @@ with ``fstat`` on the open descriptor (no race with a rename between check and o
 at most ``max_bytes + 1`` bytes (a file that grows past its bound while being read is refused
 too). ``OSError`` (no such file, permission denied) propagates unchanged: callers name the file
 in their own words.
+
+Files that hold health data (VO2, heart rate, body mass) are created with
+:func:`create_private_file`: permission bits set on the open descriptor, so neither the umask
+nor an older file of the same name leaves them readable by others (shared/DESIGN.md: session
+files are the wearer's health data).
 """
 
 from __future__ import annotations
@@ -23,6 +29,8 @@ from drivers.errors import DriverConfigError
 
 __all__ = [
     "MAX_CART_FILE_BYTES",
+    "PRIVATE_FILE_MODE",
+    "create_private_file",
     "describe_size",
     "open_regular_file",
     "read_regular_file",
@@ -31,6 +39,9 @@ __all__ = [
 MAX_CART_FILE_BYTES = 64 << 20
 """Largest cart export or recording read (64 MiB). A one-hour breath-by-breath export is well
 under 1 MB (about 1,500 rows of a few hundred bytes), so this leaves a factor of 60 or more."""
+
+PRIVATE_FILE_MODE = 0o600
+"""Owner read/write only: the default mode of every file that holds health data."""
 
 ErrorFactory = Callable[[str], Exception]
 
@@ -107,3 +118,25 @@ def read_regular_file(
         raise error(f"{fspath(path)}: grew past {describe_size(max_bytes)} while being read; "
                     f"expected {what}")
     return data
+
+
+def create_private_file(path: str | PathLike[str], mode: int = PRIVATE_FILE_MODE) -> BinaryIO:
+    """Create (or truncate) ``path`` for binary writing with exactly the permission bits ``mode``.
+
+    Args:
+        path: The file to write.
+        mode: Permission bits, 0o000-0o777 (default owner read/write only).
+
+    Returns:
+        The open file; the caller closes it.
+
+    Raises:
+        OSError: The file cannot be created or its mode set.
+    """
+    fd = os.open(fspath(path), os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_CLOEXEC", 0), mode)
+    try:
+        os.fchmod(fd, mode)  # the umask may have removed bits; a truncated old file keeps its mode
+        return os.fdopen(fd, "wb")
+    except BaseException:
+        os.close(fd)
+        raise

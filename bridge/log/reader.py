@@ -60,7 +60,7 @@ from mcap.writer import Writer
 
 from bridge.log.errors import LogError, LogFormatError, LogWriteError
 from bridge.log.records import METADATA_NAME, RECORD_TYPES, Topic
-from drivers.files import read_regular_file
+from drivers.files import PRIVATE_FILE_MODE, create_private_file, read_regular_file
 
 __all__ = [
     "MAX_LOG_BYTES",
@@ -69,6 +69,7 @@ __all__ = [
     "LogContents",
     "LogMessage",
     "RecoverReport",
+    "config_file_mode",
     "read_log",
     "recover",
 ]
@@ -616,8 +617,34 @@ def _decode(topic: str, raw: bytes) -> tuple[Any, bool]:
 
 
 # ---------------------------------------------------------------------------------- recovery
+def config_file_mode(config: Mapping[str, Any] | None) -> int:
+    """The ``[session] file_mode`` of a logged session config as permission bits.
+
+    Files derived from a session's log (its review, a recovered copy) hold the same health data,
+    so they get the mode the session gave its own log; 0o600 when the config does not say.
+    """
+    session = config.get("session") if isinstance(config, Mapping) else None
+    text = session.get("file_mode") if isinstance(session, Mapping) else None
+    if isinstance(text, str) and re.fullmatch(r"0?[0-7]{3}", text):
+        return int(text, 8)
+    return PRIVATE_FILE_MODE
+
+
+def _scan_file_mode(scan: _Scan) -> int:
+    """:func:`config_file_mode` of the first readable ``/config`` message of a scanned log."""
+    ids = {r.id for r in scan.records if isinstance(r, Channel) and r.topic == Topic.CONFIG}
+    for r in scan.records:
+        if isinstance(r, Message) and r.channel_id in ids:
+            try:
+                obj = json.loads(r.data)
+            except (ValueError, RecursionError):  # damaged: the default mode
+                break
+            return config_file_mode(obj.get("config") if isinstance(obj, dict) else None)
+    return PRIVATE_FILE_MODE
+
+
 def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str], *,
-            overwrite: bool = False) -> RecoverReport:
+            overwrite: bool = False, file_mode: int | None = None) -> RecoverReport:
     """Rewrite the intact part of a (crashed) log as a normal, indexed MCAP file.
 
     Schemas, channels, messages (bytes, times and sequence numbers unchanged), metadata and
@@ -628,6 +655,8 @@ def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str], *,
         src: The damaged (or intact) file.
         dst: The file to write; must differ from ``src``.
         overwrite: Replace an existing ``dst``.
+        file_mode: Permission bits of ``dst``; None: the source session's ``[session]
+            file_mode`` (:func:`config_file_mode`), 0o600 when it has none (health data).
 
     Raises:
         LogFormatError: ``src`` is not an MCAP file, or ``dst`` is ``src``.
@@ -641,8 +670,9 @@ def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str], *,
     if dst_p.exists() and not overwrite:
         raise LogWriteError(f"recover: {str(dst_p)!r} exists; remove it or choose another output file")
     per_topic: Counter[str] = Counter()
+    mode = _scan_file_mode(scan) if file_mode is None else file_mode
     try:
-        with open(tmp, "wb") as f:
+        with create_private_file(tmp, mode) as f:
             writer = Writer(f)
             header = scan.header
             writer.start(profile=header.profile if header else "", library=header.library if header else "")
