@@ -160,15 +160,25 @@ def classify(outcome: Outcome, read: Callable[..., object], *args: object) -> No
     outcome.slowest_s = max(outcome.slowest_s, time.perf_counter() - t0)
 
 
-def run(exports: Path, n: int, seed: int, work: Path) -> dict[str, Outcome]:
+def run(exports: Path, n: int, seed: int, work: Path, names: tuple[str, ...] = tuple(EXPORT_FORMATS),
+        ) -> dict[str, Outcome]:
     """``n`` mutated copies of each export read twice (detected, and with the export's format).
+
+    Args:
+        exports: The folder of the real exports.
+        n: Copies per export.
+        seed: Of the mutations (each export's copies come from ``default_rng([seed, k])``, so
+            one export's copies do not depend on which others are run).
+        work: A folder for the copies.
+        names: The exports to mutate (default all of :data:`EXPORT_FORMATS`).
 
     Returns:
         Per export file name, the outcome of its ``2 n`` reads.
     """
-    rng = np.random.default_rng(seed)
     results: dict[str, Outcome] = {}
-    for name, fmt in EXPORT_FORMATS.items():
+    for name in names:
+        fmt = EXPORT_FORMATS[name]
+        rng = np.random.default_rng([seed, list(EXPORT_FORMATS).index(name)])
         data = (exports / name).read_bytes()
         outcome = results[name] = Outcome()
         copy = work / name

@@ -356,7 +356,7 @@ def _parse(buf: bytes | memoryview, *, offset: int) -> list[McapRecord]:
         # (a ValueError from a CRC, OverflowError from a length of 2^63, struct.error, zstd's or
         # lz4's errors, MemoryError from a huge declared size). Each is a damaged record, which
         # the scan skips by resynchronising, never a traceback.
-        raise McapError(f"the record at byte {offset} is damaged ({type(err).__name__}: {err})") from err
+        raise McapError(f"{type(err).__name__}: {err}") from err
     return out
 
 

@@ -118,14 +118,13 @@ class LineImage:
         cells: Cells added in total (every sheet).
     """
 
-    def __init__(self, path: str, *, max_cells: int = MAX_SHEET_CELLS,
-                 max_columns: int = MAX_SHEET_COLUMNS) -> None:
+    def __init__(self, path: str) -> None:
         self.path = path
         self.sheet = ""
         self.rows = 0
         self.cells = 0
-        self._max_cells = max_cells
-        self._max_columns = max_columns
+        self._max_cells = MAX_SHEET_CELLS
+        self._max_columns = MAX_SHEET_COLUMNS
         self._lines: list[bytes] = []
 
     def new_sheet(self, name: str) -> None:
