@@ -36,6 +36,7 @@ import enum
 import io
 import ipaddress
 import math
+import os
 import re
 import sys
 import tomllib
@@ -188,11 +189,11 @@ def _parse_session(data: object) -> SessionConfig:
 def _out_dir(t: Table) -> Path:
     # "~/hilbo-sessions" means the home folder (as in a shell), never a folder named "~" here.
     text = t.string("out_dir", "sessions")
-    path = Path(text).expanduser()
-    if str(path).startswith("~"):
+    expanded = os.path.expanduser(text)
+    if expanded.startswith("~"):
         raise BridgeConfigError(f"{t.name('out_dir')} = {text!r}: the home folder of "
                                 f"{text.split('/', 1)[0]!r} is unknown; give the full path")
-    return path
+    return Path(expanded)
 
 
 def _file_mode(t: Table) -> str:
@@ -808,7 +809,7 @@ def _read_prior_table(space: ParameterSpace, path: Path, baseline_w: float | Non
     where = f"prior.table = {str(path)!r}"
     try:
         text = read_regular_file(path, max_bytes=MAX_PRIOR_TABLE_BYTES, what="a CSV population table",
-                                 error=BridgeConfigError).decode("utf-8-sig")
+                                 error=lambda msg: BridgeConfigError(f"{where}: {msg}")).decode("utf-8-sig")
         rows = list(csv.DictReader(io.StringIO(text, newline="")))
     except FileNotFoundError as err:
         raise BridgeConfigError(f"{where}: no such file (a CSV population table; paths are relative "
