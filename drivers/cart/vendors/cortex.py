@@ -10,6 +10,7 @@ in L/min as XML numbers; values typed as strings may carry a decimal comma.
 
 from __future__ import annotations
 
+import io
 import xml.etree.ElementTree as ET
 from os import PathLike, fspath
 
@@ -29,8 +30,8 @@ def load_spreadsheet_xml(path: str | PathLike[str]) -> bytes:
     ``ss:Index`` (a cell's 1-based column after skipped empty cells) is honoured up to
     :data:`~drivers.cart.vendors._table.MAX_SHEET_COLUMNS`. The export is a local file written
     by the cart's software; ``xml.etree`` does not fetch external entities, and expat (2.4 and
-    later) refuses entity-expansion bombs. Bounded: a regular file of at most
-    :data:`~drivers.files.MAX_CART_FILE_BYTES` and at most
+    later) refuses entity-expansion bombs. Streamed row by row (``iterparse``). Bounded: a regular
+    file of at most :data:`~drivers.files.MAX_CART_FILE_BYTES` and at most
     :data:`~drivers.cart.vendors._table.MAX_SHEET_CELLS` cells, read inside one error boundary.
 
     Raises:
@@ -42,13 +43,20 @@ def load_spreadsheet_xml(path: str | PathLike[str]) -> bytes:
     data = read_regular_file(p, max_bytes=MAX_CART_FILE_BYTES, what="a CORTEX XML export")
     image = LineImage(p)
     with image.reading("XML spreadsheet"):
-        root = ET.fromstring(data)
-        if root.tag != f"{{{_SS}}}Workbook":
-            raise DriverConfigError(f"{p}: XML root {shorten(root.tag)!r} is not an Excel-2003 "
-                                    "spreadsheet <Workbook>")
-        for row in root.iter(f"{{{_SS}}}Row"):
+        # Streamed: each row is turned into its line and cleared, so memory holds one row, not
+        # the whole tree of a large file.
+        root_seen = False
+        for event, el in ET.iterparse(io.BytesIO(data), events=("start", "end")):
+            if event == "start":
+                if not root_seen and el.tag != f"{{{_SS}}}Workbook":
+                    raise DriverConfigError(f"{p}: XML root {shorten(el.tag)!r} is not an Excel-2003 "
+                                            "spreadsheet <Workbook>")
+                root_seen = True
+                continue
+            if el.tag != f"{{{_SS}}}Row":
+                continue
             cells: list[str] = []
-            for cell in row.findall(f"{{{_SS}}}Cell"):
+            for cell in el.findall(f"{{{_SS}}}Cell"):
                 index = cell.get(f"{{{_SS}}}Index")
                 if index is not None and index.isdigit():
                     # Bounded before the gap is filled: a damaged index must not allocate 4e9 cells.
@@ -57,6 +65,7 @@ def load_spreadsheet_xml(path: str | PathLike[str]) -> bytes:
                 data_el = cell.find(f"{{{_SS}}}Data")
                 cells.append("" if data_el is None else "".join(data_el.itertext()))
             image.add(cells)
+            el.clear()
     return image.data()
 
 
