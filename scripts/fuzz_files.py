@@ -10,6 +10,7 @@ format detected and with the export's own format given.
 Usage::
 
     PYTHONPATH=. python scripts/fuzz_files.py --n 10000 [--seed 1] [--exports DIR] [--json OUT]
+        [--only cortex_test.xml]
 
 Prints, per export, how many copies were read, refused with a clear error, or raised anything
 else (with the exception types and one example each); exit status 1 when any copy raised
@@ -198,6 +199,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="the cart-exports folder (default: $HILBO_SHARED_DIR/data/cart-exports, else "
                          "shared/data/cart-exports beside the clone)")
     ap.add_argument("--json", type=Path, default=None, help="write the counts here as JSON")
+    ap.add_argument("--only", action="append", choices=sorted(EXPORT_FORMATS), default=None,
+                    help="mutate only this export (repeatable; default all)")
     args = ap.parse_args(argv)
     exports = args.exports or default_exports()
     if not all((exports / name).is_file() for name in EXPORT_FORMATS):
@@ -209,7 +212,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.disable(logging.WARNING)  # damaged files warn by design; the counts are the output
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
-        results = run(exports, args.n, args.seed, Path(tmp))
+        results = run(exports, args.n, args.seed, Path(tmp), tuple(args.only or EXPORT_FORMATS))
         wall = time.perf_counter() - t0
     total = 0
     for name, o in results.items():
