@@ -7,6 +7,8 @@ from pathlib import Path
 
 import pytest
 from file_inputs import NOT_REGULAR, not_regular_file
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import bridge.run
 from bridge.cli.main import main
@@ -125,3 +127,21 @@ def test_a_config_that_is_not_a_regular_file(tmp_path: Path, not_a_file: tuple[P
     path, kind = not_a_file
     assert main(["config", "check", str(path)]) == 1
     one_line_error(capsys.readouterr().err, str(path), kind)
+
+
+_EXAMPLE_LINES = example_config_text().splitlines()
+
+
+@settings(max_examples=100, deadline=None)
+@given(line=st.integers(0, len(_EXAMPLE_LINES) - 1),
+       value=st.text(alphabet=st.characters(blacklist_categories=("Cs",)), max_size=40))
+def test_a_damaged_line_is_a_config_error_or_a_config(line: int, value: str) -> None:
+    lines = list(_EXAMPLE_LINES)
+    key, sep, _ = lines[line].partition("=")
+    lines[line] = f"{key}{sep} {value}" if sep else value
+    try:
+        cfg = parse_config("\n".join(lines), source="fuzz.toml")
+    except BridgeConfigError as err:
+        assert str(err)
+    else:
+        assert cfg.source == "fuzz.toml"
