@@ -162,7 +162,7 @@ def classify(outcome: Outcome, read: Callable[..., object], *args: object) -> No
 
 
 def run(exports: Path, n: int, seed: int, work: Path, names: tuple[str, ...] = tuple(EXPORT_FORMATS),
-        ) -> dict[str, Outcome]:
+        progress: Callable[[str, int, Outcome], None] | None = None) -> dict[str, Outcome]:
     """``n`` mutated copies of each export read twice (detected, and with the export's format).
 
     Args:
@@ -172,6 +172,8 @@ def run(exports: Path, n: int, seed: int, work: Path, names: tuple[str, ...] = t
             one export's copies do not depend on which others are run).
         work: A folder for the copies.
         names: The exports to mutate (default all of :data:`EXPORT_FORMATS`).
+        progress: Called with the export, the copies done and the outcome so far after every
+            1000 copies.
 
     Returns:
         Per export file name, the outcome of its ``2 n`` reads.
@@ -183,10 +185,12 @@ def run(exports: Path, n: int, seed: int, work: Path, names: tuple[str, ...] = t
         data = (exports / name).read_bytes()
         outcome = results[name] = Outcome()
         copy = work / name
-        for _ in range(n):
+        for k in range(1, n + 1):
             copy.write_bytes(mutate(data, rng))
             classify(outcome, read_as_inspect, copy, None)
             classify(outcome, read_as_inspect, copy, fmt)
+            if progress is not None and k % 1000 == 0:
+                progress(name, k, outcome)
     return results
 
 
@@ -212,7 +216,9 @@ def main(argv: list[str] | None = None) -> int:
     logging.disable(logging.WARNING)  # damaged files warn by design; the counts are the output
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
-        results = run(exports, args.n, args.seed, Path(tmp), tuple(args.only or EXPORT_FORMATS))
+        results = run(exports, args.n, args.seed, Path(tmp), tuple(args.only or EXPORT_FORMATS),
+                      progress=lambda name, k, o: print(  # noqa: T201
+                          f"  {name}: {k} copies, {o.tracebacks.total()} tracebacks so far", flush=True))
         wall = time.perf_counter() - t0
     total = 0
     for name, o in results.items():
