@@ -34,7 +34,9 @@ import dataclasses
 import difflib
 import enum
 import io
+import ipaddress
 import math
+import os
 import re
 import sys
 import tomllib
@@ -63,6 +65,7 @@ from drivers.cart.pipeline import describe_record
 from drivers.errors import DriverConfigError
 from drivers.exosuit.endpoint import INTERFACE_OPTIONS, CanBusConfig
 from drivers.exosuit.rating import RATED_FORCE_N
+from drivers.files import read_regular_file
 from hilbo_core.config_model import (
     MISSING,
     Table,
@@ -147,7 +150,8 @@ class SessionConfig:
     Attributes:
         subject: Subject id, used in file names: letters, digits, ``_ . -``, at most 64.
         body_mass_kg: The wearer's mass in kg, 20–250 (``hip_ankle_4d`` scales its forces by it).
-        out_dir: Directory for the session's MCAP log and summary.
+        out_dir: Directory for the session's MCAP log and summary; a leading ``~`` is the home
+            folder (``~/hilbo-sessions``), as in a shell.
         notes: Free text copied into the log.
         file_mode: Permission bits of the log and summary as octal text (default ``"0600"``:
             owner only, they hold health data: VO2, heart rate, body mass).
@@ -176,10 +180,20 @@ def _parse_session(data: object) -> SessionConfig:
         )
     return SessionConfig(
         subject=subject,
-        out_dir=Path(t.string("out_dir", "sessions")),
+        out_dir=_out_dir(t),
         file_mode=_file_mode(t),
         **read_fields(SessionConfig, t),
     )
+
+
+def _out_dir(t: Table) -> Path:
+    # "~/hilbo-sessions" means the home folder (as in a shell), never a folder named "~" here.
+    text = t.string("out_dir", "sessions")
+    expanded = os.path.expanduser(text)
+    if expanded.startswith("~"):
+        raise BridgeConfigError(f"{t.name('out_dir')} = {text!r}: the home folder of "
+                                f"{text.split('/', 1)[0]!r} is unknown; give the full path")
+    return Path(expanded)
 
 
 def _file_mode(t: Table) -> str:
@@ -786,12 +800,17 @@ def _read_prior_log(space: ParameterSpace, path: Path, i: int,
         raise BridgeConfigError(f"{where}: {err}") from err
 
 
+MAX_PRIOR_TABLE_BYTES = 16 << 20
+"""Largest ``prior.table`` read (16 MiB; a population table has one short row per setting)."""
+
+
 def _read_prior_table(space: ParameterSpace, path: Path, baseline_w: float | None,
                       noise: PriorNoise) -> list[PriorObservation]:
     where = f"prior.table = {str(path)!r}"
     try:
-        with path.open(newline="", encoding="utf-8-sig") as fh:
-            rows = list(csv.DictReader(fh))
+        text = read_regular_file(path, max_bytes=MAX_PRIOR_TABLE_BYTES, what="a CSV population table",
+                                 error=lambda msg: BridgeConfigError(f"{where}: {msg}")).decode("utf-8-sig")
+        rows = list(csv.DictReader(io.StringIO(text, newline="")))
     except FileNotFoundError as err:
         raise BridgeConfigError(f"{where}: no such file (a CSV population table; paths are relative "
                                 "to the working directory)") from err
@@ -1048,6 +1067,24 @@ def _cross_check(cfg: HilboConfig) -> None:
         )
 
 
+MAX_CONFIG_BYTES = 1 << 20
+"""Largest config file read (1 MiB; the complete example config is about 10 kB)."""
+MAX_CONFIG_DEPTH = 16
+"""Deepest nesting of tables and arrays a config may have (the example's deepest is 4)."""
+
+
+def _check_depth(data: object, source: str) -> None:
+    # Iterative: the check itself must not recurse into what it bounds.
+    stack: list[tuple[object, int]] = [(data, 0)]
+    while stack:
+        value, depth = stack.pop()
+        if depth > MAX_CONFIG_DEPTH:
+            raise BridgeConfigError(f"{source}: tables or arrays nested more than {MAX_CONFIG_DEPTH} "
+                                    "levels deep; a config nests at most a few")
+        children = value.values() if isinstance(value, dict) else value if isinstance(value, list) else ()
+        stack.extend((v, depth + 1) for v in children)
+
+
 def parse_config(text: str, source: str = "<string>") -> HilboConfig:
     """Parse and validate a config from TOML text.
 
@@ -1064,6 +1101,10 @@ def parse_config(text: str, source: str = "<string>") -> HilboConfig:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
         raise _syntax_error(err, text, source) from err
+    except RecursionError as err:  # arrays or inline tables nested thousands deep
+        raise BridgeConfigError(f"{source}: TOML nested deeper than Python's parser can follow; a "
+                                f"config nests at most {MAX_CONFIG_DEPTH} levels") from err
+    _check_depth(data, source)
     for key, value in data.items():
         if key not in TABLES and not isinstance(value, dict):
             raise BridgeConfigError(
@@ -1101,11 +1142,13 @@ def load_config(path: str | Path) -> HilboConfig:
     """Read and validate a config file (UTF-8 TOML).
 
     Raises:
-        BridgeConfigError: The file cannot be read, or see :func:`parse_config`.
+        BridgeConfigError: The file cannot be read, is not a regular file or is larger than
+            :data:`MAX_CONFIG_BYTES`, or see :func:`parse_config`.
     """
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        text = read_regular_file(path, max_bytes=MAX_CONFIG_BYTES, what="a TOML config",
+                                 error=BridgeConfigError).decode("utf-8")
     except UnicodeDecodeError as err:
         raise BridgeConfigError(f"{path}: not UTF-8 text (TOML files are UTF-8): {err}") from err
     except OSError as err:
@@ -1143,9 +1186,14 @@ def config_warnings(cfg: HilboConfig) -> list[str]:
     """What is valid but probably wrong: one line each (``hilbo config check``, ``hilbo run``).
 
     Today: a force limit above the exosuit's rated force
-    (:data:`drivers.exosuit.rating.RATED_FORCE_N`).
+    (:data:`drivers.exosuit.rating.RATED_FORCE_N`), and a live view bound to an address other
+    machines can reach (its stream is not authenticated and carries health data).
     """
     out: list[str] = []
+    if not _is_loopback(cfg.live.host):
+        out.append(f"live.host = {cfg.live.host!r} is not this machine only (127.0.0.1): with the live "
+                   "view on, anyone on that network can watch the session's stream (VO2, heart rate, "
+                   "forces; no authentication). Keep 127.0.0.1 unless the lab's network is trusted")
     for name, lim in [("limits", cfg.limits.default),
                       *((f"limits.actuators.{k}", v) for k, v in cfg.limits.actuators.items()
                         if v.max_force_n != cfg.limits.default.max_force_n)]:
@@ -1154,6 +1202,15 @@ def config_warnings(cfg: HilboConfig) -> list[str]:
                        f"force, {RATED_FORCE_N:g} N (drivers/exosuit/rating.py): the device may "
                        "refuse such profiles, or be driven beyond its rating")
     return out
+
+
+def _is_loopback(host: str) -> bool:
+    if host.lower() == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:  # a host name: it may resolve to anything
+        return False
 
 
 def example_config_text() -> str:
@@ -1200,7 +1257,8 @@ def summarize(cfg: HilboConfig) -> str:
                     f"{pr.budget_breaths} breaths" if pr.budget_breaths is not None else "") if b
     )
     lines = [
-        f"session   subject {s.subject}, {s.body_mass_kg:g} kg, output in {s.out_dir}",
+        f"session   subject {s.subject}, {s.body_mass_kg:g} kg, output in {s.out_dir}"
+        + ("" if s.out_dir.is_absolute() else f" ({s.out_dir.resolve()})"),
         f"space     {origin}: {params}",
         f"          constraints: {'; '.join(k.describe() for k in sp.constraints) or 'none'}"
         + (f"; derived: {'; '.join(d.text or d.name for d in sp.derived)}" if sp.derived else ""),

@@ -41,7 +41,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 import msgspec
 from mcap.exceptions import EndOfFile, McapError
@@ -57,17 +57,19 @@ from mcap.records import (
 )
 from mcap.stream_reader import StreamReader
 from mcap.writer import Writer
-from zstandard import ZstdError
 
 from bridge.log.errors import LogError, LogFormatError, LogWriteError
 from bridge.log.records import METADATA_NAME, RECORD_TYPES, Topic
+from drivers.files import PRIVATE_FILE_MODE, create_private_file, read_regular_file
 
 __all__ = [
+    "MAX_LOG_BYTES",
     "ChannelInfo",
     "Damage",
     "LogContents",
     "LogMessage",
     "RecoverReport",
+    "config_file_mode",
     "read_log",
     "recover",
 ]
@@ -75,6 +77,8 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 _MAGIC = b"\x89MCAP0\r\n"
+MAX_LOG_BYTES = 2 << 30
+"""Largest session log read (2 GiB; it is read whole). An hour's session logs a few tens of MB."""
 _RECORD_HEADER = struct.Struct("<BQ")
 _KNOWN_OPCODES = frozenset(int(op) for op in Opcode)
 # A record header candidate when resynchronising after damage: a known opcode and a length below
@@ -330,7 +334,7 @@ class _Scan:
     damage: list[Damage] = field(default_factory=list)
 
 
-_PARSE_ERRORS = (McapError, ValueError, struct.error, UnicodeDecodeError, ZstdError, RuntimeError)
+_PARSE_ERRORS = (McapError,)  # _parse turns whatever mcap's reader raises into McapError
 
 
 def _parse(buf: bytes | memoryview, *, offset: int) -> list[McapRecord]:
@@ -345,6 +349,14 @@ def _parse(buf: bytes | memoryview, *, offset: int) -> list[McapRecord]:
         # The stream holds exactly one record: the reader's attempt at the next one ends here.
         if stream.tell() < len(buf):
             raise McapError(f"the record at byte {offset} ends before its declared length") from None
+    except McapError:
+        raise
+    except Exception as err:
+        # The one boundary around mcap's parser: damaged bytes make it raise what its code meets
+        # (a ValueError from a CRC, OverflowError from a length of 2^63, struct.error, zstd's or
+        # lz4's errors, MemoryError from a huge declared size). Each is a damaged record, which
+        # the scan skips by resynchronising, never a traceback.
+        raise McapError(f"{type(err).__name__}: {err}") from err
     return out
 
 
@@ -382,13 +394,12 @@ def _resync(buf: bytes, start: int, size: int) -> tuple[int, list[McapRecord]] |
     return None
 
 
-def _scan(f: IO[bytes], size: int, path: str) -> _Scan:
+def _scan(buf: bytes, path: str) -> _Scan:
+    size = len(buf)
     scan = _Scan(size=size)
     if size == 0:
         raise LogFormatError(f"{path}: the file is empty (0 bytes); a session log starts with the MCAP "
                              "magic and a header")
-    buf = f.read()
-    size = scan.size = len(buf)
     magic = buf[: len(_MAGIC)]
     if magic != _MAGIC[: len(magic)] or len(magic) < len(_MAGIC):
         if magic == _MAGIC[: len(magic)]:
@@ -462,15 +473,15 @@ def _scan(f: IO[bytes], size: int, path: str) -> _Scan:
 def _open_scan(path: str | os.PathLike[str]) -> _Scan:
     p = Path(path)
     try:
-        with open(p, "rb") as f:
-            size = os.fstat(f.fileno()).st_size
-            return _scan(f, size, str(p))
+        buf = read_regular_file(p, max_bytes=MAX_LOG_BYTES, what="a hilbo session log (.mcap)",
+                                error=LogFormatError)
     except FileNotFoundError as err:
         raise LogFormatError(f"{str(p)!r}: no such file") from err
     except IsADirectoryError as err:
         raise LogFormatError(f"{str(p)!r} is a directory, not an MCAP log") from err
     except OSError as err:
         raise LogError(f"{str(p)!r}: cannot read: {err}") from err
+    return _scan(buf, str(p))
 
 
 # ---------------------------------------------------------------------------------- reading
@@ -491,6 +502,17 @@ def read_log(path: str | os.PathLike[str], *, topics: Iterable[str] | None = Non
             MCAP file.
         LogError: The file cannot be read.
     """
+    try:
+        return _read_log(path, topics, require_hilbo)
+    except LogError:
+        raise
+    except Exception as err:
+        # The reader's one error boundary: whatever a damaged file makes the code below raise is
+        # the file's fault, reported with its name (the scan already isolates damaged records).
+        raise LogFormatError(f"{path}: not readable as a session log ({type(err).__name__}: {err})") from err
+
+
+def _read_log(path: str | os.PathLike[str], topics: Iterable[str] | None, require_hilbo: bool) -> LogContents:
     scan = _open_scan(path)
     wanted = None if topics is None else {str(t) for t in topics}
     schemas: dict[int, Schema] = {}
@@ -573,7 +595,7 @@ def _decode(topic: str, raw: bytes) -> tuple[Any, bool]:
     if decoder is None:
         try:
             return None, isinstance(json.loads(raw), dict)
-        except (json.JSONDecodeError, UnicodeDecodeError):
+        except (json.JSONDecodeError, UnicodeDecodeError, RecursionError):  # damaged: not JSON
             return None, False
     try:
         return decoder.decode(raw), True
@@ -584,7 +606,7 @@ def _decode(topic: str, raw: bytes) -> tuple[Any, bool]:
     try:
         # Python's NaN/Infinity tokens (the optimizer snapshot keeps them): the stdlib reads them.
         obj = json.loads(raw)
-    except (json.JSONDecodeError, UnicodeDecodeError):
+    except (json.JSONDecodeError, UnicodeDecodeError, RecursionError):
         return None, False
     if not isinstance(obj, dict):
         return None, False
@@ -595,8 +617,34 @@ def _decode(topic: str, raw: bytes) -> tuple[Any, bool]:
 
 
 # ---------------------------------------------------------------------------------- recovery
+def config_file_mode(config: Mapping[str, Any] | None) -> int:
+    """The ``[session] file_mode`` of a logged session config as permission bits.
+
+    Files derived from a session's log (its review, a recovered copy) hold the same health data,
+    so they get the mode the session gave its own log; 0o600 when the config does not say.
+    """
+    session = config.get("session") if isinstance(config, Mapping) else None
+    text = session.get("file_mode") if isinstance(session, Mapping) else None
+    if isinstance(text, str) and re.fullmatch(r"0?[0-7]{3}", text):
+        return int(text, 8)
+    return PRIVATE_FILE_MODE
+
+
+def _scan_file_mode(scan: _Scan) -> int:
+    """:func:`config_file_mode` of the first readable ``/config`` message of a scanned log."""
+    ids = {r.id for r in scan.records if isinstance(r, Channel) and r.topic == Topic.CONFIG}
+    for r in scan.records:
+        if isinstance(r, Message) and r.channel_id in ids:
+            try:
+                obj = json.loads(r.data)
+            except (ValueError, RecursionError):  # damaged: the default mode
+                break
+            return config_file_mode(obj.get("config") if isinstance(obj, dict) else None)
+    return PRIVATE_FILE_MODE
+
+
 def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str], *,
-            overwrite: bool = False) -> RecoverReport:
+            overwrite: bool = False, file_mode: int | None = None) -> RecoverReport:
     """Rewrite the intact part of a (crashed) log as a normal, indexed MCAP file.
 
     Schemas, channels, messages (bytes, times and sequence numbers unchanged), metadata and
@@ -607,6 +655,8 @@ def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str], *,
         src: The damaged (or intact) file.
         dst: The file to write; must differ from ``src``.
         overwrite: Replace an existing ``dst``.
+        file_mode: Permission bits of ``dst``; None: the source session's ``[session]
+            file_mode`` (:func:`config_file_mode`), 0o600 when it has none (health data).
 
     Raises:
         LogFormatError: ``src`` is not an MCAP file, or ``dst`` is ``src``.
@@ -620,8 +670,9 @@ def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str], *,
     if dst_p.exists() and not overwrite:
         raise LogWriteError(f"recover: {str(dst_p)!r} exists; remove it or choose another output file")
     per_topic: Counter[str] = Counter()
+    mode = _scan_file_mode(scan) if file_mode is None else file_mode
     try:
-        with open(tmp, "wb") as f:
+        with create_private_file(tmp, mode) as f:
             writer = Writer(f)
             header = scan.header
             writer.start(profile=header.profile if header else "", library=header.library if header else "")

@@ -14,6 +14,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from drivers.files import create_private_file
+
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
@@ -57,8 +59,9 @@ def _figure(name: str) -> Figure:
     return fig
 
 
-def _save(fig: Figure, path: Path) -> Path:
-    fig.savefig(path, dpi=DPI, format="png")
+def _save(fig: Figure, path: Path, mode: int) -> Path:
+    with create_private_file(path, mode) as f:  # the plots show health data: the session's mode
+        fig.savefig(f, dpi=DPI, format="png")
     return path
 
 
@@ -154,7 +157,7 @@ def _timeline(session: Session, path: Path) -> str | None:
     ax_sd.set_xlabel("session time (min)")
     ax_sd.grid(alpha=0.3)
     fig.subplots_adjust(left=0.07, right=0.98, top=0.94, bottom=0.09, hspace=0.08)
-    _save(fig, path)
+    _save(fig, path, session.file_mode)
     return None
 
 
@@ -191,7 +194,7 @@ def _best_so_far(session: Session, path: Path) -> str | None:
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     fig.subplots_adjust(left=0.1, right=0.97, top=0.92, bottom=0.11)
-    _save(fig, path)
+    _save(fig, path, session.file_mode)
     return None
 
 
@@ -237,7 +240,7 @@ def _parameters(session: Session, path: Path) -> str | None:
     axes[0].legend(fontsize=7, loc="best")
     fig.suptitle(f"{session.label}: parameters per evaluation (shaded: exploration)", fontsize=10)
     fig.subplots_adjust(left=0.07, right=0.98, top=0.93, bottom=0.08, hspace=0.25, wspace=0.3)
-    _save(fig, path)
+    _save(fig, path, session.file_mode)
     return None
 
 
@@ -282,7 +285,7 @@ def _thresholds(session: Session, path: Path) -> str | None:
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     fig.subplots_adjust(left=0.1, right=0.97, top=0.92, bottom=0.11)
-    _save(fig, path)
+    _save(fig, path, session.file_mode)
     return None
 
 
@@ -329,7 +332,7 @@ def _force_tracking(session: Session, path: Path) -> str | None:
     fig.suptitle(f"{session.label}: desired vs measured force, recommended setting "
                  f"(evaluation {fb.index + 1}, profile version {fb.version})", fontsize=10)
     fig.subplots_adjust(left=0.06, right=0.98, top=0.86, bottom=0.11, wspace=0.2)
-    _save(fig, path)
+    _save(fig, path, session.file_mode)
     return None
 
 
@@ -378,4 +381,4 @@ def compare_plot(sessions: Sequence[Session], path: Path) -> Path:
     ax_n.legend(fontsize=8)
     ax_n.grid(alpha=0.3, axis="y")
     fig.subplots_adjust(left=0.06, right=0.98, top=0.9, bottom=0.11, wspace=0.18)
-    return _save(fig, path)
+    return _save(fig, path, sessions[0].file_mode & sessions[-1].file_mode)

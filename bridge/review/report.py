@@ -9,14 +9,18 @@ the PNG files next to it.
 from __future__ import annotations
 
 import base64
+import contextlib
 import csv
 import html
+import io
 import json
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TextIO
+
+from drivers.files import create_private_file
 
 if TYPE_CHECKING:
     from bridge.review.session import Session
@@ -152,10 +156,19 @@ def _html(title: str, blocks: Sequence[_Block]) -> str:
     return "\n".join(out) + "\n"
 
 
-def _write_both(out: Path, stem: str, title: str, blocks: Sequence[_Block]) -> list[Path]:
+@contextlib.contextmanager
+def _create_text(path: Path, mode: int) -> Iterator[TextIO]:
+    """``path`` created for UTF-8 text with permission bits ``mode`` (the session's file mode)."""
+    with create_private_file(path, mode) as raw, io.TextIOWrapper(raw, encoding="utf-8", newline="") as f:
+        yield f
+
+
+def _write_both(out: Path, stem: str, title: str, blocks: Sequence[_Block], mode: int) -> list[Path]:
     md, page = out / f"{stem}.md", out / f"{stem}.html"
-    md.write_text(_markdown(blocks), encoding="utf-8")
-    page.write_text(_html(title, blocks), encoding="utf-8")
+    with _create_text(md, mode) as f:
+        f.write(_markdown(blocks))
+    with _create_text(page, mode) as f:
+        f.write(_html(title, blocks))
     return [md, page]
 
 
@@ -353,7 +366,7 @@ def write_report(session: Session, out: Path, plots: Mapping[str, Path],
         blocks += [_h(2, "Notes"), _ul(session.notes)]
     blocks += [_h(2, "Configuration"), *_config_tables(session.config),
                _Block("code", text=json.dumps(session.config, indent=2, sort_keys=False))]
-    return _write_both(out, "report", title, blocks)
+    return _write_both(out, "report", title, blocks, session.file_mode)
 
 
 # ---------------------------------------------------------------------------------- CSV
@@ -377,7 +390,7 @@ def write_evaluations_csv(session: Session, path: Path) -> Path:
     """``evaluations.csv``: one row per completed evaluation (W, W², s; times are session times)."""
     cols = evaluation_columns(session)
     names = cols[2:2 + len(cols) - len(EVALUATION_FIXED_COLUMNS)]
-    with open(path, "w", newline="", encoding="utf-8") as f:
+    with _create_text(path, session.file_mode) as f:
         w = csv.writer(f)
         w.writerow(cols)
         for e in session.evaluations:
@@ -394,7 +407,7 @@ def _from_one(index: int | None) -> int | None:
 
 def write_breaths_csv(session: Session, path: Path) -> Path:
     """``breaths.csv``: one row per breath of the log(s), with the estimate it produced if any."""
-    with open(path, "w", newline="", encoding="utf-8") as f:
+    with _create_text(path, session.file_mode) as f:
         w = csv.writer(f)
         w.writerow(BREATH_COLUMNS)
         for k, b in enumerate(session.breaths):
@@ -469,4 +482,4 @@ def write_compare_report(sessions: Sequence[Session], out: Path, png: Path) -> l
     notes = [f"{t}: {n}" for t, s in zip(tags, sessions, strict=True) for n in s.notes]
     if notes:
         blocks += [_h(2, "Notes"), _ul(notes)]
-    return _write_both(out, "compare", title, blocks)
+    return _write_both(out, "compare", title, blocks, sessions[0].file_mode & sessions[-1].file_mode)

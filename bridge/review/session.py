@@ -64,7 +64,7 @@ import numpy as np
 from bridge.errors import ReviewError
 from bridge.log import EventLevel, LogError, LogFormatError, Topic
 from bridge.log import records as rec
-from bridge.log.reader import LogContents, read_log
+from bridge.log.reader import LogContents, config_file_mode, read_log
 
 __all__ = [
     "Breath",
@@ -369,6 +369,12 @@ class Session:
     pauses: tuple[tuple[float, float | None], ...] = ()
     walked_s: float | None = None
     validation: tuple[Mapping[str, Any], ...] | None = None
+
+    @property
+    def file_mode(self) -> int:
+        """Permission bits of the review's files: the session's ``[session] file_mode`` (0o600
+        unless the config says otherwise), since they hold the same health data as its log."""
+        return config_file_mode(self.config)
 
     @property
     def minutes_walked(self) -> float:
@@ -821,6 +827,7 @@ def load_session(paths: Sequence[str | os.PathLike[str]]) -> Session:
         if c.undecodable:
             notes.append(f"{c.path}: {c.undecodable} messages could not be decoded and were skipped")
         offset = scan.end_s
+    _check_breaths(contents, scans, notes)
     if contents[0].previous_log:
         notes.append(f"{contents[0].path} resumes {contents[0].previous_log}, which was not given: its "
                      "evaluations are counted (from the optimizer snapshot) but its breaths are not shown; "
@@ -898,6 +905,30 @@ def load_session(paths: Sequence[str | os.PathLike[str]]) -> Session:
         pauses=_pauses(events), walked_s=scans[-1].walked_s,
         validation=next((tuple(s.validation) for s in reversed(scans) if s.validation is not None), None),
     )
+
+
+def _check_breaths(contents: Sequence[LogContents], scans: Sequence[_FileScan], notes: list[str]) -> None:
+    """Say how many logged breaths cannot be shown; refuse a session where that is all of them.
+
+    A breath whose time, VO2 or VCO2 is NaN or infinite (a cart or parser fault) is not a
+    measurement: a review of only such breaths would report "0 breaths" as if nothing had been
+    walked, so it is an error naming the file and the count instead.
+
+    Raises:
+        ReviewError: Breaths were logged, none is finite, and no evaluation was completed.
+    """
+    logged = sum(len(c.topic(Topic.BREATHS)) for c in contents)
+    shown = sum(len(s.breaths) for s in scans)
+    if logged == shown:
+        return
+    has_evaluations = any(s.observations for s in scans) or any(
+        _snapshot_evaluations(r) for c in contents for r in c.records(Topic.OPTIMIZER_STATE))
+    if shown == 0 and not has_evaluations:
+        raise ReviewError(f"{', '.join(c.path for c in contents)}: all {logged} logged breaths have a "
+                          "non-finite or unreadable time, VO2 or VCO2 (NaN or infinite: a cart or parser "
+                          "fault) and no evaluation was completed; nothing to review")
+    notes.append(f"{logged - shown} of {logged} logged breaths have a non-finite or unreadable time, VO2 "
+                 "or VCO2 and are not shown")
 
 
 def _eval_row(e: rec.Evaluation, fi: int, t_start: float | None, t_end: float | None,

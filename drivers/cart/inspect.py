@@ -22,6 +22,7 @@ from drivers.cart.stream import CartConfig, CartFormat
 from drivers.cart.validate import BreathValidator, PhysioLimits
 from drivers.cart.vendors import TableParser, detect_format, line_image
 from drivers.errors import DecodeError, DriverConfigError
+from drivers.files import MAX_CART_FILE_BYTES, read_regular_file
 from hilbo_core.types import BreathRecord
 
 __all__ = ["FileReport", "inspect_config", "inspect_file"]
@@ -153,7 +154,8 @@ def inspect_file(
     Raises:
         OSError: The file cannot be read.
         DriverConfigError: The format is unknown (not detected), ``csv`` is missing for
-            ``"csv"``, or the file does not fit the format (no header; a mapped column missing).
+            ``"csv"``, the file is not a regular file or too large, or it does not fit the
+            format (no header; a mapped column missing; a damaged spreadsheet).
     """
     path_s = fspath(path)
     if fmt is None:
@@ -174,8 +176,7 @@ def inspect_file(
         title = vendor.title
         data = line_image(vendor, path_s)
     else:
-        with open(path_s, "rb") as fh:
-            data = fh.read()
+        data = read_regular_file(path_s, max_bytes=MAX_CART_FILE_BYTES, what="a cart recording or export")
         if cart_format is CartFormat.CSV:
             if csv is None:
                 raise DriverConfigError("format 'csv' needs a [cart.csv] column map")

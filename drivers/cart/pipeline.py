@@ -20,6 +20,7 @@ from drivers.cart.framing import DEFAULT_MAX_LINE_BYTES, LineFramer
 from drivers.cart.line import ParsedBreath
 from drivers.cart.validate import BreathValidator
 from drivers.errors import DecodeError
+from drivers.files import MAX_CART_FILE_BYTES, open_regular_file
 from hilbo_core.types import BreathRecord
 
 __all__ = [
@@ -252,12 +253,13 @@ def read_breath_file(
 
     Raises:
         OSError: The file cannot be read.
-        DriverConfigError: A CSV header does not match the mapping.
+        DriverConfigError: Not a regular file, too large, or a CSV header that does not match
+            the mapping.
     """
     validator = validator if validator is not None else BreathValidator()
     framer = LineFramer(max_line_bytes)
     out: list[BreathRecord] = []
-    with open(path, "rb") as fh:
+    with open_regular_file(path, max_bytes=MAX_CART_FILE_BYTES, what="a cart recording or export") as fh:
         for chunk in iter(lambda: fh.read(1 << 16), b""):
             out.extend(iter_breaths(framer.feed(chunk), parser, validator))
     tail = framer.flush()

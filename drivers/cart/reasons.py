@@ -36,7 +36,11 @@ class RejectReason(StrEnum):
     BAD_TIME = "bad_time"
     """A clock-format time field (``hh:mm:ss``, ``mm:ss``) does not parse."""
     MISSING_FIELD = "missing_field"
-    """A required field (time, VO2, VCO2) is empty."""
+    """A required field (time, VO2, VCO2) is empty, or a vendor table row holds text but none in
+    the columns a breath is read from (another field separator?)."""
+    EVENT = "event"
+    """A vendor's events block: its marker row (Parvo's ``Events``) and the rows under it that
+    are not breaths (notes such as ``0.60,Start exercise``)."""
 
     # Validation (BreathValidator): a well-formed record that cannot be a real breath.
     NON_FINITE = "non_finite"

@@ -28,6 +28,7 @@ from drivers.cart._options import check_declared, number, text
 from drivers.cart.framing import DEFAULT_MAX_LINE_BYTES
 from drivers.cart.transport import CartTransport, TransportHooks
 from drivers.errors import DriverConfigError
+from drivers.files import MAX_CART_FILE_BYTES, open_regular_file
 from hilbo_core.config_model import integer
 
 __all__ = ["ReplayOptions", "ReplayTransport"]
@@ -113,7 +114,8 @@ class ReplayTransport(CartTransport):
         if self.loader is not None:
             self._file = io.BytesIO(self.loader(self.options.path))
         else:
-            self._file = open(self.options.path, "rb")  # closed in _close_link
+            self._file = open_regular_file(  # closed in _close_link
+                self.options.path, max_bytes=MAX_CART_FILE_BYTES, what="a cart recording or export")
         self._t0_s = None
 
     async def _read_chunk(self) -> bytes | None:

@@ -34,9 +34,9 @@ def figures(monkeypatch: pytest.MonkeyPatch) -> dict[str, Any]:
     drawn: dict[str, Any] = {}
     save = plots._save
 
-    def keep(fig: Any, path: Path) -> Path:
+    def keep(fig: Any, path: Path, mode: int) -> Path:
         drawn[path.name] = fig
-        return save(fig, path)
+        return save(fig, path, mode)
 
     monkeypatch.setattr(plots, "_save", keep)
     return drawn

@@ -7,11 +7,11 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
-import os
 import uuid
 from pathlib import Path
 
 import pytest
+from cart_exports import EXPORTS, needs_exports
 
 from bridge.config import parse_config
 from bridge.run import run_session
@@ -23,23 +23,9 @@ from virtual_hw.exosuit import SUIT_JOINTS, VirtualExosuit
 
 pytestmark = pytest.mark.timeout(60)
 
-REPO = Path(__file__).resolve().parents[2]
 
 
-def _exports_dir() -> Path | None:
-    candidates = []
-    if os.environ.get("HILBO_SHARED_DIR"):  # the shared/ folder, or the exports folder itself
-        shared = Path(os.environ["HILBO_SHARED_DIR"])
-        candidates += [shared / "data" / "cart-exports", shared]
-    candidates += [p / "shared" / "data" / "cart-exports" for p in REPO.parents]
-    return next((c for c in candidates if (c / "cosmed_test.xlsx").is_file()), None)
-
-
-EXPORTS = _exports_dir()
-
-
-@pytest.mark.skipif(EXPORTS is None, reason="shared/data/cart-exports not found (beside the repo, "
-                                            "above it, or at $HILBO_SHARED_DIR/data/cart-exports)")
+@needs_exports
 @pytest.mark.parametrize(("name", "fmt", "n_breaths"), [
     ("cosmed_test.xlsx", "cosmed", 10), ("cortex_test.xml", "cortex", 13), ("vyntus_test.txt", "vyntus", 7),
 ])

@@ -7,10 +7,10 @@ cells, the XML's <Data> elements, the text file's lines), not from the reader un
 from __future__ import annotations
 
 import asyncio
-import os
 from pathlib import Path
 
 import pytest
+from cart_exports import EXPORTS, needs_exports
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -29,21 +29,6 @@ pytestmark = pytest.mark.timeout(30)
 REPO = Path(__file__).resolve().parents[2]
 DATA = REPO / "tests" / "data" / "cart"
 
-
-def _exports_dir() -> Path | None:
-    """shared/data/cart-exports: $HILBO_SHARED_DIR, beside the clone (CI), or above the worktree."""
-    candidates = []
-    if os.environ.get("HILBO_SHARED_DIR"):  # the shared/ folder, or the exports folder itself
-        shared = Path(os.environ["HILBO_SHARED_DIR"])
-        candidates += [shared / "data" / "cart-exports", shared]
-    candidates += [p / "shared" / "data" / "cart-exports" for p in REPO.parents]
-    return next((c for c in candidates if (c / "cosmed_test.xlsx").is_file()), None)
-
-
-EXPORTS = _exports_dir()
-needs_exports = pytest.mark.skipif(
-    EXPORTS is None, reason="shared/data/cart-exports not found (beside the repo, above it, or "
-                            "at $HILBO_SHARED_DIR/data/cart-exports)")
 
 # (file, format, n breaths, first (t_s, VO2, VCO2), last (t_s, VO2, VCO2), body mass kg), by hand:
 # COSMED: row 4 of sheet "Daten": t 0:00:30, VO2 506.1618208, VCO2 440.9817142 mL/min; row 13:
@@ -130,7 +115,9 @@ def test_cosmed_csv_synthetic_decimal_comma_semicolons() -> None:
 
 def test_parvo_synthetic_minutes_litres_and_events_block() -> None:
     records, parser, validator = _read(DATA / "parvo_trueone.csv", "parvo")
-    assert validator.rejected == 0  # the Events block after the table is not read as breaths
+    # The Events block after the table is not read as breaths, and not lost silently either:
+    # its marker and its note are counted under their own reason.
+    assert validator.counters == {"event": 2}
     flat = [v for r in records for v in _triple(r)]
     assert flat == pytest.approx([15.0, 312.0, 265.0, 30.0, 355.0, 298.0, 45.0, 1105.0, 962.0,
                                   60.0, 1250.0, 1100.0])
@@ -222,7 +209,7 @@ def test_inspect_renders_mapping_counts_and_toml() -> None:
     text = report.render()
     assert "format    parvo (Parvo Medics TrueOne 2400 CSV export)" in text
     assert "vo2_ml_min   <- 'VO2' [L/min]" in text
-    assert "breaths   4 read, 0 rejected" in text
+    assert "breaths   4 read, 2 rejected (event 2)" in text  # the Events block, counted
     assert 'format = "parvo"' in text and 'transport = "replay"' in text
 
 

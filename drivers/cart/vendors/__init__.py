@@ -17,6 +17,7 @@ from drivers.cart.vendors.cosmed import COSMED, COSMED_CSV
 from drivers.cart.vendors.parvo import PARVO
 from drivers.cart.vendors.vyntus import VYNTUS
 from drivers.errors import DecodeError, DriverConfigError
+from drivers.files import MAX_CART_FILE_BYTES, open_regular_file, read_regular_file
 
 __all__ = [
     "VENDORS",
@@ -45,11 +46,15 @@ def vendor_spec(name: str) -> VendorSpec:
 
 
 def line_image(spec: VendorSpec, path: str | PathLike[str]) -> bytes:
-    """The lines the preset's parser reads from the file ``path`` (its loader's, or its bytes)."""
+    """The lines the preset's parser reads from the file ``path`` (its loader's, or its bytes).
+
+    Raises:
+        OSError: The file cannot be opened.
+        DriverConfigError: Not a regular file, too large, or unreadable as the preset's kind.
+    """
     if spec.loader is not None:
         return spec.loader(fspath(path))
-    with open(path, "rb") as fh:
-        return fh.read()
+    return read_regular_file(path, max_bytes=MAX_CART_FILE_BYTES, what=f"a {spec.title}")
 
 
 def _header_found(spec: VendorSpec, data: bytes) -> TableParser | None:
@@ -75,20 +80,19 @@ def detect_format(path: str | PathLike[str]) -> str | None:
 
     Raises:
         OSError: The file cannot be read.
+        DriverConfigError: Not a regular file, larger than any cart file
+            (:data:`~drivers.files.MAX_CART_FILE_BYTES`), or an xlsx or Excel-2003 XML file
+            that its loader cannot read (naming the sheet and row).
     """
-    with open(path, "rb") as fh:
+    with open_regular_file(path, max_bytes=MAX_CART_FILE_BYTES, what="a cart export or recording") as fh:
         head = fh.read(_SNIFF_BYTES)
     if head.startswith(b"PK\x03\x04"):
-        try:
-            image = COSMED.loader(fspath(path)) if COSMED.loader else b""
-        except DriverConfigError:
-            return None
+        # A zip is an xlsx or nothing a cart writes: its loader's error (a damaged sheet, with
+        # the row) says more than "unknown format".
+        image = COSMED.loader(fspath(path)) if COSMED.loader else b""
         return COSMED.name if _header_found(COSMED, image) else None
     if b"urn:schemas-microsoft-com:office:spreadsheet" in head:
-        try:
-            image = CORTEX.loader(fspath(path)) if CORTEX.loader else b""
-        except DriverConfigError:
-            return None
+        image = CORTEX.loader(fspath(path)) if CORTEX.loader else b""
         return CORTEX.name if _header_found(CORTEX, image) else None
     if any(line.lstrip().startswith(b"$HBR,") for line in head.splitlines()):
         return "hilbo-line"

@@ -19,26 +19,31 @@ How a line is read:
    column's unit (``L/min`` -> x1000 to ml/min, ``min`` -> x60 to s).
 3. Data rows: times ``h:mm:ss``/``mm:ss`` (a fraction allowed, ``.`` or ``,``) or a number in the
    column's unit; numbers with ``.`` or ``,`` as decimal mark (a number holding both is rejected
-   as ``bad_number``, never guessed). A row whose mapped cells are all empty is skipped.
+   as ``bad_number``, never guessed). A blank row is skipped; a row with text but none in the
+   mapped columns is rejected (``missing_field``) and so counted.
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import re
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 from drivers.cart._numbers import parse_decimal, shorten
 from drivers.cart.line import ParsedBreath
 from drivers.cart.reasons import RejectReason
-from drivers.errors import DecodeError, DriverConfigError
+from drivers.errors import DecodeError, DriverConfigError, DriverError
 from hilbo_core.types import BreathRecord
 
 __all__ = [
     "FIELDS",
+    "MAX_SHEET_CELLS",
+    "MAX_SHEET_COLUMNS",
     "REQUIRED_FIELDS",
+    "LineImage",
     "TableParser",
     "VendorSpec",
     "cells_to_line",
@@ -85,9 +90,107 @@ def parse_clock(text: str) -> float | None:
     return (int(hours) if hours else 0) * 3600.0 + int(minutes) * 60.0 + value
 
 
-def cells_to_line(cells: list[str]) -> bytes:
+def cells_to_line(cells: Sequence[str]) -> bytes:
     """One row of a spreadsheet as a tab-separated UTF-8 line (tabs and breaks in cells -> space)."""
     return "\t".join(re.sub(r"[\t\r\n]+", " ", c) for c in cells).encode("utf-8")
+
+
+MAX_SHEET_COLUMNS = 16_384
+"""Most cells a spreadsheet row may have (Excel's own limit, column ``XFD``)."""
+MAX_SHEET_CELLS = 2_000_000
+"""Most cells a spreadsheet export may have: a one-hour breath-by-breath export has about 1,500
+rows of 100-150 columns (~200,000 cells), so this leaves a factor of 10, and bounds the time and
+memory a damaged sheet (a row number or a column index of 10^9) can take (about 1 s of CPU to
+refuse one)."""
+
+
+class LineImage:
+    """The line image of a spreadsheet being read, bounded, with the one error boundary of its loader.
+
+    A loader (xlsx, Excel-2003 XML) adds rows with :meth:`add` inside :meth:`reading`; whatever
+    the parsing library raises there (a damaged zip member, malformed XML, a value of the wrong
+    type) becomes a :class:`DriverConfigError` naming the file and the row reached, so a damaged
+    export is refused with its name, never a traceback.
+
+    Attributes:
+        path: The file, for messages.
+        sheet: The worksheet being read (for messages), "" before the first.
+        rows: Rows added to the current sheet.
+        cells: Cells added in total (every sheet).
+    """
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+        self.sheet = ""
+        self.rows = 0
+        self.cells = 0
+        self._max_cells = MAX_SHEET_CELLS
+        self._max_columns = MAX_SHEET_COLUMNS
+        self._lines: list[bytes] = []
+
+    def new_sheet(self, name: str) -> None:
+        """Start another worksheet: the rows so far are dropped (:meth:`data` is one sheet's)."""
+        self.sheet, self.rows, self._lines = name, 0, []
+
+    def column(self, index: int, row_cells: int) -> int:
+        """Check a 1-based column index a cell gives (``ss:Index``); return it.
+
+        Raises:
+            DriverConfigError: Beyond :data:`MAX_SHEET_COLUMNS`, or not after the row's
+                ``row_cells`` cells already read (a spreadsheet's indexes only grow).
+        """
+        if not row_cells < index <= self._max_columns:
+            raise DriverConfigError(
+                f"{self.path}: {self.position()}: a cell at column {index}; expected a column "
+                f"after the row's {row_cells} cells and at most {self._max_columns}")
+        return index
+
+    def position(self) -> str:
+        """Where reading is: ``sheet 'Daten', row 13``, the row being read (1-based)."""
+        sheet = f"sheet {self.sheet!r}, " if self.sheet else ""
+        return f"{sheet}row {self.rows + 1}"
+
+    def add(self, cells: Sequence[str]) -> bytes:
+        """Add one row (its cells' texts); return its line.
+
+        Raises:
+            DriverConfigError: More than :data:`MAX_SHEET_COLUMNS` cells in the row, or more
+                than :data:`MAX_SHEET_CELLS` in the file.
+        """
+        if len(cells) > self._max_columns:
+            raise DriverConfigError(f"{self.path}: {self.position()} has {len(cells):,} cells; "
+                                    f"a spreadsheet row has at most {self._max_columns:,}")
+        self.cells += len(cells)
+        if self.cells > self._max_cells:
+            raise DriverConfigError(f"{self.path}: more than {self._max_cells:,} cells by "
+                                    f"{self.position()}; a cart export has far fewer (a damaged "
+                                    "row number or column index?)")
+        self.rows += 1
+        line = cells_to_line(cells)
+        self._lines.append(line)
+        return line
+
+    def data(self) -> bytes:
+        """The current sheet's lines, each ended by a newline."""
+        return b"\n".join(self._lines) + b"\n"
+
+    @contextlib.contextmanager
+    def reading(self, what: str) -> Iterator[None]:
+        """The loader's error boundary: anything but a DriverError becomes one naming the file.
+
+        Args:
+            what: What the file should be (``"xlsx workbook"``), for the message.
+
+        Raises:
+            DriverConfigError: ``"<path>: not a readable <what> (<position>: <type>: <error>)"``.
+        """
+        try:
+            yield
+        except DriverError:
+            raise
+        except Exception as err:  # the boundary: a damaged file makes libraries raise anything
+            raise DriverConfigError(f"{self.path}: not a readable {what} ({self.position()}: "
+                                    f"{type(err).__name__}: {shorten(str(err))})") from err
 
 
 @dataclass(frozen=True, slots=True)
@@ -109,8 +212,9 @@ class VendorSpec:
             for :func:`drivers.cart.vendors.detect_format`.
         zero_hr_is_missing: Read a heart rate of 0 as "not reported" (carts write 0 when no
             heart-rate monitor is paired; the validator would reject every breath otherwise).
-        end_markers: Normalized first cells of a row that ends the table (Parvo's ``Events``
-            block); the rows after it are not breaths and are ignored.
+        end_markers: Normalized first cells of a row that starts a block of non-breath rows
+            (Parvo's ``Events``): the rows under it that are not breaths are counted as
+            ``event`` rejects; a breath after them is still read (a live stream goes on).
         max_preamble_lines: Give up looking for the header after this many lines.
         max_subheader_rows: Rows after the header that may hold units.
     """
@@ -164,7 +268,7 @@ class TableParser:
     _subheader_left: int = 0
     _data_seen: bool = False
     _header_norm: list[str] | None = None
-    _ended: bool = False
+    _in_events: bool = False
 
     @property
     def format_name(self) -> str:
@@ -179,9 +283,16 @@ class TableParser:
     def parse(self, line: bytes) -> ParsedBreath | None:
         """Parse one line: None for preamble, header, units and blank rows.
 
+        A blank row (no text at all, or none in the table's columns beside COSMED's subject
+        block) carries nothing and returns None. Every other row that is not a breath raises,
+        so it is counted with its reason: a row with text but none in the mapped columns
+        (``missing_field``: another field separator?), an end marker (Parvo's ``Events``) and
+        the rows under it that are not breaths (``event``). Breaths after an events block are
+        read: on a live link the table may go on after it.
+
         Raises:
             DecodeError: A data row that is not a breath (``bad_time``, ``bad_number``,
-                ``missing_field``, ``field_count``, ``garbage``).
+                ``missing_field``, ``field_count``, ``garbage``, ``event``).
             DriverConfigError: No header in the first ``max_preamble_lines`` lines, or a unit
                 under VO2/VCO2 that is not a flow (``mL/min/kg``).
         """
@@ -189,27 +300,48 @@ class TableParser:
         if self.columns is None:
             self._find_header(text)
             return None
-        if self._ended:
-            return None
         cells = self._split(text, self.delimiter or "\t")
         norm = [normalize_name(c) for c in cells]
         if norm and norm[0] in self.spec.end_markers:
-            self._ended = True
-            return None
+            self._in_events = True
+            raise DecodeError(RejectReason.EVENT, f"{shorten(cells[0].strip())!r}: the rows under it "
+                                                  "are events, not breaths (a breath after them is read)")
+        try:
+            return self._data_row(cells, norm)
+        except DecodeError as err:
+            if not self._in_events:
+                raise
+            raise DecodeError(RejectReason.EVENT, f"a row of the events block, not a breath "
+                                                  f"({err}): {shorten(text)!r}") from err
+
+    def _data_row(self, cells: list[str], norm: list[str]) -> ParsedBreath | None:
         if norm[: len(self._header_norm or [])] == self._header_norm:
             return None  # a repeated header (live stream reconnect, new stage)
         time_cell = _cell(cells, self.mapping["t_s"].index)
-        if all(_cell(cells, c.index).strip().lower() in _MISSING for c in self.mapping.values()):
-            return None  # blank row in the table's columns
+        mapped_empty = all(_cell(cells, c.index).strip().lower() in _MISSING for c in self.mapping.values())
+        first = min(c.index for c in self.mapping.values())
+        if mapped_empty and (
+            not any(c.strip() for c in cells)
+            or (len(cells) > first and all(c.strip().lower() in _MISSING for c in cells[first:]))
+        ):
+            return None  # a blank row, or blank in the table's columns (beside a subject block)
         if not self._data_seen and self._subheader_left > 0 and self._time(time_cell) is None:
             self._subheader_left -= 1
             self._read_units(cells)
             return None
+        if mapped_empty:
+            names = ", ".join(repr(c.name) for c in self.mapping.values())
+            row = (self.delimiter or "\t").join(cells)
+            raise DecodeError(RejectReason.MISSING_FIELD,
+                              f"no value in any of the mapped columns ({names}), yet the row holds "
+                              f"{shorten(row)!r}: another field separator?")
+        record = self._record(cells)
         self._data_seen = True
+        self._in_events = False  # the table goes on after the events block
         if "body_mass_kg" not in self.metadata:
             # COSMED puts the subject block beside the table, in the columns before it.
-            self._read_metadata(cells[: min(c.index for c in self.mapping.values())])
-        return ParsedBreath(self._record(cells), seq=None)
+            self._read_metadata(cells[:first])
+        return ParsedBreath(record, seq=None)
 
     # -- header -----------------------------------------------------------------------------------
 

@@ -10,11 +10,14 @@ in L/min as XML numbers; values typed as strings may carry a decimal comma.
 
 from __future__ import annotations
 
+import io
 import xml.etree.ElementTree as ET
 from os import PathLike, fspath
 
-from drivers.cart.vendors._table import VendorSpec, cells_to_line
+from drivers.cart._numbers import shorten
+from drivers.cart.vendors._table import LineImage, VendorSpec
 from drivers.errors import DriverConfigError
+from drivers.files import MAX_CART_FILE_BYTES, read_regular_file
 
 __all__ = ["CORTEX", "load_spreadsheet_xml"]
 
@@ -24,31 +27,46 @@ _SS = "urn:schemas-microsoft-com:office:spreadsheet"
 def load_spreadsheet_xml(path: str | PathLike[str]) -> bytes:
     """The line image of an Excel-2003 XML spreadsheet: every row of every table, tab-separated.
 
-    ``ss:Index`` (a cell's 1-based column after skipped empty cells) is honoured. The export is
-    a local file written by the cart's software; ``xml.etree`` does not fetch external entities.
+    ``ss:Index`` (a cell's 1-based column after skipped empty cells) is honoured up to
+    :data:`~drivers.cart.vendors._table.MAX_SHEET_COLUMNS`. The export is a local file written
+    by the cart's software; ``xml.etree`` does not fetch external entities, and expat (2.4 and
+    later) refuses entity-expansion bombs. Streamed row by row (``iterparse``). Bounded: a regular
+    file of at most :data:`~drivers.files.MAX_CART_FILE_BYTES` and at most
+    :data:`~drivers.cart.vendors._table.MAX_SHEET_CELLS` cells, read inside one error boundary.
 
     Raises:
-        OSError: The file cannot be read.
-        DriverConfigError: Not well-formed XML, or not a spreadsheet.
+        OSError: The file cannot be opened.
+        DriverConfigError: Not a regular file, too large, not well-formed XML, not a
+            spreadsheet, or a cell index out of range (naming the file and the row).
     """
-    try:
-        root = ET.parse(fspath(path)).getroot()
-    except ET.ParseError as err:
-        raise DriverConfigError(f"{fspath(path)}: not an XML spreadsheet ({err})") from err
-    if root.tag != f"{{{_SS}}}Workbook":
-        raise DriverConfigError(f"{fspath(path)}: XML root {root.tag!r} is not an Excel-2003 "
-                                "spreadsheet <Workbook>")
-    lines: list[bytes] = []
-    for row in root.iter(f"{{{_SS}}}Row"):
-        cells: list[str] = []
-        for cell in row.findall(f"{{{_SS}}}Cell"):
-            index = cell.get(f"{{{_SS}}}Index")
-            if index is not None and index.isdigit():
-                cells.extend([""] * max(0, int(index) - 1 - len(cells)))
-            data = cell.find(f"{{{_SS}}}Data")
-            cells.append("" if data is None else "".join(data.itertext()))
-        lines.append(cells_to_line(cells))
-    return b"\n".join(lines) + b"\n"
+    p = fspath(path)
+    data = read_regular_file(p, max_bytes=MAX_CART_FILE_BYTES, what="a CORTEX XML export")
+    image = LineImage(p)
+    with image.reading("XML spreadsheet"):
+        # Streamed: each row is turned into its line and cleared, so memory holds one row, not
+        # the whole tree of a large file.
+        root_seen = False
+        for event, el in ET.iterparse(io.BytesIO(data), events=("start", "end")):
+            if event == "start":
+                if not root_seen and el.tag != f"{{{_SS}}}Workbook":
+                    raise DriverConfigError(f"{p}: XML root {shorten(el.tag)!r} is not an Excel-2003 "
+                                            "spreadsheet <Workbook>")
+                root_seen = True
+                continue
+            if el.tag != f"{{{_SS}}}Row":
+                continue
+            cells: list[str] = []
+            for cell in el.findall(f"{{{_SS}}}Cell"):
+                index = cell.get(f"{{{_SS}}}Index")
+                if index is not None and index.isdigit():
+                    # Bounded before the gap is filled: a damaged index must not allocate 4e9 cells.
+                    at = image.column(int(index), len(cells))
+                    cells.extend([""] * (at - 1 - len(cells)))
+                data_el = cell.find(f"{{{_SS}}}Data")
+                cells.append("" if data_el is None else "".join(data_el.itertext()))
+            image.add(cells)
+            el.clear()
+    return image.data()
 
 
 CORTEX = VendorSpec(

@@ -16,14 +16,21 @@ files (``tests/data/cart/cosmed_k5.csv``). Being text, it also reads the same li
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
+import warnings
 import zipfile
 from os import PathLike, fspath
+from typing import BinaryIO
 
-from drivers.cart.vendors._table import VendorSpec, cells_to_line
-from drivers.errors import DriverConfigError
+from drivers.cart.vendors._table import LineImage, VendorSpec
+from drivers.errors import DecodeError, DriverConfigError
+from drivers.files import MAX_CART_FILE_BYTES, describe_size, open_regular_file
 
-__all__ = ["COSMED", "COSMED_CSV", "cell_text", "load_xlsx"]
+__all__ = ["COSMED", "COSMED_CSV", "MAX_XLSX_UNPACKED_BYTES", "cell_text", "load_xlsx"]
+
+MAX_XLSX_UNPACKED_BYTES = 256 << 20
+"""Most bytes an xlsx export's members may unpack to (256 MiB; the real export: 60 kB)."""
 
 _ALIASES = {
     "t_s": ("t", "time", "zeit", "tempo", "tiempo", "temps"),
@@ -65,32 +72,60 @@ def cell_text(value: object) -> str:
 def load_xlsx(path: str | PathLike[str]) -> bytes:
     """The line image of an xlsx workbook: its first sheet with a data header, tab-separated.
 
+    Bounded: a regular file of at most :data:`~drivers.files.MAX_CART_FILE_BYTES`, at most
+    :data:`MAX_XLSX_UNPACKED_BYTES` unpacked (a zip bomb is refused before it is inflated) and
+    at most :data:`~drivers.cart.vendors._table.MAX_SHEET_CELLS` cells. openpyxl's read-only
+    mode parses each sheet lazily while its rows are iterated, so the whole read (not only the
+    opening) is inside one error boundary (:meth:`LineImage.reading`).
+
     Raises:
-        OSError: The file cannot be read.
-        DriverConfigError: The file is not an xlsx workbook.
+        OSError: The file cannot be opened.
+        DriverConfigError: Not a regular file, too large, or not a readable xlsx workbook
+            (naming the file and the sheet and row reached).
     """
     import openpyxl  # imported here: only the xlsx presets need it
-    from openpyxl.utils.exceptions import InvalidFileException
 
     from drivers.cart.vendors._table import TableParser
 
-    try:
-        wb = openpyxl.load_workbook(fspath(path), read_only=True, data_only=True)
-    except (InvalidFileException, zipfile.BadZipFile, KeyError, ValueError) as err:
-        raise DriverConfigError(f"{fspath(path)}: not an xlsx workbook ({err})") from err
-    try:
-        images: list[bytes] = []
-        for ws in wb.worksheets:
-            lines = [cells_to_line([cell_text(v) for v in row]) for row in ws.iter_rows(values_only=True)]
-            parser = TableParser(COSMED)
-            for line in lines[: COSMED.max_preamble_lines - 1]:
-                parser.parse(line)
+    p = fspath(path)
+    image = LineImage(p)
+    first: bytes | None = None
+    with (open_regular_file(p, max_bytes=MAX_CART_FILE_BYTES, what="a COSMED xlsx export") as fh,
+          image.reading("xlsx workbook"), warnings.catch_warnings()):
+        # openpyxl warns about the parts it drops (an unknown extension, a missing stylesheet);
+        # the data cells are what is read, and a damaged file is refused below, not warned about.
+        warnings.simplefilter("ignore")
+        _check_unpacked_size(fh, p)
+        wb = openpyxl.load_workbook(fh, read_only=True, data_only=True)
+        try:
+            for ws in wb.worksheets:
+                image.new_sheet(str(ws.title))
+                parser = TableParser(COSMED)
+                for row in ws.iter_rows(values_only=True):
+                    line = image.add([cell_text(v) for v in row])
+                    if not parser.has_header and image.rows < COSMED.max_preamble_lines:
+                        with contextlib.suppress(DecodeError):  # a preamble line: not the header
+                            parser.parse(line)
                 if parser.has_header:
-                    return b"\n".join(lines) + b"\n"
-            images.append(b"\n".join(lines) + b"\n")
-    finally:
-        wb.close()
-    return images[0] if images else b""
+                    return image.data()
+                first = image.data() if first is None else first
+        finally:
+            wb.close()
+    return first or b""
+
+
+def _check_unpacked_size(fh: BinaryIO, path: str) -> None:
+    """Refuse a workbook whose members unpack to more than :data:`MAX_XLSX_UNPACKED_BYTES`.
+
+    The sizes are the zip directory's; zipfile stops inflating a member at its stated size and
+    checks its CRC, so a member cannot unpack to more than is checked here.
+    """
+    with zipfile.ZipFile(fh) as archive:
+        unpacked = sum(i.file_size for i in archive.infolist())
+    if unpacked > MAX_XLSX_UNPACKED_BYTES:
+        raise DriverConfigError(f"{path}: unpacks to {describe_size(unpacked)}, more than the "
+                                f"{describe_size(MAX_XLSX_UNPACKED_BYTES)} a cart export may have")
+    fh.seek(0)
 
 
 COSMED = VendorSpec(
