@@ -509,9 +509,13 @@ class BridgeSession:
         why = (f"the pause ({self.supervisor.pause_reason})" if isinstance(err, _Paused)
                else "the cart's clock re-anchoring")
         self._setting = None
+        # A fit made ahead is applied with the cancel and recorded by its snapshot (see
+        # _measure): the setting's re-proposal after the pause uses it, as before the pause.
+        applied = await self._collect_fit_ahead()
         dropped = self.opt.cancel_current()
-        if dropped is not None:
+        if dropped is not None or applied:
             self.log.log_optimizer_state(self.opt, reason="cancel")
+        if dropped is not None:
             self._event("evaluation_cancelled", f"setting abandoned by {why}; it is re-measured")
         if isinstance(err, _Remeasure):
             return p.on_setting_dropped()
@@ -611,15 +615,18 @@ class BridgeSession:
             return act
         self._setting = None
         nxt = p.on_evaluation_done()
+        if nxt.kind is ActionKind.PROPOSE and step.stop:
+            self._t_stop = self._clock()
+        # The hyperparameters fitted ahead are applied here, whatever comes next (a proposal, a
+        # warm-up, the pause between the bouts), and the snapshot below records them before
+        # the session awaits anything: every state the optimizer is in at an await point can
+        # be rebuilt from the log (bridge/log/resume.py replays asks and breaths, not fits).
+        await self._collect_fit_ahead()
         if nxt.kind is ActionKind.PROPOSE:
-            if step.stop:
-                self._t_stop = self._clock()
-            # The next proposal starts now, on a copy; the logging below overlaps it.
-            self._next_ask = await self._start_next_ask()
-            # One turn of the loop lets the ask hand its request to the worker before the
-            # logging, which grows with the session (the optimizer's state: ~10 ms at 160
-            # evaluations), holds the loop: "to_worker_ms" in /proposals.
-            await asyncio.sleep(0)
+            # The next proposal starts now, on a copy taken now; the worker computes it once
+            # this task next awaits, after the logging below (~2 ms at 60 evaluations, ~5 ms
+            # at 160): the snapshot must reach the file before a kill could cut it off.
+            self._next_ask = self._worker.start_ask(self.opt)
         t_end = self._session_time(rec.t_s)
         self.records.append({**ev.to_json(), "t_start": setting.t_start, "t_end": t_end})
         self.log.log_observation(ev, t_start=setting.t_start, t_end=t_end, t_s=rec.t_s)
@@ -641,11 +648,21 @@ class BridgeSession:
         if fit is not None:
             self._fit_ahead = (fit, asyncio.ensure_future(self._worker.fit(fit)))
 
-    async def _collect_fit_ahead(self) -> None:
+    async def _collect_fit_ahead(self, *, apply: bool = True) -> bool:
         """Keep the result of the fit made ahead (waiting for it if it still runs: a fit takes
-        tens of ms, a measurement at least a breath)."""
+        tens of ms, a measurement at least a breath).
+
+        The caller logs an optimizer snapshot right after (no await in between) when this
+        returns True: the log records every state a resume must rebuild.
+
+        Args:
+            apply: False: wait for the fit and drop its result.
+
+        Returns:
+            True when hyperparameters were applied to the optimizer.
+        """
         if self._fit_ahead is None:
-            return
+            return False
         fit, task = self._fit_ahead
         self._fit_ahead = None
         try:
@@ -654,8 +671,8 @@ class BridgeSession:
             logger.exception("hyperparameter fit ahead of the proposal failed")
             self._event("fit_ahead_failed", f"hyperparameter fit on {fit.n_obs} observations failed "
                         f"({err!r}); the proposal fits them itself")
-            return
-        self.opt.apply_hyperparameters(fit, hyp)
+            return False
+        return apply and self.opt.apply_hyperparameters(fit, hyp)
 
     async def _drop_fit_ahead(self) -> None:
         """At the session's end: cancel a fit made ahead and an ask started at a stop decision."""
@@ -665,9 +682,13 @@ class BridgeSession:
         await _cancel_and_wait(None if fit is None else fit[1], "a hyperparameter fit ahead")
 
     async def _start_next_ask(self) -> asyncio.Task[Any]:
-        """Start ``ask()`` in the worker on the optimizer as it is now (a fit made ahead is
-        applied first, so the state, and what a resume rebuilds, do not depend on timing)."""
-        await self._collect_fit_ahead()
+        """Start ``ask()`` in the worker on the optimizer as it is now.
+
+        A fit made ahead is applied where a snapshot records it (an evaluation's end, an
+        abandoned setting); none is left by then. One that still were would be dropped, not
+        applied unlogged: the ask then fits the hyperparameters itself, which a resume replays.
+        """
+        await self._collect_fit_ahead(apply=False)
         return self._worker.start_ask(self.opt)
 
     async def _push(self, admitted: AdmittedProfile, version: int, index: int, *,
