@@ -114,8 +114,13 @@ class RuntimeSettings:
             keyboard). After a fault that only a person may resume from (the emergency stop;
             drivers/exosuit/faults.py, ``FaultRecovery.PERSON``) the resume policy waits for
             that person, or, with nobody to press ``r``, stops the session.
-        device_timeout_s: Device status silence that triggers assistance-off (wall s).
-        watchdog_period_s: How often the watchdog looks at the device and the cart (wall s).
+        device_timeout_s: Device status silence that triggers assistance-off (wall s): the
+            AssistanceOff is on the bus within this time of the last status (see
+            ``device_margin_s``).
+        device_margin_s: How much earlier than ``device_timeout_s`` the watchdog acts (wall s;
+            capped at a quarter of the timeout): :attr:`device_silence_limit_s`.
+        watchdog_period_s: How often the watchdog looks at the device's faults and the cart
+            (wall s; the device's silence is checked at its deadline instead).
         cart_timeout_s: Breath silence after which estimation pauses (wall s).
         apply_timeout_s: How long to wait for the device to report a pushed profile active.
         push_timeout_s, push_retries, pace_s: Profile push (see CanEndpoint.push_profile).
@@ -133,6 +138,7 @@ class RuntimeSettings:
     max_auto_resumes: int = 10
     operator_present: bool = False
     device_timeout_s: float = 0.25
+    device_margin_s: float = 0.025
     watchdog_period_s: float = 0.01
     cart_timeout_s: float = 20.0
     apply_timeout_s: float = 5.0
@@ -146,6 +152,27 @@ class RuntimeSettings:
     proposal_worker: WorkerKind = WorkerKind.PROCESS
     gc: GcMode = GcMode.FREEZE
     loop_monitor_period_s: float = DEFAULT_LOOP_MONITOR_PERIOD_S
+
+    @property
+    def device_silence_limit_s(self) -> float:
+        """Device status silence after which the watchdog commands assistance-off (wall s).
+
+        The configured timeout is a promise about the bus: AssistanceOff follows the last good
+        DeviceStatus within ``device_timeout_s`` (drivers/PROTOCOL.md, "Heartbeats and their
+        timeouts"). Between that status on the bus and the AssistanceOff frame on it lie (a) the
+        status's way into the session (python-can's reader, the endpoint's receive task, the
+        status task: a few turns of the event loop, each late when the loop is busy), (b) the
+        lateness of the timer that wakes the check (the scheduler, on a PC whose cores other
+        processes keep busy), and (c) the pause's event and the frame's transmission (well
+        under a millisecond at 1 Mbit/s). The margin covers all three: 25 ms by default, a
+        quarter of the lab's 100 ms (on the virtual devices at real time, 2 cores, the off
+        came 75-99 ms after the last status, idle and beside two CPU burners: ``hilbo bench
+        watchdog``); a stall of the loop longer than the margin (the loop monitor logs those
+        over 50 ms) still makes it late. It is capped at a quarter of the timeout, so that a
+        short timeout still waits for more than a missed status (40 ms: 30 ms of silence, 1.5
+        status periods of 20 ms).
+        """
+        return self.device_timeout_s - min(self.device_margin_s, self.device_timeout_s / 4)
 
 
 @dataclass
@@ -178,9 +205,14 @@ class DeviceView:
 
     def silent_for(self, now: float, n_actuators: int) -> float:
         """Seconds since the stalest actuator's last status (inf before any)."""
+        last = self.stalest_status(n_actuators)
+        return math.inf if last is None else now - last
+
+    def stalest_status(self, n_actuators: int) -> float | None:
+        """Wall time of the stalest actuator's last status (None until every one reported)."""
         if len(self.last_status_wall) < n_actuators:
-            return math.inf
-        return now - min(self.last_status_wall[a] for a in range(n_actuators))
+            return None
+        return min(self.last_status_wall[a] for a in range(n_actuators))
 
 
 @dataclass
@@ -388,6 +420,7 @@ class BridgeSession:
                     tg.create_task(self._status_task(), name="device-status"),
                     tg.create_task(self._feedback_task(), name="force-feedback"),
                     tg.create_task(self._watchdog_task(), name="watchdog"),
+                    tg.create_task(self._device_silence_task(), name="device-watchdog"),
                     tg.create_task(self._command_task(), name="commands"),
                     tg.create_task(self._bus_failure_task(), name="bus-failure"),
                     tg.create_task(self._resume_policy_task(), name="resume-policy"),
@@ -623,9 +656,10 @@ class BridgeSession:
         # be rebuilt from the log (bridge/log/resume.py replays asks and breaths, not fits).
         await self._collect_fit_ahead()
         if nxt.kind is ActionKind.PROPOSE:
-            # The next proposal starts now, on a copy taken now; the worker computes it once
-            # this task next awaits, after the logging below (~2 ms at 60 evaluations, ~5 ms
-            # at 160): the snapshot must reach the file before a kill could cut it off.
+            # The next proposal starts now, on a copy taken now; the worker gets it once this
+            # task next awaits, after the logging below (the snapshot: 2 ms at 60 evaluations,
+            # 4-9 ms at 160, measured): the snapshot must reach the file before anything the
+            # session awaits, where a kill would leave a log without it.
             self._next_ask = self._worker.start_ask(self.opt)
         t_end = self._session_time(rec.t_s)
         self.records.append({**ev.to_json(), "t_start": setting.t_start, "t_end": t_end})
@@ -891,6 +925,39 @@ class BridgeSession:
                 except LogError as err:
                     logger.warning("the last force-feedback batch was not logged: %s", err)
 
+    async def _device_silence_task(self) -> None:
+        """Assistance-off when the device's statuses stop: the check is scheduled for the
+        moment the silence reaches :attr:`RuntimeSettings.device_silence_limit_s` (the stalest
+        actuator's last status + the limit), not polled, so the AssistanceOff frame is on the
+        bus within ``device_timeout_s`` of the last status; while the device stays silent, it
+        looks again every watchdog period. Before the first status, the limit counts from the
+        session's start."""
+        s = self.settings
+        limit = s.device_silence_limit_s
+        started = self._clock()
+        while True:
+            last = self.device.stalest_status(s.n_actuators)
+            due = (started if last is None else last) + limit
+            now = self._clock()
+            if now < due:
+                await asyncio.sleep(due - now)
+                continue
+            # Statuses that arrived while the loop was held up are queued behind this wake-up
+            # (the CAN receive task, then the status task): their turn first, so a busy loop is
+            # not taken for a silent device.
+            for _ in range(2):
+                await asyncio.sleep(0)
+            if self.device.stalest_status(s.n_actuators) != last:
+                continue  # a status came in
+            silent = self.device.silent_for(self._clock(), s.n_actuators)
+            healthy = self.status.device == "ok"
+            self.status.device = "LOST"
+            if healthy or not self.supervisor.paused:
+                text = ("no device status since the session started" if math.isinf(silent)
+                        else f"device heartbeat lost for {silent * 1e3:.0f} ms")
+                await self.supervisor.pause(AssistanceOffReason.DEVICE_HEARTBEAT_LOST, text)
+            await asyncio.sleep(s.watchdog_period_s)
+
     async def _watchdog_task(self) -> None:
         s = self.settings
         started = self._clock()
@@ -902,13 +969,7 @@ class BridgeSession:
                 next_counts = now + 5.0
                 self._log_counters()
             silent = self.device.silent_for(now, s.n_actuators)
-            if silent > s.device_timeout_s and now - started > s.device_timeout_s:
-                healthy = self.status.device == "ok"
-                self.status.device = "LOST"
-                if healthy or not self.supervisor.paused:
-                    await self.supervisor.pause(AssistanceOffReason.DEVICE_HEARTBEAT_LOST,
-                                      f"device heartbeat lost for {silent * 1e3:.0f} ms")
-            elif silent <= s.device_timeout_s:
+            if silent <= s.device_silence_limit_s:  # silence: _device_silence_task
                 faults = self.device.faults(s.n_actuators)
                 self.status.device = "ok" if not faults else \
                     "faults: " + "; ".join(describe_faults(faults))
@@ -1021,7 +1082,7 @@ class BridgeSession:
         """
         s = self.settings
         silent = self.device.silent_for(self._clock(), s.n_actuators)
-        if silent > s.device_timeout_s:
+        if silent > s.device_silence_limit_s:
             return f"device heartbeat lost ({silent * 1e3:.0f} ms)" if math.isfinite(silent) \
                 else "no device status yet"
         faults = self.device.faults(s.n_actuators) & ~clearable
