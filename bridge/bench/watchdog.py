@@ -27,6 +27,7 @@ import argparse
 import asyncio
 import contextlib
 import math
+import os
 import subprocess
 import sys
 import tempfile
@@ -233,6 +234,7 @@ def run_watchdog_bench(cfg: WatchdogBenchConfig, out: Path) -> dict[str, Any]:
         asyncio.get_running_loop().call_later(cfg.session_s, session.command, Command.STOP)
 
     wall0 = time.perf_counter()
+    load0 = os.getloadavg()[0]
     with burners(cfg.burners), stack:
         summary = asyncio.run(run_virtual_sim(sim, out, on_session=on_session,
                                               device_timeout_ms=cfg.timeout_ms))
@@ -252,6 +254,10 @@ def run_watchdog_bench(cfg: WatchdogBenchConfig, out: Path) -> dict[str, Any]:
         "latencies_ms": [float(v) for v in lat],
         "within_timeout": bool(lat.size and found["missed"] == 0 and lat.max() < cfg.timeout_ms),
         "n_evaluations": summary.get("n_evaluations"),
+        # What else the machine ran: the 1-minute load average before and after (the burners
+        # included), and the stalls of the session's event loop (bridge/loop_monitor.py).
+        "loadavg_1min": [load0, os.getloadavg()[0]],
+        "loop": summary.get("loop"),
     }
     return result
 
@@ -265,10 +271,12 @@ def watchdog_table(results: list[dict[str, Any]]) -> str:
                      f"{r['n']} of {r['drops_injected']}", r["already_off"], r["missed"],
                      *(f"{q[k]:.1f}" if k in q else "-" for k in ("p50", "p95", "max")),
                      len(r["other_offs_silence_ms"]), r["false_alarms"],
-                     "yes" if r["within_timeout"] else "NO"])
+                     "yes" if r["within_timeout"] else "NO",
+                     " → ".join(f"{v:.1f}" for v in r["loadavg_1min"]),
+                     f"{(r['loop'] or {}).get('worst_stall_ms', math.nan):.0f}"])
     return markdown_table(["burners", "timeout ms", "drops answered", "already off", "missed",
                            "p50 ms", "p95 ms", "max ms", "other offs", "false alarms",
-                           "all < timeout"], rows)
+                           "all < timeout", "load avg", "worst loop stall ms"], rows)
 
 
 def _cmd_watchdog(args: argparse.Namespace) -> int:
