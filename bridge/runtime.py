@@ -161,7 +161,8 @@ class RuntimeSettings:
         DeviceStatus within ``device_timeout_s`` (drivers/PROTOCOL.md, "Heartbeats and their
         timeouts"). Between that status on the bus and the AssistanceOff frame on it lie (a) the
         status's way into the session (python-can's reader, the endpoint's receive task, the
-        status task: a few turns of the event loop, each late when the loop is busy), (b) the
+        status task: a few turns of the event loop, each late when the loop is busy; and the
+        2 ms the check gives statuses still on their way before it decides), (b) the
         lateness of the timer that wakes the check (the scheduler, on a PC whose cores other
         processes keep busy), and (c) the pause's event and the frame's transmission (well
         under a millisecond at 1 Mbit/s). The margin covers all three: 25 ms by default, a
@@ -267,6 +268,10 @@ class _Remeasure(Exception):
     """Raised inside the measurement loop when the cart's clock was re-anchored (a cart restart
     or a time jump): the breaths of the setting being measured are not one series any more."""
 
+
+#: How long the device watchdog lets statuses already received reach the session before it
+#: declares the device silent (s; part of RuntimeSettings.device_margin_s).
+_RECEIVE_GRACE_S = 0.002
 
 #: The operator view's name of the bout a protocol phase belongs to.
 _BOUT_OF = {
@@ -942,11 +947,12 @@ class BridgeSession:
             if now < due:
                 await asyncio.sleep(due - now)
                 continue
-            # Statuses that arrived while the loop was held up are queued behind this wake-up
-            # (the CAN receive task, then the status task): their turn first, so a busy loop is
-            # not taken for a silent device.
-            for _ in range(2):
-                await asyncio.sleep(0)
+            # Statuses that arrived while this process was held up may still be on their way in:
+            # python-can's reader thread (pcan, kvaser, virtual; socketcan's reader is a loop
+            # callback) needs the GIL, then the CAN receive task and the status task a turn of
+            # the loop each. A short real wait lets them through first (the loop waits in
+            # select, which releases the GIL), so a busy PC is not taken for a silent device.
+            await asyncio.sleep(_RECEIVE_GRACE_S)
             if self.device.stalest_status(s.n_actuators) != last:
                 continue  # a status came in
             silent = self.device.silent_for(self._clock(), s.n_actuators)

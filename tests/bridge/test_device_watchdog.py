@@ -28,7 +28,7 @@ def test_assistance_off_before_the_last_status_plus_the_timeout(
     # Off before the configured time has passed since the last status, and not before the
     # watchdog's own limit (a status or two late is not a lost device).
     assert last + limit <= offs[0] < last + timeout_s
-    assert offs[0] - last == pytest.approx(limit, abs=1e-3)
+    assert offs[0] - last == pytest.approx(limit, abs=3e-3)  # and 2 ms for statuses on their way
 
 
 def test_the_margin_leaves_a_short_timeout_more_than_a_missed_status() -> None:
