@@ -161,15 +161,14 @@ def check_resumed(kill: Kill, crashed: Path, tmp: Path) -> None:
 
 
 def sample(kills: list[Kill]) -> list[Kill]:
-    """Every distinct await site at its first and last visit, and every kill from the first
-    optimisation setting's ask to its first breath (where the fit made ahead is applied)."""
+    """Every distinct await site at its first and last visit, and every kill between the end of
+    the exploration bout and the end of the first optimisation setting (the warm-up, the
+    proposal that uses the hyperparameters fitted ahead, its push, its measurement)."""
     by_site: dict[str, list[Kill]] = {}
     for kill in kills:
         by_site.setdefault(kill.site, []).append(kill)
     chosen = {k.k: k for ks in by_site.values() for k in (ks[0], ks[-1])}
-    first_opt = [k for k in kills if len(k.state["evaluations"]) == N_EXPLORE]
-    for kill in first_opt[-12:]:
-        chosen[kill.k] = kill
+    chosen.update((k.k, k) for k in kills if len(k.state["evaluations"]) == N_EXPLORE)
     return [chosen[k] for k in sorted(chosen)]
 
 
