@@ -161,14 +161,21 @@ def check_resumed(kill: Kill, crashed: Path, tmp: Path) -> None:
 
 
 def sample(kills: list[Kill]) -> list[Kill]:
-    """Every distinct await site at its first and last visit, and every kill between the end of
-    the exploration bout and the end of the first optimisation setting (the warm-up, the
-    proposal that uses the hyperparameters fitted ahead, its push, its measurement)."""
+    """Every distinct await site at its first and last visit, and, between the end of the
+    exploration bout and the end of the first optimisation setting (the warm-up, the proposal
+    that uses the hyperparameters fitted ahead, its push, its measurement, a pause), the first
+    kill at each site with each number of the setting's breaths measured."""
     by_site: dict[str, list[Kill]] = {}
     for kill in kills:
         by_site.setdefault(kill.site, []).append(kill)
     chosen = {k.k: k for ks in by_site.values() for k in (ks[0], ks[-1])}
-    chosen.update((k.k, k) for k in kills if len(k.state["evaluations"]) == N_EXPLORE)
+    seen: set[tuple[str, int]] = set()
+    for kill in kills:
+        current = kill.state["current"]
+        key = (kill.site, -1 if current is None else len(current["breaths"]))
+        if len(kill.state["evaluations"]) == N_EXPLORE and key not in seen:
+            seen.add(key)
+            chosen[kill.k] = kill
     return [chosen[k] for k in sorted(chosen)]
 
 
