@@ -282,17 +282,22 @@ def watchdog_table(results: list[dict[str, Any]]) -> str:
 def _cmd_watchdog(args: argparse.Namespace) -> int:
     from rich.console import Console
 
+    from bridge.bench.cli import options
+
     console = Console(stderr=True, highlight=False)
-    try:
-        loads = [int(v) for v in str(args.burners).split(",")]
-    except ValueError as err:
-        raise ConfigError(f"--burners {args.burners!r}; expected comma-separated integers") from err
+    with options():  # the command line's values are checked before any work (exit status 2)
+        try:
+            loads = [int(v) for v in str(args.burners).split(",")]
+        except ValueError as err:
+            raise ConfigError(f"--burners {args.burners!r}; expected comma-separated integers") from err
+        configs = [WatchdogBenchConfig(n=args.n, timeout_ms=args.timeout_ms, drop_s=args.drop_s,
+                                       spacing_s=args.spacing_s, burners=k, seed=args.seed)
+                   for k in loads]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     results = []
-    for k in loads:
-        cfg = WatchdogBenchConfig(n=args.n, timeout_ms=args.timeout_ms, drop_s=args.drop_s,
-                                  spacing_s=args.spacing_s, burners=k, seed=args.seed)
+    for cfg in configs:
+        k = cfg.burners
         console.print(f"hilbo bench watchdog: {cfg.n} drops of the device status, {cfg.timeout_ms:g} ms "
                       f"watchdog, {k} CPU burner(s), ~{cfg.session_s + 10:.0f} s at real time")
         with tempfile.TemporaryDirectory(prefix="hilbo-watchdog-") as tmp:

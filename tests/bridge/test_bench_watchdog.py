@@ -100,3 +100,9 @@ def test_a_toy_run_at_real_time_writes_its_result(tmp_path: Path) -> None:
     assert run["drops_injected"] == 2 and run["statuses_seen"] > 100
     assert code == (0 if run["within_timeout"] and run["false_alarms"] == 0 else 1)
     assert (tmp_path / "watchdog_table.md").exists()
+
+
+@pytest.mark.parametrize("argv", [["--burners", "x"], ["--n", "0"], ["--timeout-ms", "5"]])
+def test_a_bad_command_line_is_a_usage_error_before_any_run(argv: list[str], tmp_path: Path) -> None:
+    assert main(["bench", "watchdog", *argv, "--out", str(tmp_path)]) == 2
+    assert not (tmp_path / "watchdog.json").exists()
