@@ -166,10 +166,11 @@ class RuntimeSettings:
         lateness of the timer that wakes the check (the scheduler, on a PC whose cores other
         processes keep busy), and (c) the pause's event and the frame's transmission (well
         under a millisecond at 1 Mbit/s). The margin covers all three: 25 ms by default, a
-        quarter of the lab's 100 ms (on the virtual devices at real time, 2 cores, the off
-        came 75-99 ms after the last status, idle and beside two CPU burners: ``hilbo bench
-        watchdog``); a stall of the loop longer than the margin (the loop monitor logs those
-        over 50 ms) still makes it late. It is capped at a quarter of the timeout, so that a
+        quarter of the lab's 100 ms (on the virtual devices at real time, 2 cores at a load
+        average of 4-10, the off came 76-99 ms after the last status, idle and beside two CPU
+        burners: ``hilbo bench watchdog``); a stall of the loop longer than the margin (the
+        loop monitor logs those over 50 ms; 250-1400 ms at a load average of 12-17) still
+        makes it late. It is capped at a quarter of the timeout, so that a
         short timeout still waits for more than a missed status (40 ms: 30 ms of silence, 1.5
         status periods of 20 ms).
         """
