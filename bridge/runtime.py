@@ -117,8 +117,13 @@ class RuntimeSettings:
             keyboard). After a fault that only a person may resume from (the emergency stop;
             drivers/exosuit/faults.py, ``FaultRecovery.PERSON``) the resume policy waits for
             that person, or, with nobody to press ``r``, stops the session.
-        device_timeout_s: Device status silence that triggers assistance-off (wall s).
-        watchdog_period_s: How often the watchdog looks at the device and the cart (wall s).
+        device_timeout_s: Device status silence that triggers assistance-off (wall s): the
+            AssistanceOff is on the bus within this time of the last status (see
+            ``device_margin_s``).
+        device_margin_s: How much earlier than ``device_timeout_s`` the watchdog acts (wall s;
+            capped at a quarter of the timeout): :attr:`device_silence_limit_s`.
+        watchdog_period_s: How often the watchdog looks at the device's faults and the cart
+            (wall s; the device's silence is checked at its deadline instead).
         cart_timeout_s: Breath silence after which estimation pauses (wall s).
         apply_timeout_s: How long to wait for the device to report a pushed profile active.
         push_timeout_s, push_retries, pace_s: Profile push (see CanEndpoint.push_profile).
@@ -136,6 +141,7 @@ class RuntimeSettings:
     max_auto_resumes: int = 10
     operator_present: bool = False
     device_timeout_s: float = 0.25
+    device_margin_s: float = 0.025
     watchdog_period_s: float = 0.01
     cart_timeout_s: float = 20.0
     apply_timeout_s: float = 5.0
@@ -149,6 +155,29 @@ class RuntimeSettings:
     proposal_worker: WorkerKind = WorkerKind.PROCESS
     gc: GcMode = GcMode.FREEZE
     loop_monitor_period_s: float = DEFAULT_LOOP_MONITOR_PERIOD_S
+
+    @property
+    def device_silence_limit_s(self) -> float:
+        """Device status silence after which the watchdog commands assistance-off (wall s).
+
+        The configured timeout is a promise about the bus: AssistanceOff follows the last good
+        DeviceStatus within ``device_timeout_s`` (drivers/PROTOCOL.md, "Heartbeats and their
+        timeouts"). Between that status on the bus and the AssistanceOff frame on it lie (a) the
+        status's way into the session (python-can's reader, the endpoint's receive task, the
+        status task: a few turns of the event loop, each late when the loop is busy; and the
+        2 ms the check gives statuses still on their way before it decides), (b) the
+        lateness of the timer that wakes the check (the scheduler, on a PC whose cores other
+        processes keep busy), and (c) the pause's event and the frame's transmission (well
+        under a millisecond at 1 Mbit/s). The margin covers all three: 25 ms by default, a
+        quarter of the lab's 100 ms (on the virtual devices at real time, 2 cores at a load
+        average of 4-10, the off came 76-99 ms after the last status, idle and beside two CPU
+        burners: ``hilbo bench watchdog``); a stall of the loop longer than the margin (the
+        loop monitor logs those over 50 ms; 250-1400 ms at a load average of 12-17) still
+        makes it late. It is capped at a quarter of the timeout, so that a
+        short timeout still waits for more than a missed status (40 ms: 30 ms of silence, 1.5
+        status periods of 20 ms).
+        """
+        return self.device_timeout_s - min(self.device_margin_s, self.device_timeout_s / 4)
 
 
 @dataclass
@@ -181,9 +210,14 @@ class DeviceView:
 
     def silent_for(self, now: float, n_actuators: int) -> float:
         """Seconds since the stalest actuator's last status (inf before any)."""
+        last = self.stalest_status(n_actuators)
+        return math.inf if last is None else now - last
+
+    def stalest_status(self, n_actuators: int) -> float | None:
+        """Wall time of the stalest actuator's last status (None until every one reported)."""
         if len(self.last_status_wall) < n_actuators:
-            return math.inf
-        return now - min(self.last_status_wall[a] for a in range(n_actuators))
+            return None
+        return min(self.last_status_wall[a] for a in range(n_actuators))
 
 
 @dataclass
@@ -244,6 +278,10 @@ class _Remeasure(Exception):
     """Raised inside the measurement loop when the cart's clock was re-anchored (a cart restart
     or a time jump): the breaths of the setting being measured are not one series any more."""
 
+
+#: How long the device watchdog lets statuses already received reach the session before it
+#: declares the device silent (s; part of RuntimeSettings.device_margin_s).
+_RECEIVE_GRACE_S = 0.002
 
 #: The operator view's name of the bout a protocol phase belongs to.
 _BOUT_OF = {
@@ -445,6 +483,7 @@ class BridgeSession:
                     tg.create_task(self._status_task(), name="device-status"),
                     tg.create_task(self._feedback_task(), name="force-feedback"),
                     tg.create_task(self._watchdog_task(), name="watchdog"),
+                    tg.create_task(self._device_silence_task(), name="device-watchdog"),
                     tg.create_task(self._command_task(), name="commands"),
                     tg.create_task(self._bus_failure_task(), name="bus-failure"),
                     tg.create_task(self._resume_policy_task(), name="resume-policy"),
@@ -573,9 +612,13 @@ class BridgeSession:
         why = (f"the pause ({self.supervisor.pause_reason})" if isinstance(err, _Paused)
                else "the cart's clock re-anchoring")
         self._setting = None
+        # A fit made ahead is applied with the cancel and recorded by its snapshot (see
+        # _measure): the setting's re-proposal after the pause uses it, as before the pause.
+        applied = await self._collect_fit_ahead()
         dropped = self.opt.cancel_current()
-        if dropped is not None:
+        if dropped is not None or applied:
             self.log.log_optimizer_state(self.opt, reason="cancel")
+        if dropped is not None:
             self._event("evaluation_cancelled", f"setting abandoned by {why}; it is re-measured")
         if isinstance(err, _Remeasure):
             return p.on_setting_dropped()
@@ -680,15 +723,19 @@ class BridgeSession:
             return act
         self._setting = None
         nxt = p.on_evaluation_done()
+        if nxt.kind is ActionKind.PROPOSE and step.stop:
+            self._t_stop = self._clock()
+        # The hyperparameters fitted ahead are applied here, whatever comes next (a proposal, a
+        # warm-up, the pause between the bouts), and the snapshot below records them before
+        # the session awaits anything: every state the optimizer is in at an await point can
+        # be rebuilt from the log (bridge/log/resume.py replays asks and breaths, not fits).
+        await self._collect_fit_ahead()
         if nxt.kind is ActionKind.PROPOSE:
-            if step.stop:
-                self._t_stop = self._clock()
-            # The next proposal starts now, on a copy; the logging below overlaps it.
-            self._next_ask = await self._start_next_ask()
-            # One turn of the loop lets the ask hand its request to the worker before the
-            # logging, which grows with the session (the optimizer's state: ~10 ms at 160
-            # evaluations), holds the loop: "to_worker_ms" in /proposals.
-            await asyncio.sleep(0)
+            # The next proposal starts now, on a copy taken now; the worker gets it once this
+            # task next awaits, after the logging below (the snapshot: 2 ms at 60 evaluations,
+            # 4-9 ms at 160, measured): the snapshot must reach the file before anything the
+            # session awaits, where a kill would leave a log without it.
+            self._next_ask = self._worker.start_ask(self.opt)
         t_end = self._session_time(rec.t_s)
         self.records.append({**ev.to_json(), "t_start": setting.t_start, "t_end": t_end})
         self.log.log_observation(ev, t_start=setting.t_start, t_end=t_end, t_s=rec.t_s)
@@ -710,11 +757,21 @@ class BridgeSession:
         if fit is not None:
             self._fit_ahead = (fit, asyncio.ensure_future(self._worker.fit(fit)))
 
-    async def _collect_fit_ahead(self) -> None:
+    async def _collect_fit_ahead(self, *, apply: bool = True) -> bool:
         """Keep the result of the fit made ahead (waiting for it if it still runs: a fit takes
-        tens of ms, a measurement at least a breath)."""
+        tens of ms, a measurement at least a breath).
+
+        The caller logs an optimizer snapshot right after (no await in between) when this
+        returns True: the log records every state a resume must rebuild.
+
+        Args:
+            apply: False: wait for the fit and drop its result.
+
+        Returns:
+            True when hyperparameters were applied to the optimizer.
+        """
         if self._fit_ahead is None:
-            return
+            return False
         fit, task = self._fit_ahead
         self._fit_ahead = None
         try:
@@ -723,8 +780,8 @@ class BridgeSession:
             logger.exception("hyperparameter fit ahead of the proposal failed")
             self._event("fit_ahead_failed", f"hyperparameter fit on {fit.n_obs} observations failed "
                         f"({err!r}); the proposal fits them itself")
-            return
-        self.opt.apply_hyperparameters(fit, hyp)
+            return False
+        return apply and self.opt.apply_hyperparameters(fit, hyp)
 
     async def _drop_fit_ahead(self) -> None:
         """At the session's end: cancel a fit made ahead and an ask started at a stop decision."""
@@ -734,9 +791,13 @@ class BridgeSession:
         await _cancel_and_wait(None if fit is None else fit[1], "a hyperparameter fit ahead")
 
     async def _start_next_ask(self) -> asyncio.Task[Any]:
-        """Start ``ask()`` in the worker on the optimizer as it is now (a fit made ahead is
-        applied first, so the state, and what a resume rebuilds, do not depend on timing)."""
-        await self._collect_fit_ahead()
+        """Start ``ask()`` in the worker on the optimizer as it is now.
+
+        A fit made ahead is applied where a snapshot records it (an evaluation's end, an
+        abandoned setting); none is left by then. One that still were would be dropped, not
+        applied unlogged: the ask then fits the hyperparameters itself, which a resume replays.
+        """
+        await self._collect_fit_ahead(apply=False)
         return self._worker.start_ask(self.opt)
 
     async def _push(self, admitted: AdmittedProfile, version: int, index: int, *,
@@ -951,6 +1012,40 @@ class BridgeSession:
                 except LogError as err:
                     logger.warning("the last force-feedback batch was not logged: %s", err)
 
+    async def _device_silence_task(self) -> None:
+        """Assistance-off when the device's statuses stop: the check is scheduled for the
+        moment the silence reaches :attr:`RuntimeSettings.device_silence_limit_s` (the stalest
+        actuator's last status + the limit), not polled, so the AssistanceOff frame is on the
+        bus within ``device_timeout_s`` of the last status; while the device stays silent, it
+        looks again every watchdog period. Before the first status, the limit counts from the
+        session's start."""
+        s = self.settings
+        limit = s.device_silence_limit_s
+        started = self._clock()
+        while True:
+            last = self.device.stalest_status(s.n_actuators)
+            due = (started if last is None else last) + limit
+            now = self._clock()
+            if now < due:
+                await asyncio.sleep(due - now)
+                continue
+            # Statuses that arrived while this process was held up may still be on their way in:
+            # python-can's reader thread (pcan, kvaser, virtual; socketcan's reader is a loop
+            # callback) needs the GIL, then the CAN receive task and the status task a turn of
+            # the loop each. A short real wait lets them through first (the loop waits in
+            # select, which releases the GIL), so a busy PC is not taken for a silent device.
+            await asyncio.sleep(_RECEIVE_GRACE_S)
+            if self.device.stalest_status(s.n_actuators) != last:
+                continue  # a status came in
+            silent = self.device.silent_for(self._clock(), s.n_actuators)
+            healthy = self.status.device == "ok"
+            self.status.device = "LOST"
+            if healthy or not self.supervisor.paused:
+                text = ("no device status since the session started" if math.isinf(silent)
+                        else f"device heartbeat lost for {silent * 1e3:.0f} ms")
+                await self.supervisor.pause(AssistanceOffReason.DEVICE_HEARTBEAT_LOST, text)
+            await asyncio.sleep(s.watchdog_period_s)
+
     async def _watchdog_task(self) -> None:
         s = self.settings
         started = self._clock()
@@ -962,13 +1057,7 @@ class BridgeSession:
                 next_counts = now + 5.0
                 self._log_counters()
             silent = self.device.silent_for(now, s.n_actuators)
-            if silent > s.device_timeout_s and now - started > s.device_timeout_s:
-                healthy = self.status.device == "ok"
-                self.status.device = "LOST"
-                if healthy or not self.supervisor.paused:
-                    await self.supervisor.pause(AssistanceOffReason.DEVICE_HEARTBEAT_LOST,
-                                      f"device heartbeat lost for {silent * 1e3:.0f} ms")
-            elif silent <= s.device_timeout_s:
+            if silent <= s.device_silence_limit_s:  # silence: _device_silence_task
                 faults = self.device.faults(s.n_actuators)
                 self.status.device = "ok" if not faults else \
                     "faults: " + "; ".join(describe_faults(faults))
@@ -1084,7 +1173,7 @@ class BridgeSession:
         """
         s = self.settings
         silent = self.device.silent_for(self._clock(), s.n_actuators)
-        if silent > s.device_timeout_s:
+        if silent > s.device_silence_limit_s:
             return f"device heartbeat lost ({silent * 1e3:.0f} ms)" if math.isfinite(silent) \
                 else "no device status yet"
         faults = self.device.faults(s.n_actuators) & ~clearable

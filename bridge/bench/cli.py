@@ -516,6 +516,10 @@ def add_bench_parser(subparsers: Any) -> Any:
     from bridge.bench.pairs import add_pairs_bench_parser
 
     add_pairs_bench_parser(bsub)  # hilbo bench pairs
+
+    from bridge.bench.watchdog import add_watchdog_bench_parser
+
+    add_watchdog_bench_parser(bsub)  # hilbo bench watchdog: device silence -> AssistanceOff
     return bsub
 
 

@@ -11,6 +11,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from bridge.cli.session_end import EXIT_INTERRUPTED, RUN_EXIT_STATUS, ended_text, run_exit_status, seconds
+
 # The GP's matrices are small (tens to a few hundred rows): multi-threaded BLAS only adds
 # contention there (measured: proposal p95 61 ms threaded vs 28 ms single-threaded on 2 cores).
 # Set before numpy is first imported; a user's explicit setting wins.
@@ -29,16 +31,6 @@ def _speed(text: str) -> float | None:
         raise argparse.ArgumentTypeError(f"speed must be 'max' or a positive number, got {text!r}") from err
     if not value > 0:
         raise argparse.ArgumentTypeError(f"speed must be 'max' or a positive number, got {text!r}")
-    return value
-
-
-def _seconds(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError as err:
-        raise argparse.ArgumentTypeError(f"expected seconds >= 0, got {text!r}") from err
-    if not 0 <= value < float("inf"):
-        raise argparse.ArgumentTypeError(f"expected seconds >= 0, got {text!r}")
     return value
 
 
@@ -108,47 +100,6 @@ def _print_done(console: Any, summary: dict[str, Any]) -> None:
     console.print(line)
 
 
-#: ``hilbo run``'s exit status for a session that ended without a completed evaluation.
-EXIT_NOTHING_MEASURED = 3
-#: Exit statuses of a session stopped by a signal (128 + the signal's number, as shells report).
-EXIT_INTERRUPTED = 130
-
-_RUN_EXIT_STATUS = """\
-exit status: 0 the session ended with at least one completed evaluation; 1 an error (one line
-naming it); 2 a wrong command line; 3 the session ended without a completed evaluation (nothing
-to recommend); 130 stopped by Ctrl-C or SIGTERM. A session that has started writes its log and
-its summary whatever its exit status."""
-
-
-def _ended_text(s: dict[str, Any]) -> str:
-    """The last lines of ``hilbo run``: why the session ended, evaluations, minutes walked, and
-    the recommended setting (parameters with units, estimate with its 95 % interval, how it was
-    measured)."""
-    from bridge.outcome import SessionEnd, recommendation_text
-
-    reason = s.get("end_reason")
-    why = SessionEnd(reason).text if reason in {e.value for e in SessionEnd} else str(reason)
-    text = f"session ended: {why}; {s['n_evaluations']} evaluations ({s['n_early_stops']} early stops)"
-    walking = s.get("walking") or {}
-    if "session_s" in walking:
-        text += f"; {walking['session_s'] / 60:.1f} min walked"
-        if walking.get("optimization_s"):
-            text += f", {walking['optimization_s'] / 60:.1f} of them in the optimisation bout"
-    rec = s.get("recommendation")
-    if rec is not None:
-        text += "\n" + recommendation_text(rec)
-    elif not s["n_evaluations"]:
-        text += f"\nno evaluation completed: nothing to recommend (exit status {EXIT_NOTHING_MEASURED})"
-    return text
-
-
-def _run_exit_status(summary: dict[str, Any]) -> int:
-    """0, or 130 for a signal's stop, or 3 for a session that measured nothing."""
-    if summary.get("end_reason") == "interrupted":
-        return EXIT_INTERRUPTED
-    return 0 if summary["n_evaluations"] else EXIT_NOTHING_MEASURED
-
-
 def _cmd_run(args: argparse.Namespace) -> int:
     import asyncio
     import dataclasses
@@ -181,10 +132,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
                       "--auto-resume S or set [watchdog] auto_resume_s")
     result = asyncio.run(run_session(cfg, resume=resume, out_dir=Path(args.out) if args.out else None,
                                      operator_view=not args.no_view, auto_resume_s=args.auto_resume))
-    console.print(_ended_text(result.summary), markup=False, highlight=False, soft_wrap=True)
+    console.print(ended_text(result.summary), markup=False, highlight=False, soft_wrap=True)
     print(result.log_path)
     print(result.summary_path)
-    return _run_exit_status(result.summary)
+    return run_exit_status(result.summary)
 
 
 def _cmd_sim_core(args: argparse.Namespace) -> int:
@@ -284,7 +235,7 @@ def build_parser() -> argparse.ArgumentParser:
                                      "push profiles to the exosuit as CONFIG.toml says. Keys in the "
                                      "live view: p pause (assistance off), r resume, q stop; Ctrl-C "
                                      "stops safely too.",
-                         epilog=_RUN_EXIT_STATUS)
+                         epilog=RUN_EXIT_STATUS)
     run.add_argument("config", help="the session config (see: hilbo config example)")
     run.add_argument("--resume", metavar="LOG.mcap", default=None,
                      help="continue the session of this log (also one cut off by a crash) in a new log")
@@ -292,7 +243,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--no-view", action="store_true",
                      help="no live terminal view: one line per evaluation and per pause, resume "
                           "or refusal on stderr")
-    run.add_argument("--auto-resume", type=_seconds, default=None, metavar="S",
+    run.add_argument("--auto-resume", type=seconds, default=None, metavar="S",
                      help="the resume policy: end any pause the operator did not ask for (between "
                           "the bouts, lost heartbeat, silent cart) once the device and the cart "
                           "have been healthy for S seconds, at most [watchdog] max_auto_resumes "

@@ -16,7 +16,7 @@ def _cmd_validate(args: argparse.Namespace) -> int:
 
     from rich.console import Console
 
-    from bridge.cli.main import _ended_text, _run_exit_status
+    from bridge.cli.session_end import ended_text, run_exit_status
     from bridge.config import check_out_dir, load_config
     from bridge.errors import UsageError
     from bridge.run import run_session
@@ -48,18 +48,18 @@ def _cmd_validate(args: argparse.Namespace) -> int:
                                      operator_view=not args.no_view, auto_resume_s=args.auto_resume,
                                      validation=plan))
     summary: dict[str, Any] = result.summary
-    console.print(_ended_text({**summary, "recommendation": None, "n_evaluations": summary["n_evaluations"]}
+    console.print(ended_text({**summary, "recommendation": None, "n_evaluations": summary["n_evaluations"]}
                               ).splitlines()[0], markup=False, highlight=False, soft_wrap=True)
     for line in result_lines(summary.get("validation") or []):
         console.print(line, markup=False, highlight=False, soft_wrap=True)
     print(result.log_path)
     print(result.summary_path)
-    return _run_exit_status(summary)
+    return run_exit_status(summary)
 
 
 def add_validate_parser(subparsers: Any) -> argparse.ArgumentParser:
     """Register ``hilbo validate`` on the top-level ``add_subparsers()`` object."""
-    from bridge.cli.main import _RUN_EXIT_STATUS, _seconds
+    from bridge.cli.session_end import RUN_EXIT_STATUS, seconds
 
     p = subparsers.add_parser(
         "validate", help="the validation walk: the recommended setting vs a generic one vs unassisted",
@@ -70,7 +70,7 @@ def add_validate_parser(subparsers: Any) -> argparse.ArgumentParser:
                     "safety limits, pauses, keys and resume policy). Prints each condition's "
                     "estimate with its 95 % interval and its reduction against unassisted walking; "
                     "the log and the summary hold them, and hilbo review reports them.",
-        epilog=_RUN_EXIT_STATUS)
+        epilog=RUN_EXIT_STATUS)
     p.add_argument("config", help="the session config (with a [validation] table)")
     p.add_argument("--from", dest="source", metavar="LOG.mcap", default=None,
                    help="the optimisation session whose recommendation is validated")
@@ -79,7 +79,7 @@ def add_validate_parser(subparsers: Any) -> argparse.ArgumentParser:
                         "conditions are kept)")
     p.add_argument("--out", default=None, help="output directory (default: [session] out_dir)")
     p.add_argument("--no-view", action="store_true", help="no live terminal view (as hilbo run)")
-    p.add_argument("--auto-resume", type=_seconds, default=None, metavar="S",
+    p.add_argument("--auto-resume", type=seconds, default=None, metavar="S",
                    help="the resume policy, as hilbo run --auto-resume")
     p.add_argument("--live", action="store_true", help="stream the walk to Foxglove (as hilbo run --live)")
     p.set_defaults(func=_cmd_validate)

@@ -168,7 +168,8 @@ max_auto_resumes = 1000
 async def run_virtual_sim(cfg: VirtualSimConfig, out: Path, *, operator_view: bool = False,
                           on_session: Callable[[BridgeSession], None] | None = None,
                           on_exosuit: Callable[[VirtualExosuit], None] | None = None,
-                          live: LiveConfig | None = None) -> dict[str, Any]:
+                          live: LiveConfig | None = None,
+                          device_timeout_ms: float = 250.0) -> dict[str, Any]:
     """Run a whole session over the virtual devices; writes OUT/session.mcap and OUT/summary.json.
 
     Args:
@@ -180,6 +181,8 @@ async def run_virtual_sim(cfg: VirtualSimConfig, out: Path, *, operator_view: bo
             count what it sent, for ``hilbo bench perf --bridge-minutes``).
         live: The live view (``hilbo sim --live``: :class:`~bridge.config.LiveConfig` enabled);
             None: off.
+        device_timeout_ms: The bridge's device-heartbeat watchdog (``hilbo bench watchdog``
+            times it at the lab's default, 100 ms).
 
     Returns:
         The summary, with the simulation's truth (true optimum, true cost of the recommendation).
@@ -199,7 +202,8 @@ async def run_virtual_sim(cfg: VirtualSimConfig, out: Path, *, operator_view: bo
     clock = SkippingClock(speed) if skipping else ScaledClock(speed)
     wearer = make_wearer(cfg.wearer, space, seed=cfg.seed, body_mass_kg=cfg.body_mass_kg)
     channel = f"hilbo-sim-{uuid.uuid4().hex[:8]}"
-    hcfg: HilboConfig = parse_config(sim_config_text(cfg, out), source="<hilbo sim>")
+    hcfg: HilboConfig = parse_config(sim_config_text(cfg, out, device_timeout_ms=device_timeout_ms),
+                                     source="<hilbo sim>")
     async with VirtualCart(wearer, clock, link=CartLink(kind=LinkKind.TCP),
                            faults=cfg.cart_faults) as cart:
         hcfg = dataclasses.replace(

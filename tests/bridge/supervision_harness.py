@@ -28,6 +28,7 @@ import looptime
 import numpy as np
 
 from bridge.log import SessionLog
+from bridge.log.resume import rebuild_optimizer
 from bridge.proposals import Asked
 from bridge.runtime import BridgeSession, Command, RuntimeSettings
 from bridge.safety import ProfileLimits, SafeProfileGate
@@ -46,12 +47,14 @@ from drivers.exosuit import (
     ProfileNackError,
     PushResult,
 )
-from hilbo_core import HILOptimizer, OptimizerConfig
+from hilbo_core import HILOptimizer, OptimizerConfig, fit_hyperparameters
 from hilbo_core.presets import hip_6d
 from hilbo_core.protocol import SessionProtocol, SessionProtocolConfig
 from hilbo_core.types import BreathRecord
 
 BREATH_S = 3.0
+#: The name of the task that runs ``BridgeSession.run`` when ``run_session`` has a ``watch``.
+SESSION_TASK = "session"
 STATUS_PERIOD_S = 0.1
 SEGMENT_PACE_S = 0.001
 ACK_DELAY_S = 0.003
@@ -76,6 +79,8 @@ class FakeExosuit:
         self.pending_version = 0
         self.latched_off = True
         self.silent = False
+        #: Loop time of every DeviceStatus round the device sent.
+        self.status_times: list[float] = []
         #: Latched fault bits (reported in every status) and the bits whose cause is present
         #: (a held emergency stop): a ClearFaults clears a latched bit only once its cause is gone.
         self.latched = DeviceFault(0)
@@ -137,6 +142,7 @@ class FakeExosuit:
                 self.active_version, self.pending_version = self.pending_version, 0
             if self.silent:
                 continue
+            self.status_times.append(asyncio.get_running_loop().time())
             mode = DeviceMode.ASSISTANCE_OFF if self.latched_off else DeviceMode.ASSIST
             for a in range(self.n_actuators):
                 self._publish(DeviceStatus(actuator=a, mode=mode, faults=self.latched,
@@ -237,8 +243,9 @@ class InlineWorker:
     lost: str | None = None
     in_process = True
 
-    def __init__(self, start_s: float = 0.0) -> None:
+    def __init__(self, start_s: float = 0.0, fit_s: float = 0.03) -> None:
         self.start_s = start_s  # loop time its "process" takes to answer the first call
+        self.fit_s = fit_s  # loop time a hyperparameter fit takes (tens of ms in the worker)
 
     async def __aenter__(self) -> InlineWorker:
         return self
@@ -254,7 +261,8 @@ class InlineWorker:
         return asyncio.get_running_loop().create_task(ask())
 
     async def fit(self, fit: Any) -> Any:
-        raise NotImplementedError
+        await asyncio.sleep(self.fit_s)
+        return fit_hyperparameters(fit)
 
     async def worker_pid(self) -> int:
         await asyncio.sleep(self.start_s)
@@ -299,6 +307,9 @@ class Injector:
         self.count = 0
         #: Loop time of every suspension, by suspension number.
         self.times: list[float] = []
+        #: Called with the suspension number and the coroutine that just suspended (its task's)
+        #: after every suspension: every task is then at an await point.
+        self.watch: Callable[[int, Any], None] | None = None
 
     def factory(self, loop: asyncio.AbstractEventLoop, coro: Any, **kw: Any) -> asyncio.Task[Any]:
         return asyncio.Task(self._wrap(coro), loop=loop, **kw)
@@ -306,11 +317,13 @@ class Injector:
     async def _wrap(self, coro: Any) -> Any:
         return await _Counted(coro, self)
 
-    def suspended(self) -> None:
+    def suspended(self, coro: Any = None) -> None:
         self.device.check(f"suspension {self.count}")
         self.times.append(asyncio.get_running_loop().time())
         if self.count == self.at and self.fire is not None:
             self.fire()
+        if self.watch is not None:
+            self.watch(self.count, coro)
         self.count += 1
 
 
@@ -326,7 +339,7 @@ class _Counted:
                 y = self.coro.send(value) if exc is None else self.coro.throw(exc)
             except StopIteration as stop:
                 return stop.value
-            self.inj.suspended()
+            self.inj.suspended(self.coro)
             try:
                 value, exc = (yield y), None
             except BaseException as err:  # delivered into the wrapped coroutine
@@ -346,18 +359,19 @@ class Outcome:
     log: Path
 
 
-#: What ``run_session(fault=...)`` can inject; ``"device:<name>"`` latches that device fault bit
-#: (drivers/exosuit/faults.py names) with its cause present for ``fault_s``.
-FAULTS = ("pause", "stop", "heartbeat_loss", "bus_error", "device:<fault name>")
+#: What ``run_session(fault=...)`` can inject; ``"device:<name>"`` (not listed here) also latches
+#: that device fault bit (drivers/exosuit/faults.py names) with its cause present for ``fault_s``.
+FAULTS = ("pause", "stop", "heartbeat_loss", "bus_error")
 
 
-def harness_protocol_config(n_evaluations: int = 4,
-                            pause_between_bouts: bool = False) -> SessionProtocolConfig:
-    """The protocol of :func:`run_session`: warm-ups 0, 2 exploration points of 3 breaths, an
-    optimisation budget in breaths of about ``n_evaluations - 2`` evaluations."""
+def harness_protocol_config(n_evaluations: int = 4, pause_between_bouts: bool = False, *,
+                            n_explore: int = 2, warmup_s: float = 0.0) -> SessionProtocolConfig:
+    """The protocol of :func:`run_session`: by default warm-ups 0, 2 exploration points of 3
+    breaths, an optimisation budget in breaths of about ``n_evaluations - n_explore``
+    evaluations."""
     return SessionProtocolConfig(
-        warmup_s=0.0, n_explore=2, max_breaths=3, budget_s=None,
-        budget_breaths=3 * max(n_evaluations - 2, 1), pause_between_bouts=pause_between_bouts)
+        warmup_s=warmup_s, n_explore=n_explore, max_breaths=3, budget_s=None,
+        budget_breaths=3 * max(n_evaluations - n_explore, 1), pause_between_bouts=pause_between_bouts)
 _RUNS = itertools.count()
 _FAULT_BITS = {info.name: bit for bit, info in FAULT_INFO.items()}
 
@@ -366,11 +380,14 @@ def run_session(tmp: Path, *, at: int | None = None, at_time_s: float | None = N
                 fault: str = "pause", n_evaluations: int = 4, resume_after_s: float = 5.0,
                 end_after_s: float | None = None, cart_restart_at_s: float | None = None,
                 worker_start_s: float = 0.0, fault_s: float = 0.5,
-                operator_r_s: tuple[float, ...] = (), optimizer: HILOptimizer | None = None,
-                protocol: SessionProtocol | None = None,
+                operator_r_s: tuple[float, ...] = (), n_explore: int = 2, warmup_s: float = 0.0,
+                refit_lag: int = 0, fit_s: float = 0.03, resume_from: Path | None = None,
+                watch: Callable[[int, BridgeSession, Any], None] | None = None,
+                optimizer: HILOptimizer | None = None, protocol: SessionProtocol | None = None,
                 on_session: Callable[[BridgeSession], None] | None = None,
                 **settings_kw: Any) -> Outcome:
-    """One short session (warm-ups 0, 2 exploration points of 3 breaths, then optimisation).
+    """One short session (by default: warm-ups 0, 2 exploration points of 3 breaths, then
+    optimisation).
 
     Args:
         at: Suspension number at which ``fault`` fires (None: no fault).
@@ -386,6 +403,16 @@ def run_session(tmp: Path, *, at: int | None = None, at_time_s: float | None = N
         worker_start_s: The proposal worker answers its first call after this long (loop time).
         fault_s: How long a ``device:<name>`` fault's cause lasts (loop time).
         operator_r_s: The operator presses "r" at these loop times as well.
+        n_explore: Exploration points.
+        warmup_s: Each bout's warm-up (breath time, s).
+        refit_lag: The optimizer's (1: hyperparameters fitted ahead, as the bridge's default).
+        fit_s: How long a hyperparameter fit made ahead takes (loop time).
+        resume_from: Continue the session of this (crashed) log, as ``hilbo run --resume``
+            does: the optimizer rebuilt from it, the protocol resumed, the new log linked to it.
+        watch: Called with the suspension number, the session and the coroutine of the task
+            that suspended (suspended at its await point) after every suspension; the
+            log is then written without the background flusher, so its bytes on disk at each
+            suspension are the same in every run.
         optimizer: The optimizer to continue (a resumed session's); None: a new one.
         protocol: Its protocol (:meth:`SessionProtocol.resumed`); None: a new one.
         on_session: Called with the session before it runs.
@@ -395,8 +422,8 @@ def run_session(tmp: Path, *, at: int | None = None, at_time_s: float | None = N
     device = FakeExosuit()
     space = hip_6d()
     opt = optimizer or HILOptimizer(space, config=OptimizerConfig(
-        n_explore=2, max_breaths=3, seed=1,
-        n_candidates=64, n_local=0))
+        n_explore=n_explore, max_breaths=3, seed=1,
+        n_candidates=64, n_local=0, refit_lag=refit_lag))
     gate = SafeProfileGate(space, ProfileLimits(), body_mass_kg=75.0)
     pause_between_bouts = bool(settings_kw.pop("pause_between_bouts", False))
     settings = RuntimeSettings(**{
@@ -405,7 +432,16 @@ def run_session(tmp: Path, *, at: int | None = None, at_time_s: float | None = N
         # The stall monitor measures real time, which a loop-time session does not have; at its
         # default 5 ms it was a third of each run's loop iterations.
         "loop_monitor_period_s": 0.04, **settings_kw})
-    protocol = protocol or SessionProtocol(harness_protocol_config(n_evaluations, pause_between_bouts))
+    protocol_config = harness_protocol_config(n_evaluations, pause_between_bouts,
+                                              n_explore=n_explore, warmup_s=warmup_s)
+    if protocol is None:
+        protocol = SessionProtocol(protocol_config)
+    if resume_from is not None:  # what bridge/run.py does for --resume
+        opt, _ = rebuild_optimizer(resume_from)
+        used = opt.budget_used
+        protocol = SessionProtocol.resumed(
+            protocol_config, n_explored=min(len(opt.evaluations), n_explore),
+            optimization_used_s=float(used["seconds"]), optimization_used_breaths=int(used["breaths"]))
     holder: dict[str, BridgeSession] = {}
 
     def fire() -> None:
@@ -431,6 +467,8 @@ def run_session(tmp: Path, *, at: int | None = None, at_time_s: float | None = N
             loop.call_later(end_after_s, s.command, Command.STOP)
 
     inj = Injector(device, at, fire if at is not None else None)
+    if watch is not None:
+        inj.watch = lambda k, coro: watch(k, holder["session"], coro) if "session" in holder else None
     cart = Cart(restart_at_s=cart_restart_at_s)
     events: list[str] = []
     log_path = tmp / f"s{next(_RUNS)}.mcap"
@@ -438,12 +476,17 @@ def run_session(tmp: Path, *, at: int | None = None, at_time_s: float | None = N
     async def main() -> dict[str, Any]:
         loop = asyncio.get_running_loop()
         loop.set_task_factory(inj.factory)
-        with SessionLog(log_path, session_id="t", config_json={}) as log:
+        flusher: dict[str, Any] = {} if watch is None else {"flush_interval_s": None}
+        with SessionLog(log_path, session_id="t", config_json={},
+                        previous_log=None if resume_from is None else str(resume_from),
+                        **flusher) as log:
+            if resume_from is not None:
+                log.log_optimizer_state(opt, reason="resume")
             session = BridgeSession(opt, gate, device, cart, log, settings,  # type: ignore[arg-type]
                                     protocol=protocol, clock=loop.time)
             holder["session"] = session
             session.status.listeners.append(events.append)
-            session._worker = InlineWorker(worker_start_s)  # type: ignore[assignment]
+            session._worker = InlineWorker(worker_start_s, fit_s)  # type: ignore[assignment]
             device.is_paused = lambda: session.supervisor.paused
             if at_time_s is not None:
                 loop.call_at(at_time_s, fire)
@@ -451,7 +494,10 @@ def run_session(tmp: Path, *, at: int | None = None, at_time_s: float | None = N
                 loop.call_at(t, session.command, Command.RESUME)
             if on_session is not None:
                 on_session(session)
-            return await session.run()
+            if watch is None:
+                return await session.run()
+            # Its own (counted) task: the session loop's own await points are suspensions too.
+            return await loop.create_task(session.run(), name=SESSION_TASK)
 
     loop = looptime.new_event_loop(start=0.0, noop_cycles=1)
     try:

@@ -7,6 +7,7 @@ import argparse
 import pytest
 
 import bridge.cli.main as cli
+import bridge.cli.session_end as session_end
 
 
 def test_a_reader_that_leaves_early_is_exit_141_without_traceback(
@@ -35,22 +36,22 @@ def test_the_end_of_hilbo_run_says_why_what_to_set_and_the_minutes_walked() -> N
                          method="posterior", units={"t_on": "%GC", "F_p": "N"})
     summary = {"n_evaluations": 2, "n_early_stops": 1, "end_reason": "budget", "recommendation": rec,
                "walking": {"session_s": 4009.26, "optimization_s": 2400.99}}
-    assert cli._ended_text(summary).splitlines() == [
+    assert session_end.ended_text(summary).splitlines() == [
         "session ended: the optimisation bout's budget ([protocol] budget_min) was spent; "
         "2 evaluations (1 early stops); 66.8 min walked, 40.0 of them in the optimisation bout",
         "recommended setting: t_on = 0.00 %GC, F_p = 152.4 N; estimated 344.1 W (95 % CI 335.3 to "
         "352.9 W; GP posterior over all 2 evaluations; this setting measured 1 time, 45 breaths)"]
-    assert cli._run_exit_status(summary) == 0
+    assert session_end.run_exit_status(summary) == 0
     # A session stopped before any evaluation or any breath: it says so, and exits 3.
     nothing = {"n_evaluations": 0, "n_early_stops": 0, "end_reason": "operator_stop",
                "recommendation": None, "walking": {}}
-    assert cli._ended_text(nothing) == (
+    assert session_end.ended_text(nothing) == (
         "session ended: stopped by the operator; 0 evaluations (0 early stops)\n"
         "no evaluation completed: nothing to recommend (exit status 3)")
-    assert cli._run_exit_status(nothing) == 3
+    assert session_end.run_exit_status(nothing) == 3
     # Ctrl-C (or SIGTERM): 130, as the README says, whatever was measured.
-    assert cli._run_exit_status({**summary, "end_reason": "interrupted"}) == 130
-    assert cli._run_exit_status({**nothing, "end_reason": "interrupted"}) == 130
+    assert session_end.run_exit_status({**summary, "end_reason": "interrupted"}) == 130
+    assert session_end.run_exit_status({**nothing, "end_reason": "interrupted"}) == 130
 
 
 def test_hilbo_run_help_documents_its_exit_statuses(capsys: pytest.CaptureFixture[str]) -> None:

@@ -1,0 +1,61 @@
+"""What ``hilbo run`` and ``hilbo validate`` share at a session's end: the last lines, the exit
+status and its help text, and the seconds type of their options."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+__all__ = ["EXIT_INTERRUPTED", "EXIT_NOTHING_MEASURED", "RUN_EXIT_STATUS", "ended_text",
+           "run_exit_status", "seconds"]
+
+
+def seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(f"expected seconds >= 0, got {text!r}") from err
+    if not 0 <= value < float("inf"):
+        raise argparse.ArgumentTypeError(f"expected seconds >= 0, got {text!r}")
+    return value
+
+
+#: ``hilbo run``'s exit status for a session that ended without a completed evaluation.
+EXIT_NOTHING_MEASURED = 3
+#: Exit statuses of a session stopped by a signal (128 + the signal's number, as shells report).
+EXIT_INTERRUPTED = 130
+
+RUN_EXIT_STATUS = """\
+exit status: 0 the session ended with at least one completed evaluation; 1 an error (one line
+naming it); 2 a wrong command line; 3 the session ended without a completed evaluation (nothing
+to recommend); 130 stopped by Ctrl-C or SIGTERM. A session that has started writes its log and
+its summary whatever its exit status."""
+
+
+def ended_text(s: dict[str, Any]) -> str:
+    """The last lines of ``hilbo run``: why the session ended, evaluations, minutes walked, and
+    the recommended setting (parameters with units, estimate with its 95 % interval, how it was
+    measured)."""
+    from bridge.outcome import SessionEnd, recommendation_text
+
+    reason = s.get("end_reason")
+    why = SessionEnd(reason).text if reason in {e.value for e in SessionEnd} else str(reason)
+    text = f"session ended: {why}; {s['n_evaluations']} evaluations ({s['n_early_stops']} early stops)"
+    walking = s.get("walking") or {}
+    if "session_s" in walking:
+        text += f"; {walking['session_s'] / 60:.1f} min walked"
+        if walking.get("optimization_s"):
+            text += f", {walking['optimization_s'] / 60:.1f} of them in the optimisation bout"
+    rec = s.get("recommendation")
+    if rec is not None:
+        text += "\n" + recommendation_text(rec)
+    elif not s["n_evaluations"]:
+        text += f"\nno evaluation completed: nothing to recommend (exit status {EXIT_NOTHING_MEASURED})"
+    return text
+
+
+def run_exit_status(summary: dict[str, Any]) -> int:
+    """0, or 130 for a signal's stop, or 3 for a session that measured nothing."""
+    if summary.get("end_reason") == "interrupted":
+        return EXIT_INTERRUPTED
+    return 0 if summary["n_evaluations"] else EXIT_NOTHING_MEASURED
