@@ -102,7 +102,7 @@ def test_from_dict_rejects_typos_and_missing() -> None:
         s.from_dict(missing)
 
 
-@pytest.mark.parametrize("kind", ["sobol", "maximin"])
+@pytest.mark.parametrize("kind", ["sobol", "maximin", "sobol_only"])
 @pytest.mark.parametrize("make", [hip_6d, hip_ankle_4d])
 def test_designs_are_feasible_spread_and_reproducible(make, kind: str) -> None:
     s = make()
@@ -139,7 +139,8 @@ def test_both_designs_start_at_the_centre_and_maximin_goes_to_the_boundary() -> 
 
 
 def test_an_unknown_design_is_refused_with_the_choices() -> None:
-    with pytest.raises(ConfigError, match=r"design='lhs'; expected one of \['sobol', 'maximin'\]"):
+    choices = r"\['sobol', 'maximin', 'sobol_only'\]"
+    with pytest.raises(ConfigError, match=r"design='lhs'; expected one of " + choices):
         hip_6d().design(6, np.random.default_rng(0), kind="lhs")
 
 
