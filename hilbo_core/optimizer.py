@@ -584,6 +584,7 @@ class HILOptimizer:
         # index of its first evaluation; None before.
         self._confirm: tuple[dict[str, float], float, float] | None = None
         self._confirm_from = 0
+        self._confirm_requested = False
         self._opt_breaths = 0
         self._opt_seconds = 0.0
 
@@ -685,26 +686,39 @@ class HILOptimizer:
                             predicted_sd_w=math.sqrt(max(p_var, 0.0)), mean_w=mean, sd_w=sd,
                             breaths=sum(e.breaths for e in evs), n_evaluations=len(evs))
 
-    def begin_confirmation(self) -> bool:
-        """From now on, measure the recommended setting in full (the session's last minutes).
+    @property
+    def confirming(self) -> bool:
+        """:meth:`begin_confirmation` has been called (and was not refused)."""
+        return self._confirm_requested
 
-        The recommendation (:meth:`best`) is frozen; every following :meth:`ask` returns it and
-        its evaluations run to N breaths (no early stop; the session's end may cut the last one).
+    def begin_confirmation(self) -> bool:
+        """From the next :meth:`ask` on, measure the recommended setting in full (the session's
+        last minutes).
+
+        That ask freezes the recommendation (:meth:`best`: the GP work happens there, in the
+        bridge's proposal worker, not here), returns it, and so does every ask after it; its
+        evaluations run to N breaths (no early stop; the session's end may cut the last one).
         :attr:`confirmation` then reports it with its own measurement, which :meth:`best`
-        returns too. Idempotent. The driver calls it when the protocol says the confirmation is
-        due (:attr:`hilbo_core.protocol.SessionProtocol.confirm_due`).
+        returns too. Idempotent and cheap. The driver calls it when the protocol says the
+        confirmation is due (:attr:`hilbo_core.protocol.SessionProtocol.confirm_due`).
 
         Returns:
             True when the confirmation is on; False during exploration (nothing to confirm yet).
         """
-        if self._confirm is not None:
+        if self._confirm is not None or self._confirm_requested:
             return True
         if len(self._evaluations) < self.config.n_explore or not self._evaluations:
             return False
-        params, mean, var = self.best()
-        self._confirm = (dict(params), float(mean), float(var))
-        self._confirm_from = len(self._evaluations) + (self._current is not None)
+        self._confirm_requested = True
         return True
+
+    def _freeze_confirmation(self) -> dict[str, float]:
+        """The confirmed setting, chosen now if it has not been (:meth:`begin_confirmation`)."""
+        if self._confirm is None:
+            params, mean, var = self.best()
+            self._confirm = (dict(params), float(mean), float(var))
+            self._confirm_from = len(self._evaluations)
+        return self._confirm[0]
 
     # ------------------------------------------------------------------ ask / observe / tell
     def ask(self) -> dict[str, float]:
@@ -726,8 +740,8 @@ class HILOptimizer:
             )
         if phase is Phase.EXPLORATION:
             x = self._design[len(self._evaluations)]
-        elif self._confirm is not None:
-            x = self.space.from_dict(self._confirm[0])
+        elif self._confirm_requested:
+            x = self.space.from_dict(self._freeze_confirmation())
             self._pending = (None, True)
         else:
             x = self._propose()
@@ -1191,6 +1205,7 @@ class HILOptimizer:
             },
             "confirm": None if self._confirm is None else list(self._confirm),
             "confirm_from": self._confirm_from,
+            "confirm_requested": self._confirm_requested,
             "hyp": None if self._hyp is None else self._hyp.to_dict(),
             "n_at_fit": self._n_at_fit,
             "incumbent": None if self._incumbent is None else list(self._incumbent),
@@ -1240,6 +1255,7 @@ class HILOptimizer:
             if data["incumbent"] is not None:
                 p, m, v = data["incumbent"]
                 opt._incumbent = (dict(p), float(m), float(v))
+            opt._confirm_requested = bool(data.get("confirm_requested", False))
             confirm = data.get("confirm")  # absent in states written before the confirmation
             if confirm is not None:
                 p, m, v = confirm
