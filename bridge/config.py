@@ -86,7 +86,13 @@ from hilbo_core.priors import (
     priors_from_rows,
 )
 from hilbo_core.profiles import PROFILE_BUILDERS, build_profile
-from hilbo_core.protocol import DEFAULT_BREATH_INTERVAL_S, SessionProtocolConfig, expected_end_s
+from hilbo_core.protocol import (
+    DEFAULT_BREATH_INTERVAL_S,
+    ProtocolKind,
+    SessionProtocolConfig,
+    expected_end_s,
+    protocol_preset,
+)
 from hilbo_core.space import DerivedParameter, DesignKind, LinearConstraint, Parameter, ParameterSpace
 
 __all__ = [
@@ -362,6 +368,18 @@ class ProtocolConfig:
         n_candidates: Feasible Sobol candidates per acquisition maximisation.
         n_local: Candidates refined locally per acquisition maximisation.
         pause_between_bouts: Pause for the operator between the bouts.
+        protocol: The walking protocol by name (:class:`hilbo_core.protocol.ProtocolKind`):
+            ``fast`` (default: the first optimisation proposal at about minute 10, one warm-up
+            when no pause separates the bouts, exploration settings ended once their estimate
+            is precise, the recommendation confirmed in the last minutes) or ``seed`` (Kim et
+            al. 2019 §IV.A.3: a warm-up before each bout, N breaths per exploration setting);
+            absent: ``fast`` with the sound rule, ``seed`` with the seed's rules (like ``design``).
+        confirm_min: Minutes at the session's end reserved to measure the recommended setting
+            in full ("recommended, confirmed at X ± Y W"), 0-120; 0: none; absent: the
+            protocol's (fast: 4, seed: none).
+        explore_rel_sd: Exploration settings end once their estimate's SD is at most this
+            fraction of it (after ``min_decision_s``), 0-0.5; 0: always N breaths; absent: the
+            protocol's (fast: 0.04, seed: 0).
         refit: When the GP hyperparameters are refitted: ``ahead`` (default: on the completed
             evaluations while the next setting is measured, so the proposal after a stop
             decision only conditions the GP on every observation and maximises EI; the
@@ -397,9 +415,20 @@ class ProtocolConfig:
     n_candidates: int = integer(OptimizerConfig.n_candidates, lo=16, hi=1_000_000)
     n_local: int = integer(OptimizerConfig.n_local, lo=0, hi=100)
     pause_between_bouts: bool = boolean(SessionProtocolConfig.pause_between_bouts)
+    protocol: ProtocolKind | None = choice(ProtocolKind, None)
+    confirm_min: float | None = number(None, lo=0.0, hi=120.0, optional=True)
+    explore_rel_sd: float | None = number(None, lo=0.0, hi=0.5, optional=True)
     refit: RefitMode = choice(RefitMode, RefitMode.AHEAD)
     proposal_worker: WorkerKind = choice(WorkerKind, WorkerKind.PROCESS)
     gc: GcMode = choice(GcMode, GcMode.FREEZE)
+
+    @property
+    def protocol_kind(self) -> ProtocolKind:
+        """The walking protocol: ``protocol``, else ``fast`` with the sound rule and ``seed``
+        with the seed's rules (so ``adaptive`` and ``fixed`` stay the methods they were)."""
+        if self.protocol is not None:
+            return self.protocol
+        return ProtocolKind.FAST if self.stopping is StoppingKind.SOUND else ProtocolKind.SEED
 
     @property
     def budget_s(self) -> float | None:
@@ -408,10 +437,13 @@ class ProtocolConfig:
 
     def session_protocol_config(self) -> SessionProtocolConfig:
         """The :class:`hilbo_core.protocol.SessionProtocolConfig` of this protocol."""
+        named = protocol_preset(self.protocol_kind)[0]
+        if self.confirm_min is not None:  # 0: no confirmation
+            named["confirm_s"] = 60.0 * self.confirm_min if self.confirm_min > 0 else None
         return SessionProtocolConfig(
             warmup_s=self.warmup_s, n_explore=self.n_explore, max_breaths=self.max_breaths,
             session_s=None if self.session_min is None else 60.0 * self.session_min, budget_s=self.budget_s,
-            budget_breaths=self.budget_breaths, pause_between_bouts=self.pause_between_bouts,
+            budget_breaths=self.budget_breaths, pause_between_bouts=self.pause_between_bouts, **named,
         )
 
     def optimizer_config(self, *, with_budget: bool = True) -> OptimizerConfig:
@@ -423,8 +455,11 @@ class ProtocolConfig:
                 :class:`hilbo_core.protocol.SessionProtocol`, which ends the session on walking
                 time (:meth:`session_protocol_config`).
         """
+        named = protocol_preset(self.protocol_kind)[1]
+        if self.explore_rel_sd is not None:  # 0: every exploration setting measured for N breaths
+            named["explore_rel_sd"] = self.explore_rel_sd if self.explore_rel_sd > 0 else None
         return OptimizerConfig(
-            n_explore=self.n_explore, max_breaths=self.max_breaths, window=self.window,
+            **named, n_explore=self.n_explore, max_breaths=self.max_breaths, window=self.window,
             budget_s=self.budget_s if with_budget else None,
             budget_breaths=self.budget_breaths if with_budget else None, stopping=self.stopping,
             min_decision_s=self.min_decision_s, a_floor=self.a_floor,

@@ -437,6 +437,8 @@ class BridgeSession:
         if self.opt.evaluations:
             params, mean, var = self.opt.best()
             out.update(best_params=params, best_mean=mean, best_var=var)
+        conf = self.opt.confirmation  # the recommendation measured in full at the end
+        out["confirmation"] = None if conf is None else conf.to_json()
         return out
 
     # ------------------------------------------------------------------ main protocol
@@ -660,6 +662,11 @@ class BridgeSession:
         """Start ``ask()`` in the worker on the optimizer as it is now (a fit made ahead is
         applied first, so the state, and what a resume rebuilds, do not depend on timing)."""
         await self._collect_fit_ahead()
+        if self.protocol.confirm_due and not self.opt.confirming and self.opt.begin_confirmation():
+            # The session's last minutes: the next ask freezes the recommendation (in the
+            # worker) and every setting from here on measures it in full.
+            self._event("confirmation", "the session's last minutes: measuring the recommended "
+                        "setting in full")
         return self._worker.start_ask(self.opt)
 
     async def _push(self, admitted: AdmittedProfile, version: int, index: int, *,

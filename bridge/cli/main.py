@@ -112,7 +112,10 @@ def _print_done(console: Any, summary: dict[str, Any]) -> None:
 def _ended_text(s: dict[str, Any]) -> str:
     """The last line of ``hilbo run``: evaluations, the best setting's estimate, minutes walked."""
     text = f"session ended: {s['n_evaluations']} evaluations ({s['n_early_stops']} early stops)"
-    if s.get("best_mean") is not None:
+    conf = s.get("confirmation") or {}
+    if conf.get("mean_w") is not None and conf.get("sd_w") is not None:
+        text += f"; recommended, confirmed at {conf['mean_w']:.1f} ± {conf['sd_w']:.1f} W"
+    elif s.get("best_mean") is not None:
         var = s.get("best_var")
         sd = f" ± {math.sqrt(var):.1f}" if isinstance(var, int | float) and var >= 0 else ""
         text += f"; best {s['best_mean']:.1f}{sd} W"

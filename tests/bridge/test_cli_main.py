@@ -34,3 +34,15 @@ def test_the_last_line_of_hilbo_run_gives_the_best_estimate_and_the_minutes_walk
     # A session stopped before any evaluation or any breath.
     assert cli._ended_text({"n_evaluations": 0, "n_early_stops": 0, "best_mean": None, "walking": {}}) \
         == "session ended: 0 evaluations (0 early stops)"
+
+
+def test_the_last_line_of_hilbo_run_gives_the_confirmed_recommendation() -> None:
+    summary = {"n_evaluations": 32, "n_early_stops": 15, "best_mean": 351.2, "best_var": 30.25,
+               "confirmation": {"mean_w": 351.24, "sd_w": 5.5, "n_evaluations": 1},
+               "walking": {"session_s": 3600.5, "optimization_s": 2950.0}}
+    assert cli._ended_text(summary) == (
+        "session ended: 32 evaluations (15 early stops); recommended, confirmed at 351.2 ± 5.5 W; "
+        "60.0 min walked, 49.2 of them in the optimisation bout")
+    # A confirmation that began but did not complete: the recommendation's estimate as before.
+    summary["confirmation"] = {"mean_w": None, "sd_w": None, "n_evaluations": 0}
+    assert "; best 351.2 ± 5.5 W;" in cli._ended_text(summary)
