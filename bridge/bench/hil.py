@@ -86,6 +86,7 @@ from hilbo_core.protocol import ActionKind, SessionPhase, SessionProtocol, Sessi
 from hilbo_core.space import ParameterSpace
 
 __all__ = [
+    "ABLATION_METHODS",
     "DEFAULT_HIL_METHODS",
     "HIL_METHODS",
     "PRIOR_METHODS",
@@ -109,9 +110,31 @@ PRIOR_METHODS: tuple[str, ...] = ("adaptive-prior", "adaptive-prior-e3")
 THESIS_METHODS: tuple[str, ...] = ("adaptive-day2", *PRIOR_METHODS, "adaptive-features",
                                    "adaptive-features-only", "adaptive-tuned-k")
 """The seed-003 methods (module docstring)."""
-HIL_METHODS: tuple[str, ...] = (*DEFAULT_HIL_METHODS, "adaptive-ahead", *THESIS_METHODS)
+HIL_METHODS: tuple[str, ...] = (*DEFAULT_HIL_METHODS, "adaptive-ahead", *THESIS_METHODS,
+                                 "sound-seed", "sound-seed-global", "sound-seed-confirm",
+                                 "sound-fast-noconfirm")
 _PRIOR_E3 = 3  # exploration points of adaptive-prior-e3 (docs/results_thesis.md §2)
 _BO_METHODS = ("sound", "adaptive", "fixed")
+# How each BO method runs in run_insim: (stopping rule, walking protocol, optimizer options,
+# protocol options). The seed's rules keep the seed's protocol (Kim et al. 2019 §IV.A.3); the
+# default "sound" runs hilbo's default (the fast protocol). The "sound-..." methods are the
+# ablations of the default (not run by default), each one change away from its neighbour:
+_BO_VARIANTS: dict[str, tuple[str, str, tuple[tuple[str, Any], ...], tuple[tuple[str, Any], ...]]] = {
+    "sound": ("sound", "fast", (), ()),
+    "adaptive": ("adaptive", "seed", (), ()),
+    "fixed": ("fixed", "seed", (), ()),
+    "adaptive-ahead": ("adaptive", "seed", (), ()),
+    # the default before the fast protocol: the seed's protocol, the best measured setting
+    "sound-seed": ("sound", "seed", (("recommend", "posterior"),), ()),
+    # + the recommendation over the whole feasible set
+    "sound-seed-global": ("sound", "seed", (), ()),
+    # + its confirmation in the last 4 minutes
+    "sound-seed-confirm": ("sound", "seed", (), (("confirm_s", 240.0),)),
+    # the fast protocol without the confirmation
+    "sound-fast-noconfirm": ("sound", "fast", (), (("confirm_s", None),)),
+}
+ABLATION_METHODS: tuple[str, ...] = tuple(m for m in _BO_VARIANTS if m.startswith("sound-"))
+"""The default's ablations (``--methods sound-seed,...``)."""
 _CMA_STREAM = 0xC3A
 _RANDOM_STREAM = 0x5A3D
 
@@ -383,12 +406,13 @@ def _run_bo(task: HilTask) -> dict[str, Any]:
     def on_eval(rec: SimEvaluation, opt: HILOptimizer) -> None:
         trace.append((rec.t_end, opt.best()[0]))
 
+    stopping, protocol, options, protocol_options = _BO_VARIANTS[task.method]
     summary = run_insim(
         SimConfig(minutes=proto.minutes, seed=task.seed, preset=task.space, n_explore=proto.n_explore,
                   max_breaths=proto.max_breaths, window=proto.window, warmup_s=proto.warmup_s,
-                  stopping="adaptive" if task.method == "adaptive-ahead" else task.method,
-                  refit="ahead" if task.method == "adaptive-ahead" else "at_proposal",
-                  wearer=proto.wearer),
+                  stopping=stopping, refit="ahead" if task.method == "adaptive-ahead" else "at_proposal",
+                  wearer=proto.wearer, protocol=protocol, options=options,
+                  protocol_options=protocol_options),
         on_evaluation=on_eval,
     )
     evals = summary["evaluations"]
@@ -402,6 +426,12 @@ def _run_bo(task: HilTask) -> dict[str, Any]:
         "assisted_s": sum(e["t_end"] - e["t_start"] for e in evals),
         "bout2_s": (evals[-1]["t_end"] - bout2_start) if opt_evals else 0.0,
         "session_s": summary["session_minutes"] * 60.0,
+        "t_first_proposal_s": summary["t_first_proposal_s"],
+        # The final recommendation's reported estimate against its true cost at the end, in its
+        # reported SDs (the confirmation's own measurement when there is one).
+        "reported_z": (summary["best_mean"] - summary["true_cost_of_best_at_end"])
+        / math.sqrt(summary["best_var"]),
+        "confirmed": bool(summary["confirmation"] and summary["confirmation"]["n_evaluations"]),
     }
 
 
@@ -602,7 +632,7 @@ def run_hil_task(task: HilTask) -> dict[str, Any]:
     """
     blas_threads(1)  # wherever it runs: see bridge.bench.common.blas_threads
     t0 = time.perf_counter()
-    runner = {"sound": _run_bo, "adaptive": _run_bo, "fixed": _run_bo, "adaptive-ahead": _run_bo,
+    runner = {**dict.fromkeys(_BO_VARIANTS, _run_bo),
               "cmaes": _run_cmaes, "random": _run_random,
               **dict.fromkeys(THESIS_METHODS, _run_thesis)}[task.method]
     out = runner(task)

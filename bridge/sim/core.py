@@ -24,7 +24,7 @@ from typing import Any
 from hilbo_core import HILOptimizer, brockway_watts, fit_hyperparameters, presets
 from hilbo_core.errors import ConfigError
 from hilbo_core.optimizer import BreathStep, Evaluation, OptimizerConfig
-from hilbo_core.protocol import SessionProtocol, SessionProtocolConfig, drive
+from hilbo_core.protocol import ProtocolKind, SessionProtocol, SessionProtocolConfig, drive, protocol_preset
 from virtual_hw.wearer import WearerKind, make_wearer, wearer_kind
 
 __all__ = ["SimConfig", "SimEvaluation", "check_optimisation_ran", "run_insim"]
@@ -50,7 +50,14 @@ class SimConfig:
             (as the bridge does by default: fitted on the completed evaluations while the next
             setting is measured, ``refit_lag`` 1).
         wearer: The simulated wearer (:class:`virtual_hw.wearer.WearerKind` value): ``realistic``
-            (default) or ``legacy``.
+            (default), ``noisy`` or ``legacy``.
+        protocol: The walking protocol (:class:`hilbo_core.protocol.ProtocolKind` value):
+            ``fast`` (default: one warm-up, exploration settings ended once precise, the
+            recommendation confirmed in the last minutes) or ``seed`` (Kim et al. 2019's).
+        options: Further :class:`~hilbo_core.optimizer.OptimizerConfig` fields (benchmark
+            variants), applied after the protocol's.
+        protocol_options: Further :class:`~hilbo_core.protocol.SessionProtocolConfig` fields
+            (benchmark variants), applied after the protocol's.
     """
 
     minutes: float = 60.0
@@ -64,9 +71,13 @@ class SimConfig:
     stopping: str = "sound"
     refit: str = "at_proposal"
     wearer: str = WearerKind.REALISTIC.value
+    protocol: str = ProtocolKind.FAST.value
+    options: tuple[tuple[str, Any], ...] = ()
+    protocol_options: tuple[tuple[str, Any], ...] = ()
 
     def __post_init__(self) -> None:
         wearer_kind(self.wearer)  # raises ConfigError naming the value and the choices
+        protocol_preset(self.protocol)  # the same for the protocol's name
         if not (math.isfinite(self.minutes) and 0 < self.minutes <= 600):
             raise ConfigError(f"minutes={self.minutes!r}; expected a number in (0, 600]")
         if self.speed is not None and not (math.isfinite(self.speed) and self.speed > 0):
@@ -78,9 +89,19 @@ class SimConfig:
 
     def protocol_config(self) -> SessionProtocolConfig:
         """The session's protocol: ``minutes`` of walking in all, no pause between the bouts."""
-        return SessionProtocolConfig(warmup_s=self.warmup_s, n_explore=self.n_explore,
-                                     max_breaths=self.max_breaths, session_s=self.minutes * 60.0,
-                                     budget_s=None, pause_between_bouts=False)
+        fields: dict[str, Any] = {
+            "warmup_s": self.warmup_s, "n_explore": self.n_explore, "max_breaths": self.max_breaths,
+            "session_s": self.minutes * 60.0, "budget_s": None, "pause_between_bouts": False,
+            **protocol_preset(self.protocol)[0], **dict(self.protocol_options)}
+        return SessionProtocolConfig(**fields)
+
+    def optimizer_config(self) -> OptimizerConfig:
+        """The session's optimizer: no budget of its own (the protocol ends the session)."""
+        fields: dict[str, Any] = {
+            "n_explore": self.n_explore, "max_breaths": self.max_breaths, "window": self.window,
+            "stopping": self.stopping, "seed": self.seed, "refit_lag": 1 if self.refit == "ahead" else 0,
+            **protocol_preset(self.protocol)[1], **dict(self.options)}
+        return OptimizerConfig(**fields)
 
 
 @dataclass(frozen=True)
@@ -148,9 +169,7 @@ def run_insim(
     space = presets.preset(cfg.preset)
     wearer = make_wearer(cfg.wearer, space, seed=cfg.seed)
     # No budget of the optimizer's own: the protocol ends the session on walking time.
-    opt = HILOptimizer(space, n_explore=cfg.n_explore, max_breaths=cfg.max_breaths,
-                       window=cfg.window, stopping=cfg.stopping, seed=cfg.seed,
-                       refit_lag=1 if cfg.refit == "ahead" else 0)
+    opt = HILOptimizer(space, config=cfg.optimizer_config())
     protocol = SessionProtocol(cfg.protocol_config(), t_start_s=wearer.t_s)
     clock = _Clock(cfg.speed)
     records: list[SimEvaluation] = []
@@ -191,6 +210,7 @@ def run_insim(
     opt_params, opt_cost = wearer.true_optimum
     true_best = wearer.true_cost_w(best_params)
     baseline = wearer.baseline_cost_w
+    conf = opt.confirmation
     return {
         "n_evaluations": len(records),
         "n_early_stops": sum(r.evaluation.stopped_early for r in records),
@@ -199,6 +219,12 @@ def run_insim(
         "best_params": best_params,
         "best_mean": best_mean,
         "best_var": best_var,
+        # The recommendation's cost on the breath clock at the end (adaptation included): what
+        # its reported estimate (best_mean, measured in the confirmation) is an estimate of.
+        "true_cost_of_best_at_end": wearer.true_cost_w(best_params, wearer.t_s),
+        "confirmation": None if conf is None else conf.to_json(),
+        "t_first_proposal_s": next((r.t_start for r in records if r.evaluation.phase == "optimization"),
+                                   None),
         "true_optimum": {"params": opt_params, "cost_w": opt_cost},
         "true_cost_of_best": true_best,
         "regret_w": true_best - opt_cost,
@@ -212,7 +238,7 @@ def run_insim(
         "config": {"minutes": cfg.minutes, "seed": cfg.seed, "preset": cfg.preset,
                    "n_explore": cfg.n_explore, "max_breaths": cfg.max_breaths,
                    "window": cfg.window, "warmup_s": cfg.warmup_s, "stopping": cfg.stopping,
-                   "wearer": cfg.wearer,
+                   "wearer": cfg.wearer, "protocol": cfg.protocol,
                    "speed": "max" if cfg.speed is None else cfg.speed},
         "wall_time_s": time.perf_counter() - wall0,
     }
