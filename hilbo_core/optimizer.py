@@ -83,6 +83,7 @@ __all__ = [
     "DEFAULT_ACCEPT_Z",
     "BreathStep",
     "Confirmation",
+    "EIBestKind",
     "EstimatorKind",
     "Evaluation",
     "HILOptimizer",
@@ -119,6 +120,13 @@ class StoppingKind(enum.Enum):
     SOUND = "sound"  # the default: SoundRule, GP-posterior incumbent (issue 17 part 1)
     ADAPTIVE = "adaptive"  # Algorithm 2 thresholds + σ-scaled offset rule (seed 000 §II.D)
     FIXED = "fixed"  # always N breaths (fixed-interval BO, the seed's baseline)
+
+
+class EIBestKind(enum.Enum):
+    """The incumbent value Expected Improvement improves on."""
+
+    OBSERVED = "observed"  # min(S): the lowest estimate (seed 000 §II.B)
+    POSTERIOR = "posterior"  # the lowest GP posterior mean among the evaluated settings (noisy EI)
 
 
 class RecommendKind(enum.Enum):
@@ -173,6 +181,9 @@ class OptimizerConfig:
             None (default): every exploration setting is measured for N breaths (the seed's
             Algorithm 1). Algorithm 2 then reads each shorter trace as if its last estimate had
             held to N.
+        ei_best: The value EI improves on: ``"observed"`` (default: min(S), the seed's) or
+            ``"posterior"`` (the lowest posterior mean among the evaluated settings: noisy EI's
+            plug-in incumbent).
         drift_hours: Adaptation drift (issue 17 part 3): with a number, the GP gets the
             session time of each evaluation as an extra input, with a length-scale prior of
             median ``drift_hours`` h (long relative to the session: the cost drifts slowly), and
@@ -219,6 +230,7 @@ class OptimizerConfig:
     recommend: RecommendKind | None = None
     recommend_beta: float = 1.0
     explore_rel_sd: float | None = None
+    ei_best: EIBestKind = EIBestKind.OBSERVED
     drift_hours: float | None = None
     seed: int = 0
     xi: float = 0.0
@@ -252,6 +264,7 @@ class OptimizerConfig:
             object.__setattr__(self, "design", DesignKind.SOBOL if sound else DesignKind.MAXIMIN)
         self._enum("design", DesignKind)
         self._enum("recommend", RecommendKind)
+        self._enum("ei_best", EIBestKind)
         for name in ("min_decision_s", "a_floor", "recommend_beta"):
             v = getattr(self, name)
             if (isinstance(v, bool) or not isinstance(v, int | float | np.integer | np.floating)
@@ -314,6 +327,7 @@ class OptimizerConfig:
         d["kernel"] = self.kernel.value
         d["estimator"] = self.estimator.value
         d["design"] = DesignKind(self.design).value
+        d["ei_best"] = self.ei_best.value
         return d
 
     @classmethod
@@ -1152,7 +1166,13 @@ class HILOptimizer:
         # (seed 000 §II.D: "the best parameter setting found thus far as defined by the GP").
         sound = self.config.stopping is StoppingKind.SOUND
         self._incumbent = self._gp_incumbent(gp) if sound else self._gp_best(gp)
-        best_observed = min(e.mean for e in self._evaluations)  # min(S), seed 000 §II.B
+        if self.config.ei_best is EIBestKind.POSTERIOR:
+            # Noisy EI's plug-in incumbent: the lowest posterior mean among the evaluated
+            # settings. min(S) of noisy estimates is optimistic (the luckiest estimate), so EI
+            # against it undervalues settings near the real best.
+            best_observed = float(np.min(gp.predict_mean(self._now(self._evaluation_units()))))
+        else:
+            best_observed = min(e.mean for e in self._evaluations)  # min(S), seed 000 §II.B
         A_u, b_u = self.space.unit_constraints()
         cand = self.space.sample_unit(self.config.n_candidates, self._rng)
         d = self.space.dim
