@@ -245,8 +245,9 @@ def _cmd_hil(args: argparse.Namespace) -> int:
     command = (f"hilbo bench hil --subjects {args.subjects} --seed {args.seed} --spaces {','.join(spaces)} "
                f"--methods {','.join(methods)} --minutes {args.minutes:g} --warmup-s {args.warmup_s:g} "
                f"--condition-s {args.condition_s:g} --popsize {args.popsize} --sigma0 {args.sigma0:g} "
-               f"--penalty-w {args.penalty_w:g} --n-explore {args.n_explore} "
-               f"--max-breaths {args.max_breaths} --window {args.window} --grid-min {args.grid_min:g} "
+               f"--penalty-w {args.penalty_w:g} "
+               + ("" if args.n_explore is None else f"--n-explore {args.n_explore} ")
+               + f"--max-breaths {args.max_breaths} --window {args.window} --grid-min {args.grid_min:g} "
                f"--wearer {args.wearer} "
                + (f"--tuned-k {args.tuned_k} --tune-subjects {args.tune_subjects} --tune-seed "
                   f"{args.tune_seed} --error-weight {args.error_weight:g} "
@@ -462,7 +463,8 @@ def add_bench_parser(subparsers: Any) -> Any:
     hil.add_argument("--sigma0", type=float, default=0.25, help="CMA-ES initial step in the unit cube (0.25)")
     hil.add_argument("--penalty-w", type=float, default=500.0,
                      help="CMA-ES constraint penalty, W per squared unit-cube distance (500)")
-    hil.add_argument("--n-explore", type=_int, default=6, help="BO exploration points (6)")
+    hil.add_argument("--n-explore", type=_int, default=None,
+                     help="BO exploration points (default: each method's protocol's: sound 3, the seed's 6)")
     hil.add_argument("--max-breaths", type=_int, default=45, help="BO's N (45)")
     hil.add_argument("--window", type=_int, default=2, help="BO's window W (2)")
     hil.add_argument("--grid-min", type=float, default=1.0, help="minutes grid of the summary (1)")

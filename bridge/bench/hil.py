@@ -82,7 +82,14 @@ from hilbo_core.metabolic import MetabolicUKF
 from hilbo_core.optimizer import HILOptimizer, OptimizerConfig
 from hilbo_core.presets import PRESETS, preset
 from hilbo_core.priors import priors_from_evaluations
-from hilbo_core.protocol import ActionKind, SessionPhase, SessionProtocol, SessionProtocolConfig
+from hilbo_core.protocol import (
+    ActionKind,
+    ProtocolKind,
+    SessionPhase,
+    SessionProtocol,
+    SessionProtocolConfig,
+    protocol_preset,
+)
 from hilbo_core.space import ParameterSpace
 
 __all__ = [
@@ -146,7 +153,9 @@ class HilProtocol:
     Attributes:
         minutes: Session length on the breath clock, warm-ups included.
         warmup_s: Each of the two unassisted warm-ups (s).
-        n_explore: BO exploration points (bout 1).
+        n_explore: BO exploration points (bout 1); None (default): each method's protocol's
+            (``sound``: the fast protocol's 3; the seed's rules and the seed-003 methods: 6,
+            :attr:`explore_points`).
         max_breaths: BO's N.
         window: Algorithm 2's W.
         condition_s: CMA-ES and random-search condition length (s).
@@ -162,7 +171,7 @@ class HilProtocol:
 
     minutes: float = 60.0
     warmup_s: float = SessionProtocolConfig.warmup_s
-    n_explore: int = OptimizerConfig.n_explore
+    n_explore: int | None = None
     max_breaths: int = OptimizerConfig.max_breaths
     window: int = OptimizerConfig.window
     condition_s: float = 120.0
@@ -178,6 +187,8 @@ class HilProtocol:
         for name, low in (("n_explore", 1), ("max_breaths", 2), ("window", 0), ("popsize", 2),
                           ("bout1_conditions", 0)):
             v = getattr(self, name)
+            if name == "n_explore" and v is None:
+                continue
             if isinstance(v, bool) or not isinstance(v, int) or v < low:
                 raise ConfigError(f"{name}={v!r}; expected an integer >= {low}")
         for name in ("minutes", "condition_s", "sigma0", "grid_min"):
@@ -194,11 +205,11 @@ class HilProtocol:
         # The exploration bout at the slowest mean breathing of the wearer population.
         slowest_s = (WearerConfig().breath_interval_s[1] if self.wearer == WearerKind.LEGACY.value
                      else RealisticWearerConfig().breath_interval_s[1])
-        explore_s = self.n_explore * self.max_breaths * slowest_s
+        explore_s = self.explore_points * self.max_breaths * slowest_s
         if 2 * self.warmup_s + explore_s >= session_s:
             raise ConfigError(
                 f"minutes={self.minutes:g} is too short: the warm-ups ({2 * self.warmup_s / 60:g} min) "
-                f"and the BO exploration ({self.n_explore} × {self.max_breaths} breaths, up to "
+                f"and the BO exploration ({self.explore_points} × {self.max_breaths} breaths, up to "
                 f"{explore_s / 60:.1f} min) leave no optimisation time; give minutes > "
                 f"{math.ceil((2 * self.warmup_s + explore_s) / 60)}"
             )
@@ -207,6 +218,13 @@ class HilProtocol:
                 f"minutes={self.minutes:g} is too short for the warm-ups and "
                 f"{self.bout1_conditions + 1} conditions of {self.condition_s:g} s"
             )
+
+    @property
+    def explore_points(self) -> int:
+        """``n_explore``, else the seed protocol's (the most any method explores)."""
+        if self.n_explore is not None:
+            return self.n_explore
+        return int(protocol_preset(ProtocolKind.SEED)[1]["n_explore"])
 
     def to_json(self) -> dict[str, Any]:
         """JSON-able form."""
@@ -497,7 +515,7 @@ def _run_random(task: HilTask) -> dict[str, Any]:
 
 def _thesis_arm(task: HilTask) -> Arm:
     proto, m = task.protocol, task.method
-    base = {"n_explore": proto.n_explore, "window": proto.window}
+    base = {"n_explore": proto.explore_points, "window": proto.window}
     return {
         "adaptive-day2": lambda: Arm(m, day=2, **base),
         "adaptive-prior": lambda: Arm(m, day=2, prior=True, **base),
@@ -521,7 +539,7 @@ def _run_thesis(task: HilTask) -> dict[str, Any]:
     priors: list[Any] = []
     if arm.prior:
         # Day 1: the `adaptive` session of this subject (same protocol, seed, breath stream).
-        day1 = run_session(task.seed, Arm("day1", n_explore=task.protocol.n_explore,
+        day1 = run_session(task.seed, Arm("day1", n_explore=task.protocol.explore_points,
                                           window=task.protocol.window), **kwargs)
         priors = priors_from_evaluations(preset(task.space), day1["evaluations"],
                                          label=f"day1 seed {task.seed}")
@@ -552,7 +570,7 @@ def run_training_session(task: HilTask) -> list[list[list[float]]]:
     """
     blas_threads(1)
     proto = task.protocol
-    r = run_session(task.seed, Arm("train", n_explore=proto.n_explore, window=proto.window),
+    r = run_session(task.seed, Arm("train", n_explore=proto.explore_points, window=proto.window),
                     **_session_kwargs(task))
     return r["trajectories"]
 
@@ -589,7 +607,7 @@ def tune_constant_k(trajectories: Sequence[Sequence[Sequence[float]]], protocol:
         raise ConfigError(f"pick={pick!r}; expected 'bo' (BO-RESAMPLE) or 'grid' (exhaustive grid)")
     N = protocol.max_breaths
     cfg = TuneStoppingConfig(family="k", n_max=N, error_weight=error_weight,
-                             reference_window=min(protocol.window, N - 1), n_explore=protocol.n_explore,
+                             reference_window=min(protocol.window, N - 1), n_explore=protocol.explore_points,
                              n_real=n_real, seed=seed)
     tuned = tune_stopping([np.asarray(t, dtype=float) for t in trajectories], cfg)
     k = tuned["recommended"]["k"] if pick == "bo" else tuned["grid_best"]["k"]

@@ -41,7 +41,7 @@ class SimConfig:
         seed: Seeds the wearer (the subject) and the optimizer.
         speed: ``None`` for as fast as possible, else the real-time factor (1 = real time).
         preset: Parameter-space preset name.
-        n_explore: Exploration points.
+        n_explore: Exploration points; None: the protocol's (fast 3, seed 6).
         max_breaths: N, the maximum breaths per evaluation.
         window: Algorithm 2's window W.
         warmup_s: Warm-up at the start of each bout, without assistance (seed: 3 min).
@@ -64,7 +64,7 @@ class SimConfig:
     seed: int = 1
     speed: float | None = None
     preset: str = "hip_6d"
-    n_explore: int = OptimizerConfig.n_explore
+    n_explore: int | None = None
     max_breaths: int = OptimizerConfig.max_breaths
     window: int = OptimizerConfig.window
     warmup_s: float = SessionProtocolConfig.warmup_s
@@ -89,18 +89,26 @@ class SimConfig:
 
     def protocol_config(self) -> SessionProtocolConfig:
         """The session's protocol: ``minutes`` of walking in all, no pause between the bouts."""
+        named, _ = protocol_preset(self.protocol)
         fields: dict[str, Any] = {
-            "warmup_s": self.warmup_s, "n_explore": self.n_explore, "max_breaths": self.max_breaths,
+            **named, "warmup_s": self.warmup_s, "max_breaths": self.max_breaths,
             "session_s": self.minutes * 60.0, "budget_s": None, "pause_between_bouts": False,
-            **protocol_preset(self.protocol)[0], **dict(self.protocol_options)}
+            "n_explore": self.explore_points, **dict(self.protocol_options)}
         return SessionProtocolConfig(**fields)
+
+    @property
+    def explore_points(self) -> int:
+        """``n_explore``, else the protocol's."""
+        if self.n_explore is not None:
+            return self.n_explore
+        return int(protocol_preset(self.protocol)[1]["n_explore"])
 
     def optimizer_config(self) -> OptimizerConfig:
         """The session's optimizer: no budget of its own (the protocol ends the session)."""
         fields: dict[str, Any] = {
-            "n_explore": self.n_explore, "max_breaths": self.max_breaths, "window": self.window,
-            "stopping": self.stopping, "seed": self.seed, "refit_lag": 1 if self.refit == "ahead" else 0,
-            **protocol_preset(self.protocol)[1], **dict(self.options)}
+            **protocol_preset(self.protocol)[1], "n_explore": self.explore_points,
+            "max_breaths": self.max_breaths, "window": self.window, "stopping": self.stopping,
+            "seed": self.seed, "refit_lag": 1 if self.refit == "ahead" else 0, **dict(self.options)}
         return OptimizerConfig(**fields)
 
 
@@ -236,7 +244,7 @@ def run_insim(
         "end_reason": None if protocol.end_reason is None else protocol.end_reason.value,
         "thresholds": None if opt.thresholds is None else opt.thresholds.tolist(),
         "config": {"minutes": cfg.minutes, "seed": cfg.seed, "preset": cfg.preset,
-                   "n_explore": cfg.n_explore, "max_breaths": cfg.max_breaths,
+                   "n_explore": cfg.explore_points, "max_breaths": cfg.max_breaths,
                    "window": cfg.window, "warmup_s": cfg.warmup_s, "stopping": cfg.stopping,
                    "wearer": cfg.wearer, "protocol": cfg.protocol,
                    "speed": "max" if cfg.speed is None else cfg.speed},

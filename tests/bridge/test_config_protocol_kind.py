@@ -17,19 +17,25 @@ def test_the_example_runs_the_fast_protocol() -> None:
     pr = parse_config(example_config_text()).protocol
     assert pr.protocol_kind is ProtocolKind.FAST
     sp = pr.session_protocol_config()
-    assert sp.confirm_s == 240.0 and not sp.warmup_without_pause
-    assert pr.optimizer_config().explore_rel_sd == 0.04
+    assert sp.confirm_s == 240.0 and not sp.warmup_without_pause and not sp.pause_between_bouts
+    assert sp.n_explore == pr.optimizer_config().n_explore == 3
+    assert pr.optimizer_config().explore_rel_sd is None
 
 
 def test_the_seed_protocol_by_name_and_by_the_seeds_rules() -> None:
+    # The protocol's values where the config does not give them (the example gives the fast ones).
+    example = example_config_text()
+    for key in ("n_explore", "pause_between_bouts"):
+        example = "\n".join(line for line in example.splitlines() if not line.startswith(key))
     for extra in ('protocol = "seed"\n', ''):
-        text = example_config_text().replace('protocol = "fast"', extra.strip() or "")
+        text = example.replace('protocol = "fast"', extra.strip() or "")
         if not extra:
             text = text.replace('stopping = "sound"', 'stopping = "adaptive"')
         pr = parse_config(text).protocol
         assert pr.protocol_kind is ProtocolKind.SEED
         sp = pr.session_protocol_config()
-        assert sp.confirm_s is None and sp.warmup_without_pause
+        assert sp.confirm_s is None and sp.warmup_without_pause and sp.pause_between_bouts
+        assert sp.n_explore == pr.optimizer_config().n_explore == 6
         assert pr.optimizer_config().explore_rel_sd is None
 
 

@@ -25,8 +25,9 @@ OPT_U = np.array([0.2, 0.5, 0.7, 0.6, 0.5, 0.5])
 
 
 def _config(kind: str, **kw) -> SessionProtocolConfig:
-    opts = {"warmup_s": 30.0, "n_explore": 2, "max_breaths": 5, "session_s": 600.0, "budget_s": None,
-            "pause_between_bouts": False, **protocol_preset(kind)[0]}
+    # The protocol's values, then the test's (no pause: a simulation walks on).
+    opts = {**protocol_preset(kind)[0], "warmup_s": 30.0, "n_explore": 2, "max_breaths": 5,
+            "session_s": 600.0, "budget_s": None, "pause_between_bouts": False}
     opts.update(kw)
     return SessionProtocolConfig(**opts)
 
@@ -60,10 +61,13 @@ def test_the_fast_protocol_walks_on_into_the_optimisation_without_a_second_warm_
 
 
 def test_protocol_presets_and_a_bad_name() -> None:
-    assert protocol_preset("fast") == ({"warmup_without_pause": False, "confirm_s": 240.0},
-                                       {"explore_rel_sd": 0.04})
-    assert protocol_preset(ProtocolKind.SEED) == ({"warmup_without_pause": True, "confirm_s": None},
-                                                  {"explore_rel_sd": None})
+    assert protocol_preset("fast") == (
+        {"n_explore": 3, "pause_between_bouts": False, "warmup_without_pause": False, "confirm_s": 240.0},
+        {"n_explore": 3, "explore_rel_sd": None})
+    # Kim et al. 2019 §IV.A.3: 6 exploration settings, a pause and a warm-up before each bout.
+    assert protocol_preset(ProtocolKind.SEED) == (
+        {"n_explore": 6, "pause_between_bouts": True, "warmup_without_pause": True, "confirm_s": None},
+        {"n_explore": 6, "explore_rel_sd": None})
     with pytest.raises(ConfigError, match=r"protocol='quick'; expected one of \['fast', 'seed'\]"):
         protocol_preset("quick")
     with pytest.raises(ConfigError, match="confirm_s"):
