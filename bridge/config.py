@@ -1166,8 +1166,11 @@ def _expected_end_text(pr: ProtocolConfig) -> str:
                 f"(session_min; pauses count), unless the optimisation budget is spent first")
     latest = ("" if pr.session_min is None else
               f"; at the latest at the first breath past {pr.session_min:g} min (session_min)")
-    return (f"about {end_s / 60:.0f} min of walking after the first breath (2 warm-ups of "
-            f"{pr.warmup_s / 60:g} min, exploration ~{explore_min:.0f} min at "
+    sp = pr.session_protocol_config()
+    warm_ups = 2 if sp.pause_between_bouts or sp.warmup_without_pause else 1
+    return (f"about {end_s / 60:.0f} min of walking after the first breath ({warm_ups} warm-up"
+            f"{'s' if warm_ups > 1 else ''} of {pr.warmup_s / 60:g} min, "
+            f"exploration ~{explore_min:.0f} min at "
             f"{DEFAULT_BREATH_INTERVAL_S:g} s per breath, then the optimisation budget"
             f"{', plus the pause between the bouts' if pr.pauses_between_bouts else ''}){latest}")
 
@@ -1195,11 +1198,15 @@ def summarize(cfg: HilboConfig) -> str:
         f"space     {origin}: {params}",
         f"          constraints: {'; '.join(k.describe() for k in sp.constraints) or 'none'}"
         + (f"; derived: {'; '.join(d.text or d.name for d in sp.derived)}" if sp.derived else ""),
-        f"protocol  warm-up {pr.warmup_s:g} s per bout; exploration {pr.explore_points} settings x "
+        f"protocol  {pr.protocol_kind.value}: warm-up {pr.warmup_s:g} s"
+        f"{'' if pr.session_protocol_config().warmup_without_pause or pr.pauses_between_bouts else ' (once)'}"
+        f"; exploration {pr.explore_points} settings x "
         f"{pr.max_breaths} breaths ({DesignKind(pr.optimizer_config().design).value} design); "
         f"optimisation budget {budget}; {pr.stopping.value} stopping "
         f"(W = {pr.window}{_sound_text(pr)}); {pr.kernel.value} kernel, xi = {pr.xi:g}, seed {pr.seed}; "
-        f"{'pause' if pr.pauses_between_bouts else 'no pause'} between bouts",
+        f"{'pause' if pr.pauses_between_bouts else 'no pause'} between bouts; "
+        + (f"the last {pr.session_protocol_config().confirm_s / 60:g} min confirm the recommendation"
+           if pr.session_protocol_config().confirm_s else "no confirmation"),
         f"          expected end {_expected_end_text(pr)}",
         f"cart      {cfg.cart.transport}, {cfg.cart.format.value}",
         f"can       {c.bus.interface}:{c.bus.channel}, bitrate {c.bus.bitrate}, heartbeat "
