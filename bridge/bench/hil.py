@@ -119,7 +119,8 @@ THESIS_METHODS: tuple[str, ...] = ("adaptive-day2", *PRIOR_METHODS, "adaptive-fe
 """The seed-003 methods (module docstring)."""
 HIL_METHODS: tuple[str, ...] = (*DEFAULT_HIL_METHODS, "adaptive-ahead", *THESIS_METHODS,
                                  "sound-seed", "sound-seed-global", "sound-seed-confirm",
-                                 "sound-fast-noconfirm")
+                                 "sound-fast-noconfirm", "sound-e6", "sound-e4", "sound-explore-sd",
+                                 "sound-nei")
 _PRIOR_E3 = 3  # exploration points of adaptive-prior-e3 (docs/results_thesis.md §2)
 _BO_METHODS = ("sound", "adaptive", "fixed")
 # How each BO method runs in run_insim: (stopping rule, walking protocol, optimizer options,
@@ -139,6 +140,13 @@ _BO_VARIANTS: dict[str, tuple[str, str, tuple[tuple[str, Any], ...], tuple[tuple
     "sound-seed-confirm": ("sound", "seed", (), (("confirm_s", 240.0),)),
     # the fast protocol without the confirmation
     "sound-fast-noconfirm": ("sound", "fast", (), (("confirm_s", None),)),
+    # the fast protocol's other candidates: 6 or 4 exploration settings of N breaths; 6 ended
+    # once their SD is 4 % of the estimate; 6 with EI against the lowest posterior mean
+    "sound-e6": ("sound", "fast", (("n_explore", 6),), (("n_explore", 6),)),
+    "sound-e4": ("sound", "fast", (("n_explore", 4),), (("n_explore", 4),)),
+    "sound-explore-sd": ("sound", "fast", (("n_explore", 6), ("explore_rel_sd", 0.04)),
+                         (("n_explore", 6),)),
+    "sound-nei": ("sound", "fast", (("n_explore", 6), ("ei_best", "posterior")), (("n_explore", 6),)),
 }
 ABLATION_METHODS: tuple[str, ...] = tuple(m for m in _BO_VARIANTS if m.startswith("sound-"))
 """The default's ablations (``--methods sound-seed,...``)."""
