@@ -52,8 +52,9 @@ class SimConfig:
         wearer: The simulated wearer (:class:`virtual_hw.wearer.WearerKind` value): ``realistic``
             (default), ``noisy`` or ``legacy``.
         protocol: The walking protocol (:class:`hilbo_core.protocol.ProtocolKind` value):
-            ``fast`` (default: one warm-up, exploration settings ended once precise, the
-            recommendation confirmed in the last minutes) or ``seed`` (Kim et al. 2019's).
+            ``fast`` (one warm-up, 3 exploration settings, the recommendation confirmed in the
+            last minutes) or ``seed`` (Kim et al. 2019's); None (default): ``fast`` with the
+            sound rule, ``seed`` with the seed's rules (as ``[protocol] protocol``).
         options: Further :class:`~hilbo_core.optimizer.OptimizerConfig` fields (benchmark
             variants), applied after the protocol's.
         protocol_options: Further :class:`~hilbo_core.protocol.SessionProtocolConfig` fields
@@ -71,13 +72,14 @@ class SimConfig:
     stopping: str = "sound"
     refit: str = "at_proposal"
     wearer: str = WearerKind.REALISTIC.value
-    protocol: str = ProtocolKind.FAST.value
+    protocol: str | None = None
     options: tuple[tuple[str, Any], ...] = ()
     protocol_options: tuple[tuple[str, Any], ...] = ()
 
     def __post_init__(self) -> None:
         wearer_kind(self.wearer)  # raises ConfigError naming the value and the choices
-        protocol_preset(self.protocol)  # the same for the protocol's name
+        if self.protocol is not None:
+            protocol_preset(self.protocol)  # the same for the protocol's name
         if not (math.isfinite(self.minutes) and 0 < self.minutes <= 600):
             raise ConfigError(f"minutes={self.minutes!r}; expected a number in (0, 600]")
         if self.speed is not None and not (math.isfinite(self.speed) and self.speed > 0):
@@ -89,7 +91,7 @@ class SimConfig:
 
     def protocol_config(self) -> SessionProtocolConfig:
         """The session's protocol: ``minutes`` of walking in all, no pause between the bouts."""
-        named, _ = protocol_preset(self.protocol)
+        named, _ = protocol_preset(self.walking_protocol)
         fields: dict[str, Any] = {
             **named, "warmup_s": self.warmup_s, "max_breaths": self.max_breaths,
             "session_s": self.minutes * 60.0, "budget_s": None, "pause_between_bouts": False,
@@ -97,16 +99,23 @@ class SimConfig:
         return SessionProtocolConfig(**fields)
 
     @property
+    def walking_protocol(self) -> ProtocolKind:
+        """``protocol``, else ``fast`` with the sound rule and ``seed`` with the seed's rules."""
+        if self.protocol is not None:
+            return ProtocolKind(self.protocol)
+        return ProtocolKind.FAST if self.stopping == "sound" else ProtocolKind.SEED
+
+    @property
     def explore_points(self) -> int:
         """``n_explore``, else the protocol's."""
         if self.n_explore is not None:
             return self.n_explore
-        return int(protocol_preset(self.protocol)[1]["n_explore"])
+        return int(protocol_preset(self.walking_protocol)[1]["n_explore"])
 
     def optimizer_config(self) -> OptimizerConfig:
         """The session's optimizer: no budget of its own (the protocol ends the session)."""
         fields: dict[str, Any] = {
-            **protocol_preset(self.protocol)[1], "n_explore": self.explore_points,
+            **protocol_preset(self.walking_protocol)[1], "n_explore": self.explore_points,
             "max_breaths": self.max_breaths, "window": self.window, "stopping": self.stopping,
             "seed": self.seed, "refit_lag": 1 if self.refit == "ahead" else 0, **dict(self.options)}
         return OptimizerConfig(**fields)
@@ -246,7 +255,7 @@ def run_insim(
         "config": {"minutes": cfg.minutes, "seed": cfg.seed, "preset": cfg.preset,
                    "n_explore": cfg.explore_points, "max_breaths": cfg.max_breaths,
                    "window": cfg.window, "warmup_s": cfg.warmup_s, "stopping": cfg.stopping,
-                   "wearer": cfg.wearer, "protocol": cfg.protocol,
+                   "wearer": cfg.wearer, "protocol": cfg.walking_protocol.value,
                    "speed": "max" if cfg.speed is None else cfg.speed},
         "wall_time_s": time.perf_counter() - wall0,
     }
