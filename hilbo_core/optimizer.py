@@ -125,7 +125,7 @@ class StoppingKind(enum.Enum):
 class EIBestKind(enum.Enum):
     """The incumbent value Expected Improvement improves on."""
 
-    OBSERVED = "observed"  # min(S): the lowest estimate (seed 000 §II.B)
+    OBSERVED = "observed"  # min(S): the lowest estimate (Kim et al. 2019 §II.B)
     POSTERIOR = "posterior"  # the lowest GP posterior mean among the evaluated settings (noisy EI)
 
 
@@ -1172,7 +1172,7 @@ class HILOptimizer:
             # against it undervalues settings near the real best.
             best_observed = float(np.min(gp.predict_mean(self._now(self._evaluation_units()))))
         else:
-            best_observed = min(e.mean for e in self._evaluations)  # min(S), seed 000 §II.B
+            best_observed = min(e.mean for e in self._evaluations)  # min(S), Kim et al. 2019 §II.B
         A_u, b_u = self.space.unit_constraints()
         cand = self.space.sample_unit(self.config.n_candidates, self._rng)
         d = self.space.dim
