@@ -480,7 +480,10 @@ def stopping_trial(
         estimator_factory=estimator_factory(fn, level, proto.noise_estimate),
         n_explore=proto.n_explore, max_breaths=proto.max_breaths, window=proto.window,
         budget_breaths=proto.budget, seed=int(seed), n_candidates=proto.n_candidates,
-        n_local=proto.n_local, design=proto.design, **dict(meth.options),
+        n_local=proto.n_local, design=proto.design,
+        # The study's x_t is the GP's estimated minimum among the evaluated points (§III.2), for
+        # every method alike: x_0 is then the same for all of them.
+        **{"recommend": "seed", **dict(meth.options)},
     )
     rng = np.random.default_rng([int(seed), _NOISE_STREAM])
     y = np.full(proto.budget + 1, np.nan)
