@@ -90,7 +90,13 @@ from hilbo_core.priors import (
     priors_from_rows,
 )
 from hilbo_core.profiles import PROFILE_BUILDERS, build_profile
-from hilbo_core.protocol import DEFAULT_BREATH_INTERVAL_S, SessionProtocolConfig, expected_end_s
+from hilbo_core.protocol import (
+    DEFAULT_BREATH_INTERVAL_S,
+    ProtocolKind,
+    SessionProtocolConfig,
+    expected_end_s,
+    protocol_preset,
+)
 from hilbo_core.space import DerivedParameter, DesignKind, LinearConstraint, Parameter, ParameterSpace
 
 __all__ = [
@@ -345,7 +351,7 @@ class ProtocolConfig:
 
     Attributes:
         warmup_s: Walking before the first measured breath of each bout (s), 0–1800.
-        n_explore: Exploration settings E, 1–200.
+        n_explore: Exploration settings E, 1–200; absent: the protocol's (fast 3, seed 6).
         max_breaths: Breaths per evaluation at most (N), 2–1000.
         window: Algorithm 2's window W in breaths, 0..N−1.
         budget_min: Optimisation-bout budget in minutes of walking from the end of the bout's
@@ -376,7 +382,20 @@ class ProtocolConfig:
         kernel: ``matern52`` or ``se``.
         n_candidates: Feasible Sobol candidates per acquisition maximisation.
         n_local: Candidates refined locally per acquisition maximisation.
-        pause_between_bouts: Pause for the operator between the bouts.
+        pause_between_bouts: Pause for the operator between the bouts; absent: the protocol's
+            (fast: no, one continuous walk; seed: yes).
+        protocol: The walking protocol by name (:class:`hilbo_core.protocol.ProtocolKind`):
+            ``fast`` (default: the first optimisation proposal at about minute 10, one warm-up
+            when no pause separates the bouts, exploration settings ended once their estimate
+            is precise, the recommendation confirmed in the last minutes) or ``seed`` (Kim et
+            al. 2019 §IV.A.3: a warm-up before each bout, N breaths per exploration setting);
+            absent: ``fast`` with the sound rule, ``seed`` with the seed's rules (like ``design``).
+        confirm_min: Minutes at the session's end reserved to measure the recommended setting
+            in full ("recommended, confirmed at X ± Y W"), 0-120; 0: none; absent: the
+            protocol's (fast: 4, seed: none).
+        explore_rel_sd: Exploration settings end once their estimate's SD is at most this
+            fraction of it (after ``min_decision_s``), 0-0.5; 0 or absent: N breaths (both
+            protocols: ending them early cost regret on the realistic wearer).
         refit: When the GP hyperparameters are refitted: ``ahead`` (default: on the completed
             evaluations while the next setting is measured, so the proposal after a stop
             decision only conditions the GP on every observation and maximises EI; the
@@ -394,7 +413,7 @@ class ProtocolConfig:
     # The ranges are declared here (hilbo_core.config_model); window's upper bound is
     # max_breaths - 1 and the budgets are either-or, so _parse_protocol reads those three.
     warmup_s: float = number(SessionProtocolConfig.warmup_s, lo=0.0, hi=1800.0)
-    n_explore: int = integer(OptimizerConfig.n_explore, lo=1, hi=200)
+    n_explore: int | None = integer(None, lo=1, hi=200, optional=True)
     max_breaths: int = integer(OptimizerConfig.max_breaths, lo=2, hi=1000)
     window: int = OptimizerConfig.window
     budget_min: float | None = _DEFAULT_BUDGET_MIN
@@ -411,10 +430,35 @@ class ProtocolConfig:
     kernel: KernelKind = choice(KernelKind, OptimizerConfig.kernel)
     n_candidates: int = integer(OptimizerConfig.n_candidates, lo=16, hi=1_000_000)
     n_local: int = integer(OptimizerConfig.n_local, lo=0, hi=100)
-    pause_between_bouts: bool = boolean(SessionProtocolConfig.pause_between_bouts)
+    pause_between_bouts: bool | None = boolean(None, optional=True)
+    protocol: ProtocolKind | None = choice(ProtocolKind, None)
+    confirm_min: float | None = number(None, lo=0.0, hi=120.0, optional=True)
+    explore_rel_sd: float | None = number(None, lo=0.0, hi=0.5, optional=True)
     refit: RefitMode = choice(RefitMode, RefitMode.AHEAD)
     proposal_worker: WorkerKind = choice(WorkerKind, WorkerKind.PROCESS)
     gc: GcMode = choice(GcMode, GcMode.FREEZE)
+
+    @property
+    def protocol_kind(self) -> ProtocolKind:
+        """The walking protocol: ``protocol``, else ``fast`` with the sound rule and ``seed``
+        with the seed's rules (so ``adaptive`` and ``fixed`` stay the methods they were)."""
+        if self.protocol is not None:
+            return self.protocol
+        return ProtocolKind.FAST if self.stopping is StoppingKind.SOUND else ProtocolKind.SEED
+
+    @property
+    def explore_points(self) -> int:
+        """E: ``n_explore``, else the protocol's."""
+        if self.n_explore is not None:
+            return self.n_explore
+        return int(protocol_preset(self.protocol_kind)[1]["n_explore"])
+
+    @property
+    def pauses_between_bouts(self) -> bool:
+        """``pause_between_bouts``, else the protocol's."""
+        if self.pause_between_bouts is not None:
+            return self.pause_between_bouts
+        return bool(protocol_preset(self.protocol_kind)[0]["pause_between_bouts"])
 
     @property
     def budget_s(self) -> float | None:
@@ -423,11 +467,15 @@ class ProtocolConfig:
 
     def session_protocol_config(self) -> SessionProtocolConfig:
         """The :class:`hilbo_core.protocol.SessionProtocolConfig` of this protocol."""
-        return SessionProtocolConfig(
-            warmup_s=self.warmup_s, n_explore=self.n_explore, max_breaths=self.max_breaths,
+        named = protocol_preset(self.protocol_kind)[0]
+        if self.confirm_min is not None:  # 0: no confirmation
+            named["confirm_s"] = 60.0 * self.confirm_min if self.confirm_min > 0 else None
+        named.update(
+            warmup_s=self.warmup_s, n_explore=self.explore_points, max_breaths=self.max_breaths,
             session_s=None if self.session_min is None else 60.0 * self.session_min, budget_s=self.budget_s,
-            budget_breaths=self.budget_breaths, pause_between_bouts=self.pause_between_bouts,
+            budget_breaths=self.budget_breaths, pause_between_bouts=self.pauses_between_bouts,
         )
+        return SessionProtocolConfig(**named)
 
     def optimizer_config(self, *, with_budget: bool = True) -> OptimizerConfig:
         """The :class:`hilbo_core.optimizer.OptimizerConfig` of this protocol.
@@ -438,8 +486,12 @@ class ProtocolConfig:
                 :class:`hilbo_core.protocol.SessionProtocol`, which ends the session on walking
                 time (:meth:`session_protocol_config`).
         """
+        named = protocol_preset(self.protocol_kind)[1]
+        if self.explore_rel_sd is not None:  # 0: every exploration setting measured for N breaths
+            named["explore_rel_sd"] = self.explore_rel_sd if self.explore_rel_sd > 0 else None
+        named["n_explore"] = self.explore_points
         return OptimizerConfig(
-            n_explore=self.n_explore, max_breaths=self.max_breaths, window=self.window,
+            **named, max_breaths=self.max_breaths, window=self.window,
             budget_s=self.budget_s if with_budget else None,
             budget_breaths=self.budget_breaths if with_budget else None, stopping=self.stopping,
             min_decision_s=self.min_decision_s, a_floor=self.a_floor,
@@ -1226,16 +1278,19 @@ def example_config_text() -> str:
 def _expected_end_text(pr: ProtocolConfig) -> str:
     """When the session should end, in minutes of walking after its first breath."""
     end_s = expected_end_s(pr.session_protocol_config(), breath_interval_s=DEFAULT_BREATH_INTERVAL_S)
-    explore_min = pr.n_explore * pr.max_breaths * DEFAULT_BREATH_INTERVAL_S / 60.0
+    explore_min = pr.explore_points * pr.max_breaths * DEFAULT_BREATH_INTERVAL_S / 60.0
     if pr.session_min is not None and end_s >= 60.0 * pr.session_min:
         return (f"at the first breath past {pr.session_min:g} min of walking after the first breath "
                 f"(session_min; pauses count), unless the optimisation budget is spent first")
     latest = ("" if pr.session_min is None else
               f"; at the latest at the first breath past {pr.session_min:g} min (session_min)")
-    return (f"about {end_s / 60:.0f} min of walking after the first breath (2 warm-ups of "
-            f"{pr.warmup_s / 60:g} min, exploration ~{explore_min:.0f} min at "
+    sp = pr.session_protocol_config()
+    warm_ups = 2 if sp.pause_between_bouts or sp.warmup_without_pause else 1
+    return (f"about {end_s / 60:.0f} min of walking after the first breath ({warm_ups} warm-up"
+            f"{'s' if warm_ups > 1 else ''} of {pr.warmup_s / 60:g} min, "
+            f"exploration ~{explore_min:.0f} min at "
             f"{DEFAULT_BREATH_INTERVAL_S:g} s per breath, then the optimisation budget"
-            f"{', plus the pause between the bouts' if pr.pause_between_bouts else ''}){latest}")
+            f"{', plus the pause between the bouts' if pr.pauses_between_bouts else ''}){latest}")
 
 
 def _sound_text(pr: ProtocolConfig) -> str:
@@ -1262,11 +1317,15 @@ def summarize(cfg: HilboConfig) -> str:
         f"space     {origin}: {params}",
         f"          constraints: {'; '.join(k.describe() for k in sp.constraints) or 'none'}"
         + (f"; derived: {'; '.join(d.text or d.name for d in sp.derived)}" if sp.derived else ""),
-        f"protocol  warm-up {pr.warmup_s:g} s per bout; exploration {pr.n_explore} settings x "
+        f"protocol  {pr.protocol_kind.value}: warm-up {pr.warmup_s:g} s"
+        f"{'' if pr.session_protocol_config().warmup_without_pause or pr.pauses_between_bouts else ' (once)'}"
+        f"; exploration {pr.explore_points} settings x "
         f"{pr.max_breaths} breaths ({DesignKind(pr.optimizer_config().design).value} design); "
         f"optimisation budget {budget}; {pr.stopping.value} stopping "
         f"(W = {pr.window}{_sound_text(pr)}); {pr.kernel.value} kernel, xi = {pr.xi:g}, seed {pr.seed}; "
-        f"{'pause' if pr.pause_between_bouts else 'no pause'} between bouts",
+        f"{'pause' if pr.pauses_between_bouts else 'no pause'} between bouts; "
+        + (f"the last {pr.session_protocol_config().confirm_s / 60:g} min confirm the recommendation"
+           if pr.session_protocol_config().confirm_s else "no confirmation"),
         f"          expected end {_expected_end_text(pr)}",
         f"cart      {cfg.cart.transport}, {cfg.cart.format.value}",
         f"can       {c.bus.interface}:{c.bus.channel}, bitrate {c.bus.bitrate}, heartbeat "

@@ -130,6 +130,7 @@ def _same_setting(a: Mapping[str, float], b: Mapping[str, float]) -> bool:
 
 
 _METHOD_TEXT = {
+    "global": "lowest GP posterior mean + 1 SD over the whole feasible set, from all {n} evaluations",
     "posterior": "GP posterior over all {n} evaluations",
     "seed": "the evaluation's own estimate at the GP's estimated minimum ({n} evaluations)",
 }

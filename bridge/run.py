@@ -201,7 +201,7 @@ async def run_session(
         used = opt.budget_used
         protocol = SessionProtocol.resumed(
             cfg.protocol.session_protocol_config(),
-            n_explored=min(len(opt.evaluations), cfg.protocol.n_explore),
+            n_explored=min(len(opt.evaluations), cfg.protocol.explore_points),
             session_used_s=_walked_lower_bound(opt.evaluations, cfg.protocol.warmup_s),
             optimization_used_s=float(used["seconds"]), optimization_used_breaths=int(used["breaths"]))
         logger.info("resuming %s: %d evaluations recovered", resume, info.n_evaluations)

@@ -546,6 +546,8 @@ class BridgeSession:
             out["recommendation"] = recommendation(
                 params, mean, var, evaluations=[e.to_json() for e in self.opt.evaluations],
                 method=self.opt.config.recommend.value, units=self.opt.space.units)
+        conf = self.opt.confirmation  # the recommendation measured in full at the end
+        out["confirmation"] = None if conf is None else conf.to_json()
         return out
 
     # ------------------------------------------------------------------ main protocol
@@ -798,6 +800,11 @@ class BridgeSession:
         applied unlogged: the ask then fits the hyperparameters itself, which a resume replays.
         """
         await self._collect_fit_ahead(apply=False)
+        if self.protocol.confirm_due and not self.opt.confirming and self.opt.begin_confirmation():
+            # The session's last minutes: the next ask freezes the recommendation (in the
+            # worker) and every setting from here on measures it in full.
+            self._event("confirmation", "the session's last minutes: measuring the recommended "
+                        "setting in full")
         return self._worker.start_ask(self.opt)
 
     async def _push(self, admitted: AdmittedProfile, version: int, index: int, *,

@@ -9,7 +9,8 @@ log φ(z) + log(1 + z·Φ(z)/φ(z)) with the Mills ratio Φ(z)/φ(z) = √(π/2)
 (cf. Ament et al., "Unexpected improvements to expected improvement", NeurIPS 2023).
 
 :func:`maximize_ei` evaluates log EI on many feasible candidates (the space's scrambled-Sobol set),
-then refines the best few with SLSQP under the box and the linear constraints A u ≤ b.
+then refines the best few with SLSQP under the box and the linear constraints A u ≤ b;
+:func:`minimize_lcb` finds the recommendation (lowest posterior mean + β·SD) the same way.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ __all__ = [
     "expected_improvement",
     "log_expected_improvement",
     "maximize_ei",
+    "minimize_lcb",
 ]
 
 _log = logging.getLogger(__name__)
@@ -202,6 +204,47 @@ def _check_predict(mean: np.ndarray, var: np.ndarray, m: int) -> tuple[np.ndarra
     return mean, var
 
 
+def _search_set(
+    candidates: np.ndarray, A_ub: np.ndarray | None, b_ub: np.ndarray | None, n_local: object,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, Callable[[np.ndarray], np.ndarray]]:
+    """Validated (candidates (n, d), A (k, d), b (k,), feasibility test) of a constrained search.
+
+    Raises:
+        ConfigError: Bad shapes or arguments.
+        InfeasibleError: A candidate violates the box or the constraints.
+    """
+    U = np.asarray(candidates, dtype=float)
+    if U.ndim != 2 or U.shape[0] < 1 or U.shape[1] < 1:
+        raise ConfigError(f"candidates must have shape (n, d) with n, d >= 1, got {U.shape}")
+    d = U.shape[1]
+    if not np.all(np.isfinite(U)):
+        raise ConfigError("candidates contain non-finite values")
+    if (A_ub is None) != (b_ub is None):
+        raise ConfigError("A_ub and b_ub must both be given or both be None")
+    A = np.zeros((0, d)) if A_ub is None else np.asarray(A_ub, dtype=float).reshape(-1, d)
+    b = np.zeros(0) if b_ub is None else np.asarray(b_ub, dtype=float).reshape(-1)
+    if A.shape[0] != b.size:
+        raise ConfigError(f"A_ub has {A.shape[0]} rows but b_ub has {b.size} entries")
+    if not (np.all(np.isfinite(A)) and np.all(np.isfinite(b))):
+        raise ConfigError("A_ub and b_ub must be finite")
+    if isinstance(n_local, bool) or not isinstance(n_local, int) or n_local < 0:
+        raise ConfigError(f"n_local must be an int >= 0, got {n_local!r}")
+
+    def feasible(V: np.ndarray) -> np.ndarray:
+        ok = np.all((V >= 0.0) & (V <= 1.0), axis=-1)
+        if A.shape[0]:
+            ok &= np.all(V @ A.T <= b + _FEAS_TOL, axis=-1)
+        return ok
+
+    bad = np.flatnonzero(~feasible(U))
+    if bad.size:
+        raise InfeasibleError(
+            f"candidate row {bad[0]} = {U[bad[0]].tolist()} is outside the unit cube or violates "
+            "A_ub u <= b_ub"
+        )
+    return U, A, b, feasible
+
+
 def maximize_ei(
     predict: PredictFn,
     best: float,
@@ -241,37 +284,10 @@ def maximize_ei(
         InfeasibleError: A candidate violates the box or the constraints.
         EstimatorError: ``predict`` returned non-finite values.
     """
-    U = np.asarray(candidates, dtype=float)
-    if U.ndim != 2 or U.shape[0] < 1 or U.shape[1] < 1:
-        raise ConfigError(f"candidates must have shape (n, d) with n, d >= 1, got {U.shape}")
+    U, A, b, feasible = _search_set(candidates, A_ub, b_ub, n_local)
     n, d = U.shape
-    if not np.all(np.isfinite(U)):
-        raise ConfigError("candidates contain non-finite values")
-    if (A_ub is None) != (b_ub is None):
-        raise ConfigError("A_ub and b_ub must both be given or both be None")
-    A = np.zeros((0, d)) if A_ub is None else np.asarray(A_ub, dtype=float).reshape(-1, d)
-    b = np.zeros(0) if b_ub is None else np.asarray(b_ub, dtype=float).reshape(-1)
-    if A.shape[0] != b.size:
-        raise ConfigError(f"A_ub has {A.shape[0]} rows but b_ub has {b.size} entries")
-    if not (np.all(np.isfinite(A)) and np.all(np.isfinite(b))):
-        raise ConfigError("A_ub and b_ub must be finite")
-    if isinstance(n_local, bool) or not isinstance(n_local, int) or n_local < 0:
-        raise ConfigError(f"n_local must be an int >= 0, got {n_local!r}")
     if not math.isfinite(best):
         raise ConfigError(f"best must be finite, got {best!r}")
-
-    def feasible(V: np.ndarray) -> np.ndarray:
-        ok = np.all((V >= 0.0) & (V <= 1.0), axis=-1)
-        if A.shape[0]:
-            ok &= np.all(V @ A.T <= b + _FEAS_TOL, axis=-1)
-        return ok
-
-    bad = np.flatnonzero(~feasible(U))
-    if bad.size:
-        raise InfeasibleError(
-            f"candidate row {bad[0]} = {U[bad[0]].tolist()} is outside the unit cube or violates "
-            "A_ub u <= b_ub"
-        )
 
     mean, var = _check_predict(*predict(U), n)
     log_ei = log_expected_improvement(mean, np.sqrt(var), best, xi)
@@ -326,3 +342,75 @@ def maximize_ei(
     m, v = _check_predict(*predict(best_u[None, :]), 1)
     ei = float(expected_improvement(m, np.sqrt(v), best, xi)[0])
     return best_u, ei
+
+
+def minimize_lcb(
+    predict: PredictFn,
+    beta: float,
+    *,
+    candidates: np.ndarray,
+    A_ub: np.ndarray | None,
+    b_ub: np.ndarray | None,
+    n_local: int = 3,
+    predict_grad: PredictGradFn | None = None,
+) -> np.ndarray:
+    """The feasible point of lowest ``μ̄(u) + β·σ̄(u)`` (a pessimistic bound on the cost).
+
+    The recommendation's criterion: the setting whose cost is, with the model's uncertainty, the
+    best bet (β = 0: the posterior mean's minimiser; β > 0 avoids settings the model knows
+    little about). Evaluated on every candidate; the ``n_local`` best are refined by SLSQP under
+    the box and the linear constraints, a refined point kept only if feasible and lower.
+
+    Args:
+        predict: U (m, d) → (mean (m,), var (m,)) of the latent cost.
+        beta: β >= 0, in posterior SDs.
+        candidates: Feasible unit-cube points, shape (n, d), n >= 1.
+        A_ub: Constraint matrix in unit-cube coordinates, shape (k, d), or None.
+        b_ub: Right-hand sides, shape (k,), or None.
+        n_local: Number of candidates refined locally (0 = candidates only).
+        predict_grad: Optional U → (mean, var, dmean (m, d), dvar (m, d)) for SLSQP gradients.
+
+    Returns:
+        u, shape (d,).
+
+    Raises:
+        ConfigError: Bad shapes or arguments (β negative or not finite).
+        InfeasibleError: A candidate violates the box or the constraints.
+        EstimatorError: ``predict`` returned non-finite values.
+    """
+    U, A, b, feasible = _search_set(candidates, A_ub, b_ub, n_local)
+    n, d = U.shape
+    if isinstance(beta, bool) or not (isinstance(beta, int | float) and math.isfinite(beta) and beta >= 0):
+        raise ConfigError(f"beta={beta!r}; expected a finite number >= 0")
+    mean, var = _check_predict(*predict(U), n)
+    score = mean + beta * np.sqrt(var)
+    ranked = np.argsort(score, kind="stable")
+    best_u, best_score = U[int(ranked[0])].copy(), float(score[int(ranked[0])])
+
+    def objective(u: np.ndarray) -> tuple[float, np.ndarray] | float:
+        x = np.clip(u, 0.0, 1.0)[None, :]
+        if predict_grad is None:
+            m, v = _check_predict(*predict(x), 1)
+            return float(m[0] + beta * math.sqrt(v[0]))
+        m, v, dm, dv = predict_grad(x)
+        m, v = _check_predict(m, v, 1)
+        sd = math.sqrt(max(float(v[0]), 1e-300))
+        grad = (np.asarray(dm, dtype=float).reshape(d)
+                + beta * np.asarray(dv, dtype=float).reshape(d) / (2.0 * sd))
+        return float(m[0]) + beta * sd, grad
+
+    constraints = (
+        [{"type": "ineq", "fun": lambda u: b - A @ u, "jac": lambda u: -A}] if A.shape[0] else []
+    )
+    for idx in ranked[:n_local]:
+        res = minimize(objective, U[idx], jac=predict_grad is not None, method="SLSQP",
+                       bounds=[(0.0, 1.0)] * d, constraints=constraints,
+                       options={"maxiter": 100, "ftol": 1e-7})
+        u = np.clip(np.asarray(res.x, dtype=float), 0.0, 1.0)
+        if not (np.all(np.isfinite(u)) and feasible(u)):
+            continue
+        m, v = _check_predict(*predict(u[None, :]), 1)
+        value = float(m[0] + beta * math.sqrt(v[0]))
+        if value < best_score:
+            best_u, best_score = u, value
+    return best_u

@@ -195,9 +195,9 @@ def choice(enum_cls: type[enum.Enum], default: Any = MISSING) -> Any:
     return _field(default, FieldSpec("choice", enum_cls=enum_cls))
 
 
-def boolean(default: Any = MISSING) -> Any:
-    """A ``true``/``false`` field."""
-    return _field(default, FieldSpec("boolean"))
+def boolean(default: Any = MISSING, *, optional: bool = False) -> Any:
+    """A ``true``/``false`` field; None if ``optional`` (absent: a default decided elsewhere)."""
+    return _field(default, FieldSpec("boolean", optional=optional))
 
 
 def string(default: Any = MISSING, *, non_empty: bool = True, optional: bool = False) -> Any:

@@ -63,7 +63,7 @@ from typing import Any
 
 import numpy as np
 
-from hilbo_core.acquisition import maximize_ei
+from hilbo_core.acquisition import maximize_ei, minimize_lcb
 from hilbo_core.errors import ConfigError, MeasurementError, OptimizerStateError
 from hilbo_core.estimation import EstimatorKind, StartState, TransitionEstimator
 from hilbo_core.gp import GaussianProcess, GPHyperparameters, KernelKind
@@ -82,6 +82,8 @@ from hilbo_core.stopping import (
 __all__ = [
     "DEFAULT_ACCEPT_Z",
     "BreathStep",
+    "Confirmation",
+    "EIBestKind",
     "EstimatorKind",
     "Evaluation",
     "HILOptimizer",
@@ -120,11 +122,24 @@ class StoppingKind(enum.Enum):
     FIXED = "fixed"  # always N breaths (fixed-interval BO, Kim et al. 2019's baseline)
 
 
+class EIBestKind(enum.Enum):
+    """The incumbent value Expected Improvement improves on."""
+
+    OBSERVED = "observed"  # min(S): the lowest estimate (Kim et al. 2019 §II.B)
+    POSTERIOR = "posterior"  # the lowest GP posterior mean among the evaluated settings (noisy EI)
+
+
 class RecommendKind(enum.Enum):
     """How :meth:`HILOptimizer.best` picks the recommended setting."""
 
-    # The default: among the evaluated settings, the lowest GP posterior mean
-    # plus recommend_beta posterior SDs, reported with the GP posterior there.
+    # The default with the sound rule: over the whole feasible set, the lowest GP posterior mean
+    # plus recommend_beta posterior SDs (acquisition.minimize_lcb), reported with the GP
+    # posterior there. Restricting the choice to measured settings costs the most: among ~30
+    # settings measured once with SD 7-10 W, where the good ones differ by 5-15 W, the one that
+    # looks best is mostly the luckiest (the winner's curse); the GP pools every measurement.
+    GLOBAL = "global"
+    # Among the evaluated settings, the lowest GP posterior mean plus recommend_beta posterior
+    # SDs, reported with the GP posterior there.
     POSTERIOR = "posterior"
     # Kim et al. 2019's: the lowest GP posterior mean, reported with that evaluation's own estimate.
     SEED = "seed"
@@ -155,14 +170,20 @@ class OptimizerConfig:
         gp_prior_stopping: With the sound rule, the candidate's estimate for the stop decision
             is the estimator's data-only estimate times the GP's predictive at x_t (the Bayesian
             early decision); the GP is still told the data-only part.
-        recommend: ``"posterior"`` or ``"seed"``, see :class:`RecommendKind`; None (default)
-            means ``"posterior"`` with the sound rule and ``"seed"`` with Kim et al. 2019's rules.
+        recommend: ``"global"``, ``"posterior"`` or ``"seed"``, see :class:`RecommendKind`;
+            None (default) means ``"global"`` with the sound rule and ``"seed"`` with the seed's
+            rules.
         recommend_beta: The posterior recommendation's penalty in posterior SDs (>= 0): a
-            setting measured for a few breaths only has a wide posterior and is not recommended
-            on the strength of a lucky estimate.
-        remeasure_best_s: With a time budget: once at most this many seconds of it remain,
-            measure the recommended setting again (once, for up to N breaths, no early stop) if
-            it has fewer than N breaths in total; None (default) never does.
+            setting measured for a few breaths only (or not at all) has a wide posterior and is
+            not recommended on the strength of a lucky estimate.
+        explore_rel_sd: Exploration settings end once their estimate's SD is at most this
+            fraction of the estimate, after ``min_decision_s`` in the setting (or at N breaths);
+            None (default): every exploration setting is measured for N breaths (the seed's
+            Algorithm 1). Algorithm 2 then reads each shorter trace as if its last estimate had
+            held to N.
+        ei_best: The value EI improves on: ``"observed"`` (default: min(S), the seed's) or
+            ``"posterior"`` (the lowest posterior mean among the evaluated settings: noisy EI's
+            plug-in incumbent).
         drift_hours: Adaptation drift (the cost of every setting falls slowly over the hour as the
             wearer adapts; virtual_hw/wearer_realistic.py): with a number, the GP gets the
             session time of each evaluation as an extra input, with a length-scale prior of
@@ -209,7 +230,8 @@ class OptimizerConfig:
     gp_prior_stopping: bool = True
     recommend: RecommendKind | None = None
     recommend_beta: float = 1.0
-    remeasure_best_s: float | None = None
+    explore_rel_sd: float | None = None
+    ei_best: EIBestKind = EIBestKind.OBSERVED
     drift_hours: float | None = None
     seed: int = 0
     xi: float = 0.0
@@ -238,11 +260,12 @@ class OptimizerConfig:
         # "fixed" stay the methods they were.
         sound = self.stopping is StoppingKind.SOUND
         if self.recommend is None:
-            object.__setattr__(self, "recommend", RecommendKind.POSTERIOR if sound else RecommendKind.SEED)
+            object.__setattr__(self, "recommend", RecommendKind.GLOBAL if sound else RecommendKind.SEED)
         if self.design is None:
             object.__setattr__(self, "design", DesignKind.SOBOL if sound else DesignKind.MAXIMIN)
         self._enum("design", DesignKind)
         self._enum("recommend", RecommendKind)
+        self._enum("ei_best", EIBestKind)
         for name in ("min_decision_s", "a_floor", "recommend_beta"):
             v = getattr(self, name)
             if (isinstance(v, bool) or not isinstance(v, int | float | np.integer | np.floating)
@@ -257,10 +280,10 @@ class OptimizerConfig:
             object.__setattr__(self, "accept_z", float(z))
         if not isinstance(self.gp_prior_stopping, bool):
             raise ConfigError(f"gp_prior_stopping={self.gp_prior_stopping!r}; expected true or false")
-        r = self.remeasure_best_s
+        r = self.explore_rel_sd
         if r is not None and (isinstance(r, bool) or not isinstance(r, int | float)
-                              or not (math.isfinite(r) and r > 0)):
-            raise ConfigError(f"remeasure_best_s={r!r}; expected a positive number of seconds or None")
+                              or not (math.isfinite(r) and 0 < r < 1)):
+            raise ConfigError(f"explore_rel_sd={r!r}; expected a fraction in (0, 1) or None")
         h = self.drift_hours
         if h is not None and (isinstance(h, bool) or not isinstance(h, int | float)
                               or not (math.isfinite(h) and h > 0)):
@@ -305,6 +328,7 @@ class OptimizerConfig:
         d["kernel"] = self.kernel.value
         d["estimator"] = self.estimator.value
         d["design"] = DesignKind(self.design).value
+        d["ei_best"] = self.ei_best.value
         return d
 
     @classmethod
@@ -407,6 +431,47 @@ class BreathStep:
     evaluation: Evaluation | None = None
 
 
+@dataclass(frozen=True)
+class Confirmation:
+    """The recommendation measured in full at the session's end (:meth:`HILOptimizer.begin_confirmation`).
+
+    Its estimate comes from the confirmation's own breaths only, which were not chosen for
+    looking good, so it is an unbiased measurement of the recommendation (the recommendation's
+    GP estimate is the best bet but, like any minimum, optimistic).
+
+    Attributes:
+        params: The recommended setting (frozen when the confirmation began).
+        predicted_mean_w: The GP posterior mean of its cost when it was chosen (W).
+        predicted_sd_w: Its posterior SD (W).
+        mean_w: The confirmation's estimate (W; the data-only estimates of its completed
+            evaluations pooled by inverse variance), or None before one completed.
+        sd_w: Its SD (W), or None.
+        breaths: Breaths measured in the completed confirmation evaluations.
+        n_evaluations: Completed confirmation evaluations.
+    """
+
+    params: dict[str, float]
+    predicted_mean_w: float
+    predicted_sd_w: float
+    mean_w: float | None
+    sd_w: float | None
+    breaths: int
+    n_evaluations: int
+
+    def to_json(self) -> dict[str, Any]:
+        """JSON-able form."""
+        return asdict(self)
+
+    def describe(self) -> str:
+        """One line: "recommended, confirmed at X ± Y W (n breaths)" or "... not yet confirmed"."""
+        if self.mean_w is None or self.sd_w is None:
+            return (f"recommended (predicted {self.predicted_mean_w:.0f} ± {self.predicted_sd_w:.0f} W), "
+                    "confirmation not completed")
+        return (f"recommended, confirmed at {self.mean_w:.0f} ± {self.sd_w:.0f} W "
+                f"({self.breaths} breaths; predicted {self.predicted_mean_w:.0f} ± "
+                f"{self.predicted_sd_w:.0f} W)")
+
+
 @dataclass
 class _Current:
     params: dict[str, float]
@@ -418,7 +483,7 @@ class _Current:
     # The GP's predictive (mean, var) of the setting's cost when it was proposed (the sound
     # rule's prior for the candidate), or None.
     prior: tuple[float, float] | None = None
-    # A re-measurement of the recommended setting (remeasure_best_s): never stopped early.
+    # A confirmation of the recommended setting (begin_confirmation): never stopped early.
     remeasure: bool = False
 
 
@@ -530,7 +595,11 @@ class HILOptimizer:
         self._incumbent: tuple[dict[str, float], float, float] | None = None
         # Set by _propose for the setting ask() is about to start (see _Current).
         self._pending: tuple[tuple[float, float] | None, bool] = (None, False)
-        self._remeasured = False  # remeasure_best_s has been used
+        # The confirmation (begin_confirmation): (params, predicted mean, predicted var) and the
+        # index of its first evaluation; None before.
+        self._confirm: tuple[dict[str, float], float, float] | None = None
+        self._confirm_from = 0
+        self._confirm_requested = False
         self._opt_breaths = 0
         self._opt_seconds = 0.0
 
@@ -596,6 +665,11 @@ class HILOptimizer:
         """
         if not self._evaluations:
             raise OptimizerStateError("no evaluation has completed yet; nothing to recommend")
+        conf = self.confirmation
+        if conf is not None:
+            if conf.mean_w is not None and conf.sd_w is not None:
+                return dict(conf.params), conf.mean_w, conf.sd_w**2
+            return dict(conf.params), conf.predicted_mean_w, conf.predicted_sd_w**2
         if len(self._evaluations) + len(self._priors) < 2:
             ev = min(self._evaluations, key=lambda e: e.mean)
             return dict(ev.params), ev.mean, ev.var
@@ -603,10 +677,63 @@ class HILOptimizer:
         # (e.g. for a status display) must not change the proposals that follow. Between
         # hyperparameter refits (refit_growth > 1) the generator is unused and the GP is the one
         # the next proposal will condition.
-        gp = self._fit_gp(np.random.default_rng([self.config.seed, len(self._evaluations)]), store=False)
+        rng = np.random.default_rng([self.config.seed, len(self._evaluations)])
+        gp = self._fit_gp(rng, store=False)
         if self.config.recommend is RecommendKind.SEED:
             return self._gp_best(gp)
+        if self.config.recommend is RecommendKind.GLOBAL:
+            return self._global_best(gp, rng)
         return self._posterior_best(gp)
+
+    @property
+    def confirmation(self) -> Confirmation | None:
+        """The confirmation of the recommendation, once :meth:`begin_confirmation` was called."""
+        if self._confirm is None:
+            return None
+        params, p_mean, p_var = self._confirm
+        evs = [e for e in self._evaluations[self._confirm_from:] if e.params == params]
+        mean = sd = None
+        if evs:
+            obs = np.array([e.gp_observation for e in evs], dtype=float)
+            w = 1.0 / obs[:, 1]
+            mean, sd = float(np.sum(w * obs[:, 0]) / np.sum(w)), float(math.sqrt(1.0 / np.sum(w)))
+        return Confirmation(params=dict(params), predicted_mean_w=p_mean,
+                            predicted_sd_w=math.sqrt(max(p_var, 0.0)), mean_w=mean, sd_w=sd,
+                            breaths=sum(e.breaths for e in evs), n_evaluations=len(evs))
+
+    @property
+    def confirming(self) -> bool:
+        """:meth:`begin_confirmation` has been called (and was not refused)."""
+        return self._confirm_requested
+
+    def begin_confirmation(self) -> bool:
+        """From the next :meth:`ask` on, measure the recommended setting in full (the session's
+        last minutes).
+
+        That ask freezes the recommendation (:meth:`best`: the GP work happens there, in the
+        bridge's proposal worker, not here), returns it, and so does every ask after it; its
+        evaluations run to N breaths (no early stop; the session's end may cut the last one).
+        :attr:`confirmation` then reports it with its own measurement, which :meth:`best`
+        returns too. Idempotent and cheap. The driver calls it when the protocol says the
+        confirmation is due (:attr:`hilbo_core.protocol.SessionProtocol.confirm_due`).
+
+        Returns:
+            True when the confirmation is on; False during exploration (nothing to confirm yet).
+        """
+        if self._confirm is not None or self._confirm_requested:
+            return True
+        if len(self._evaluations) < self.config.n_explore or not self._evaluations:
+            return False
+        self._confirm_requested = True
+        return True
+
+    def _freeze_confirmation(self) -> dict[str, float]:
+        """The confirmed setting, chosen now if it has not been (:meth:`begin_confirmation`)."""
+        if self._confirm is None:
+            params, mean, var = self.best()
+            self._confirm = (dict(params), float(mean), float(var))
+            self._confirm_from = len(self._evaluations)
+        return self._confirm[0]
 
     # ------------------------------------------------------------------ ask / observe / tell
     def ask(self) -> dict[str, float]:
@@ -628,6 +755,9 @@ class HILOptimizer:
             )
         if phase is Phase.EXPLORATION:
             x = self._design[len(self._evaluations)]
+        elif self._confirm_requested:
+            x = self.space.from_dict(self._freeze_confirmation())
+            self._pending = (None, True)
         else:
             x = self._propose()
         x = self.space.check(x)
@@ -685,8 +815,12 @@ class HILOptimizer:
         cur.vars.append(float(var))
         i = len(cur.breaths) - 1
         if cur.phase is Phase.EXPLORATION:
-            stop = i == self.config.max_breaths - 1
-            return self._step(stop, "max_measurements", None)
+            if i == self.config.max_breaths - 1:
+                return self._step(True, "max_measurements", None)
+            rel = self.config.explore_rel_sd
+            precise = (rel is not None and t >= self.config.min_decision_s
+                       and math.sqrt(float(var)) <= rel * abs(float(mean)))
+            return self._step(precise, "precise", None)
         self._opt_breaths += 1
         self._opt_seconds += t - prev_t
         rule = self._rule()
@@ -849,8 +983,11 @@ class HILOptimizer:
         self._keep_body_level()
         self._evaluations.append(ev)
         if cur.phase is Phase.EXPLORATION:
-            self._traces_m.append(list(cur.means))
-            self._traces_s.append(list(cur.vars))
+            # A setting ended once precise enough (explore_rel_sd): its trace continues with its
+            # last estimate up to N, as if measured on without change (Algorithm 2 needs N columns).
+            pad = self.config.max_breaths - len(cur.means)
+            self._traces_m.append(list(cur.means) + [cur.means[-1]] * pad)
+            self._traces_s.append(list(cur.vars) + [cur.vars[-1]] * pad)
             if len(self._traces_m) == self.config.n_explore:
                 M, S = self.exploration_traces
                 self._thresholds = threshold_schedule(M, S, self.config.window)
@@ -995,16 +1132,29 @@ class HILOptimizer:
         k = int(np.argmin(post_mean))
         return dict(self._evaluations[k].params), float(post_mean[k]), float(post_var[k])
 
-    def _remeasure_due(self, gp: GaussianProcess) -> dict[str, float] | None:
-        """The recommended setting, if it is time to measure it again (``remeasure_best_s``)."""
-        c = self.config
-        if (c.remeasure_best_s is None or c.budget_s is None or self._remeasured
-                or c.budget_s - self._opt_seconds > c.remeasure_best_s):
-            return None
-        params = (self._gp_best(gp) if c.recommend is RecommendKind.SEED
-                  else self._posterior_best(gp))[0]
-        breaths = sum(e.breaths for e in self._evaluations if e.params == params)
-        return params if breaths < c.max_breaths else None
+    def _global_best(self, gp: GaussianProcess,
+                     rng: np.random.Generator) -> tuple[dict[str, float], float, float]:
+        """Over the whole feasible set (feasible Sobol candidates and every evaluated setting, the
+        best few refined locally): the lowest posterior mean + β·SD, with the GP posterior there."""
+        A_u, b_u = self.space.unit_constraints()
+        cand = np.concatenate([self._evaluation_units(),
+                               self.space.sample_unit(self.config.n_candidates, rng)])
+        d = self.space.dim
+
+        def predict(U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            return gp.predict(self._now(U))
+
+        def predict_grad(U: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+            m, v, dm, dv = gp.predict_with_grad(self._now(U))
+            return m, v, dm[:, :d], dv[:, :d]
+
+        u = minimize_lcb(predict, self.config.recommend_beta, candidates=np.clip(cand, 0.0, 1.0),
+                         A_ub=A_u, b_ub=b_u, n_local=self.config.n_local, predict_grad=predict_grad)
+        x = self.space.from_unit(u)
+        if not self.space.is_feasible(x):  # round-off at a constraint: the best evaluated setting
+            return self._posterior_best(gp)
+        m, v = gp.predict(self._now(u.reshape(1, -1)))
+        return self.space.to_dict(x), float(m[0]), float(v[0])
 
     def _gp_best(self, gp: GaussianProcess) -> tuple[dict[str, float], float, float]:
         post_mean = gp.predict_mean(self._now(self._evaluation_units()))  # the variance is not needed here
@@ -1017,13 +1167,13 @@ class HILOptimizer:
         # (Kim et al. 2019 §II.D: "the best parameter setting found thus far as defined by the GP").
         sound = self.config.stopping is StoppingKind.SOUND
         self._incumbent = self._gp_incumbent(gp) if sound else self._gp_best(gp)
-        again = self._remeasure_due(gp)
-        if again is not None:
-            self._remeasured = True
-            x = self.space.from_dict(again)
-            self._pending = (None, True)
-            return x
-        best_observed = min(e.mean for e in self._evaluations)  # min(S), Kim et al. 2019 §II.B
+        if self.config.ei_best is EIBestKind.POSTERIOR:
+            # Noisy EI's plug-in incumbent: the lowest posterior mean among the evaluated
+            # settings. min(S) of noisy estimates is optimistic (the luckiest estimate), so EI
+            # against it undervalues settings near the real best.
+            best_observed = float(np.min(gp.predict_mean(self._now(self._evaluation_units()))))
+        else:
+            best_observed = min(e.mean for e in self._evaluations)  # min(S), Kim et al. 2019 §II.B
         A_u, b_u = self.space.unit_constraints()
         cand = self.space.sample_unit(self.config.n_candidates, self._rng)
         d = self.space.dim
@@ -1074,7 +1224,9 @@ class HILOptimizer:
                 "breaths": cur.breaths, "prior": None if cur.prior is None else list(cur.prior),
                 "remeasure": cur.remeasure,
             },
-            "remeasured": self._remeasured,
+            "confirm": None if self._confirm is None else list(self._confirm),
+            "confirm_from": self._confirm_from,
+            "confirm_requested": self._confirm_requested,
             "hyp": None if self._hyp is None else self._hyp.to_dict(),
             "n_at_fit": self._n_at_fit,
             "incumbent": None if self._incumbent is None else list(self._incumbent),
@@ -1102,6 +1254,9 @@ class HILOptimizer:
             config_data.setdefault("recommend", RecommendKind.SEED.value)
             # States written before the exploration design became a choice used maximin.
             config_data.setdefault("design", DesignKind.MAXIMIN.value)
+            # remeasure_best_s never acted (no session gave the optimizer a budget of its own):
+            # the confirmation replaced it.
+            config_data.pop("remeasure_best_s", None)
             opt = cls(space, config=OptimizerConfig.from_json(config_data),
                       estimator_factory=estimator_factory,
                       prior_observations=[PriorObservation(**p) for p in data["priors"]])
@@ -1121,7 +1276,12 @@ class HILOptimizer:
             if data["incumbent"] is not None:
                 p, m, v = data["incumbent"]
                 opt._incumbent = (dict(p), float(m), float(v))
-            opt._remeasured = bool(data.get("remeasured", False))  # absent before re-measurement existed
+            opt._confirm_requested = bool(data.get("confirm_requested", False))
+            confirm = data.get("confirm")  # absent in states written before the confirmation
+            if confirm is not None:
+                p, m, v = confirm
+                opt._confirm = (dict(p), float(m), float(v))
+                opt._confirm_from = int(data["confirm_from"])
             opt._opt_breaths = int(data["opt_breaths"])
             opt._opt_seconds = float(data["opt_seconds"])
             handover = data.get("handover")  # absent in states written before the hand-over existed

@@ -5,7 +5,11 @@ with an evenly distributed pseudo-random set of parameters and a 40-min (approx.
 actual Bayesian optimization ... including 3-min warm-up periods in the beginning of each bout".
 The phases (:class:`SessionPhase`)::
 
-    WARM_UP_EXPLORATION -> EXPLORATION -> [BOUT_PAUSE] -> WARM_UP_OPTIMIZATION -> OPTIMIZATION -> ENDED
+    WARM_UP_EXPLORATION -> EXPLORATION -> [BOUT_PAUSE] -> [WARM_UP_OPTIMIZATION] -> OPTIMIZATION -> ENDED
+
+The second warm-up is skipped when nothing separates the bouts and ``warmup_without_pause`` is
+false (the fast protocol, :class:`ProtocolKind`); with ``confirm_s`` the last seconds confirm the
+recommendation (:attr:`SessionProtocol.confirm_due`).
 
 The protocol knows *when* things happen; the optimizer (:class:`~hilbo_core.optimizer.HILOptimizer`)
 knows *what* is measured. A driver (the bridge's asyncio process, the in-process simulation, the
@@ -59,6 +63,7 @@ __all__ = [
     "Action",
     "ActionKind",
     "EndReason",
+    "ProtocolKind",
     "ProtocolStateError",
     "SessionPhase",
     "SessionProtocol",
@@ -66,6 +71,7 @@ __all__ = [
     "WalkingTime",
     "drive",
     "expected_end_s",
+    "protocol_preset",
 ]
 
 DEFAULT_BREATH_INTERVAL_S = 3.0
@@ -86,6 +92,60 @@ class SessionPhase(enum.Enum):
     WARM_UP_OPTIMIZATION = "warm_up_optimization"
     OPTIMIZATION = "optimization"
     ENDED = "ended"
+
+
+class ProtocolKind(enum.Enum):
+    """A named walking protocol (:func:`protocol_preset`): ``[protocol] protocol``."""
+
+    # The default: the first optimisation proposal at about minute 10 of walking, and the
+    # recommendation confirmed in the session's last minutes.
+    FAST = "fast"
+    # Kim et al. 2019 §IV.A.3: two bouts, each with a 3-minute warm-up, the exploration
+    # settings measured for N breaths each; what the seed benchmarks use.
+    SEED = "seed"
+
+
+# Why the fast protocol's values (measured on `hilbo bench hil`'s realistic wearer, 30 subjects;
+# the lab may override each key):
+# * no pause and one warm-up: the second warm-up of Kim et al. 2019 starts a second walking bout
+#   after a rest; walking on, the body is at a walking steady state already and each setting's
+#   estimator starts from the level the last one ended at (the transition model of
+#   hilbo_core.estimation), so 3 more unassisted minutes tell nothing;
+# * 3 exploration settings (N breaths each) instead of 6: an exploration setting walks its N
+#   breaths (~2 min) whatever it is, while the sound rule rejects a poor proposal after ~1 min,
+#   so the GP learns more per minute from proposals once it has a few points; the first proposal
+#   comes at a median 9.1 min (6 settings: 15.1 min) and the median regret at 30 and 60 min fell
+#   (7.5 -> 5.0 % and 4.9 -> 3.9 % of the possible reduction). Ending exploration settings early
+#   once their SD was 4 % of the estimate (explore_rel_sd) reached minute 10 too but cost regret
+#   (9.6 % at 30 min, 7.0 % at 60): the GP and Algorithm 2 lose more from imprecise first points
+#   than the minutes are worth;
+# * 4 minutes at the end confirm the recommendation: N = 45 breaths at up to 3.5 s plus the
+#   change of setting, measured in full, so the reported cost is a measurement of the setting
+#   the lab takes home, not the optimistic estimate it was chosen for.
+_PRESETS: dict[ProtocolKind, tuple[dict[str, Any], dict[str, Any]]] = {
+    ProtocolKind.FAST: ({"n_explore": 3, "pause_between_bouts": False, "warmup_without_pause": False,
+                         "confirm_s": 240.0},
+                        {"n_explore": 3, "explore_rel_sd": None}),
+    ProtocolKind.SEED: ({"n_explore": 6, "pause_between_bouts": True, "warmup_without_pause": True,
+                         "confirm_s": None},
+                        {"n_explore": 6, "explore_rel_sd": None}),
+}
+
+
+def protocol_preset(kind: ProtocolKind | str) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The settings of a named protocol: (SessionProtocolConfig fields, OptimizerConfig fields).
+
+    A driver lays its own explicit values over these (e.g. simulations never pause).
+
+    Raises:
+        ConfigError: Unknown name (naming the choices).
+    """
+    try:
+        k = ProtocolKind(kind)
+    except ValueError as err:
+        raise ConfigError(f"protocol={kind!r}; expected one of {[m.value for m in ProtocolKind]}") from err
+    proto, opt = _PRESETS[k]
+    return dict(proto), dict(opt)
 
 
 class ActionKind(enum.Enum):
@@ -124,6 +184,13 @@ class SessionProtocolConfig:
             None. At least one of the three budgets is set; the first spent ends the session.
         pause_between_bouts: Pause (assistance off) after the exploration bout until the driver
             calls :meth:`SessionProtocol.on_resume` (the operator's resume).
+        warmup_without_pause: Without a pause between the bouts, warm up again before the
+            optimisation bout anyway (the seed's two bouts). After a pause there is always a
+            warm-up.
+        confirm_s: The session's last seconds (of the first budget to run out) are for
+            confirming the recommendation: from then on :attr:`SessionProtocol.confirm_due` is
+            True and the driver measures the recommended setting in full
+            (:meth:`~hilbo_core.optimizer.HILOptimizer.begin_confirmation`); None: no confirmation.
     """
 
     warmup_s: float = 180.0
@@ -133,6 +200,8 @@ class SessionProtocolConfig:
     budget_s: float | None = 2400.0
     budget_breaths: int | None = None
     pause_between_bouts: bool = True
+    warmup_without_pause: bool = True
+    confirm_s: float | None = None
 
     def __post_init__(self) -> None:
         if not _is_number(self.warmup_s) or not (math.isfinite(self.warmup_s) and self.warmup_s >= 0):
@@ -148,8 +217,12 @@ class SessionProtocolConfig:
         if self.session_s is None and self.budget_s is None and self.budget_breaths is None:
             raise ConfigError("no budget: expected session_s, budget_s or budget_breaths "
                               "(a session must end)")
-        if not isinstance(self.pause_between_bouts, bool):
-            raise ConfigError(f"pause_between_bouts={self.pause_between_bouts!r}; expected true or false")
+        for name in ("pause_between_bouts", "warmup_without_pause"):
+            if not isinstance(getattr(self, name), bool):
+                raise ConfigError(f"{name}={getattr(self, name)!r}; expected true or false")
+        c = self.confirm_s
+        if c is not None and not (_is_number(c) and math.isfinite(c) and c > 0):
+            raise ConfigError(f"confirm_s={c!r}; expected a positive number of seconds or None")
 
     def to_json(self) -> dict[str, Any]:
         """JSON-able form."""
@@ -376,7 +449,8 @@ class SessionProtocol:
             # warm-ups (a pause's length is unknown: none is assumed).
             left = (max(0.0, self._warm_start + c.warmup_s - now)
                     if self._phase in _WARM_UP_OF and self._warm_start is not None else 0.0)
-            if self._phase is not SessionPhase.WARM_UP_OPTIMIZATION:
+            if self._phase is not SessionPhase.WARM_UP_OPTIMIZATION and (
+                    c.pause_between_bouts or c.warmup_without_pause):
                 left += c.warmup_s
             n_left = c.n_explore - self._n_explored
             if n_left > 0:
@@ -387,6 +461,17 @@ class SessionProtocol:
         if c.budget_breaths is not None:
             ends.append(max(now, t_opt) + (c.budget_breaths - used_b) * bi)
         return max(min(ends), now)
+
+    @property
+    def confirm_due(self) -> bool:
+        """The optimisation bout is in its last ``confirm_s`` (of the expected end): the next
+        setting is the recommendation, measured in full (the driver calls
+        :meth:`~hilbo_core.optimizer.HILOptimizer.begin_confirmation` before asking)."""
+        c = self.config.confirm_s
+        if c is None or self._phase is not SessionPhase.OPTIMIZATION or self._t_last is None:
+            return False
+        end = self.expected_t_end_s()
+        return end is not None and end - self._t_last <= c
 
     @property
     def walking(self) -> WalkingTime:
@@ -622,6 +707,8 @@ class SessionProtocol:
             if self.config.pause_between_bouts:
                 self._phase = SessionPhase.BOUT_PAUSE
                 return self._action(ActionKind.PAUSE_BETWEEN_BOUTS, starts=True)
+            if not self.config.warmup_without_pause:  # walking on: already at a steady state
+                return self._enter_measuring(SessionPhase.OPTIMIZATION)
             return self._enter_warm_up(SessionPhase.WARM_UP_OPTIMIZATION)
         self._proposing = True
         return self._action(ActionKind.PROPOSE)
@@ -637,7 +724,8 @@ def expected_end_s(config: SessionProtocolConfig, *, breath_interval_s: float = 
                    bout_pause_s: float = 0.0) -> float:
     """When a session is expected to end, in seconds of walking after its start.
 
-    Exact for ``session_s``; otherwise the two warm-ups, the exploration bout at N breaths of
+    Exact for ``session_s``; otherwise the warm-ups (one when neither a pause nor
+    ``warmup_without_pause`` separates the bouts), the exploration bout at N breaths of
     ``breath_interval_s`` per evaluation (setting changes not counted), ``bout_pause_s`` and the
     optimisation budget (``budget_breaths`` at ``breath_interval_s``), whichever budget ends first.
 
@@ -649,7 +737,8 @@ def expected_end_s(config: SessionProtocolConfig, *, breath_interval_s: float = 
     if not (_is_number(bout_pause_s) and math.isfinite(bout_pause_s) and bout_pause_s >= 0):
         raise ConfigError(f"bout_pause_s={bout_pause_s!r}; expected a number of seconds >= 0")
     c = config
-    t_opt = 2 * c.warmup_s + c.n_explore * c.max_breaths * breath_interval_s + (
+    warm_ups = 2 if (c.pause_between_bouts or c.warmup_without_pause) else 1
+    t_opt = warm_ups * c.warmup_s + c.n_explore * c.max_breaths * breath_interval_s + (
         bout_pause_s if c.pause_between_bouts else 0.0)
     ends = [] if c.session_s is None else [c.session_s]
     if c.budget_s is not None:
@@ -700,6 +789,8 @@ def drive(
         if act.kind is ActionKind.WARM_UP and act.starts:
             apply_setting(None, now)
         elif act.kind is ActionKind.PROPOSE:
+            if protocol.confirm_due:
+                optimizer.begin_confirmation()
             params = optimizer.ask()
             if on_propose is not None:
                 on_propose(params)

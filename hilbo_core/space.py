@@ -28,6 +28,14 @@ __all__ = [
     "parse_linear_expression",
 ]
 
+# sample_unit: Sobol points drawn per call (memory: 2^20 × d floats), the draws after which a
+# space without a feasible point is declared too thin (the old limit's order of magnitude), and
+# the most draws for one request (2^27: 1,000,000 points, the largest [protocol] n_candidates,
+# at a feasible fraction down to ~1/100).
+_SOBOL_CHUNK = 2**20
+_THIN_DRAWS = 2**17
+_MAX_SOBOL_DRAWS = 2**27
+
 _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 _TERM = re.compile(r"\s*([+-]?)\s*(?:(\d+(?:\.\d*)?(?:[eE][+-]?\d+)?)\s*\*?\s*)?([A-Za-z_][A-Za-z0-9_]*)?\s*")
 _FEAS_TOL = 1e-9
@@ -47,6 +55,11 @@ class DesignKind(enum.Enum):
     # test_space.py), i.e. at extremes of force and timing, which tell the GP little about the
     # interior.
     MAXIMIN = "maximin"
+    # No centre point: the first n feasible points of one scrambled Sobol sequence. The
+    # simulation study of Kim et al. 2019 (§III.2, Fig. 2) starts from such a set; the centre of
+    # a test function's domain is Ackley's optimum and near Levy's, so a design that starts there
+    # begins the study at (nearly) the answer. For the benchmarks; a lab starts at the centre.
+    SOBOL_ONLY = "sobol_only"
 
 
 @dataclass(frozen=True)
@@ -388,35 +401,49 @@ class ParameterSpace:
     def sample_unit(self, n: int, rng: np.random.Generator) -> np.ndarray:
         """``n`` feasible unit-cube points by scrambled Sobol with rejection: (n, d).
 
+        Rounds of Sobol points (each at least twice the points still missing, a power of two)
+        are drawn until ``n`` are feasible, in chunks of at most ``_SOBOL_CHUNK`` points so that
+        a large ``n`` on a space whose feasible fraction is small (hip_6d: about 1/6) does not
+        hold millions of infeasible points at once. Any ``n`` works whose points fit in
+        ``_MAX_SOBOL_DRAWS`` draws.
+
         Args:
             n: Number of points wanted (>= 1).
             rng: Seeds the scrambling, so the set is reproducible.
 
         Raises:
             ConfigError: n < 1.
-            InfeasibleError: The feasible fraction is too small to fill n points.
+            InfeasibleError: No feasible point among the first ``_THIN_DRAWS`` draws, or the
+                feasible fraction is too small for n points within ``_MAX_SOBOL_DRAWS`` draws.
         """
-        if n < 1:
-            raise ConfigError(f"number of points must be >= 1, got {n}")
+        if isinstance(n, bool) or not isinstance(n, int | np.integer) or n < 1:
+            raise ConfigError(f"number of points must be an integer >= 1, got {n!r}")
         # An integer drawn from rng, not rng itself: scipy spawns from a Generator's SeedSequence,
         # which its saved ``bit_generator.state`` does not capture, so a resumed optimizer
         # would draw different candidates.
         sobol = qmc.Sobol(self.dim, scramble=True, seed=int(rng.integers(2**63)))
         A_u, b_u = self.unit_constraints()
         out: list[np.ndarray] = []
-        have = 0
-        for _ in range(12):
+        have = drawn = 0
+        while have < n:
             m = 2 ** max(6, math.ceil(math.log2(max(2 * (n - have), 2))))
-            u = sobol.random(m)
-            if len(b_u):
-                u = u[np.all(u @ A_u.T <= b_u + 1e-12, axis=1)]
-            out.append(u)
-            have += len(u)
-            if have >= n:
-                return np.vstack(out)[:n]
-        raise InfeasibleError(
-            f"could only find {have} of {n} feasible points; the feasible region is too thin"
-        )
+            if have == 0 and drawn >= _THIN_DRAWS:
+                raise InfeasibleError(
+                    f"no feasible point among {drawn} Sobol points; the feasible region is too thin")
+            if drawn + m > _MAX_SOBOL_DRAWS:
+                raise InfeasibleError(
+                    f"could only find {have} of {n} feasible points in {drawn} Sobol points "
+                    f"(feasible fraction {have / max(drawn, 1):.3g}); ask for fewer points")
+            while m > 0:  # one round, in chunks: the Sobol sequence continues across calls
+                k = min(m, _SOBOL_CHUNK)
+                u = sobol.random(k)
+                if len(b_u):
+                    u = u[np.all(u @ A_u.T <= b_u + 1e-12, axis=1)]
+                out.append(u)
+                have += len(u)
+                drawn += k
+                m -= k
+        return np.vstack(out)[:n]
 
     def design(self, n: int, rng: np.random.Generator, pool: int = 512,
                kind: DesignKind | str = DesignKind.SOBOL) -> np.ndarray:
@@ -426,7 +453,7 @@ class ParameterSpace:
         the others follow ``kind`` (:class:`DesignKind`): ``sobol``, the first n − 1 feasible
         points of a second, independently scrambled Sobol sequence (Kim et al. 2019 §IV.A.3: "an evenly
         distributed pseudo-random set of parameters"), or ``maximin``, greedy maximin selection
-        from the pool.
+        from the pool. ``sobol_only`` has no centre point: the first n feasible Sobol points.
 
         Args:
             n: Number of points (>= 1).
@@ -444,6 +471,8 @@ class ParameterSpace:
         except ValueError as err:
             raise ConfigError(
                 f"design={kind!r}; expected one of {[k.value for k in DesignKind]}") from err
+        if kind is DesignKind.SOBOL_ONLY:
+            return self.from_unit(self.sample_unit(n, rng))
         cand = self.sample_unit(max(pool, n), rng)
         centre = cand.mean(axis=0)
         first = int(np.argmin(np.linalg.norm(cand - centre, axis=1)))

@@ -120,11 +120,13 @@ from virtual_hw.wearer_common import (
     saturate_penalty,
     timing_window,
 )
-from virtual_hw.wearer_realistic import RealisticWearer
+from virtual_hw.wearer_realistic import RealisticWearer, RealisticWearerConfig
 
 __all__ = [
     "ANKLE_PRIOR",
     "HIP_PRIOR",
+    "NOISY_BREATH_CV",
+    "NOISY_OUTLIER_FRAC",
     "WEARER_CHOICES",
     "ActuatorPrior",
     "AssistWindow",
@@ -545,13 +547,20 @@ class WearerKind(enum.Enum):
     * ``REALISTIC`` (the default of ``hilbo sim`` and ``hilbo bench hil``):
       :class:`virtual_hw.wearer_realistic.RealisticWearer` — breath noise and outliers as in real
       data, per-person τ 30-60 s, slow adaptation, two landscape families.
+    * ``NOISY``: the realistic wearer with noisier breaths: a per-person breath CV of 15-25 %
+      (instead of 8-12 %) and 3 % outlier breaths: the robustness check of the method.
     * ``LEGACY``: :class:`SimulatedWearer` — one landscape family, AR(1) Gaussian noise, no
       adaptation; kept for the results and tests that were measured on it.
     """
 
     REALISTIC = "realistic"
+    NOISY = "noisy"
     LEGACY = "legacy"
 
+
+#: The noisy wearer's per-person breath CV range and share of outlier breaths (WearerKind.NOISY).
+NOISY_BREATH_CV: tuple[float, float] = (0.15, 0.25)
+NOISY_OUTLIER_FRAC: tuple[float, float] = (0.03, 0.03)
 
 #: What ``--wearer`` accepts.
 WEARER_CHOICES: tuple[str, ...] = tuple(k.value for k in WearerKind)
@@ -620,4 +629,7 @@ def make_wearer(kind: WearerKind | str, space: ParameterSpace, seed: int,
     k = wearer_kind(kind)
     if k is WearerKind.LEGACY:
         return SimulatedWearer(space, seed=seed, body_mass_kg=body_mass_kg)
+    if k is WearerKind.NOISY:
+        noisy = RealisticWearerConfig(noise_cv=NOISY_BREATH_CV, outlier_frac=NOISY_OUTLIER_FRAC)
+        return RealisticWearer(space, seed=seed, config=noisy, body_mass_kg=body_mass_kg)
     return RealisticWearer(space, seed=seed, body_mass_kg=body_mass_kg)

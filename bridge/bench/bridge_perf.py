@@ -70,6 +70,7 @@ from bridge.sim.devices import SUIT_JOINTS, ScaledClock, VirtualExosuit
 from bridge.sim.virtual import VirtualSimConfig, run_virtual_sim
 from drivers.exosuit import CanBusConfig
 from hilbo_core.errors import ConfigError
+from hilbo_core.protocol import ProtocolKind, protocol_preset
 
 __all__ = ["BRIDGE_TARGETS", "BridgeProtocol", "BridgeRtConfig", "bridge_realtime", "bridge_table"]
 
@@ -83,9 +84,9 @@ class BridgeProtocol(StrEnum):
 
     #: 2 exploration points, N = 10, 20 s warm-ups: a stop decision every ~20 s, many per minute.
     QUICK = "quick"
-    #: The lab's own (Kim et al. 2019 §IV.A.3, ``hilbo config example``,
-    #: :class:`~bridge.sim.virtual.VirtualSimConfig`'s defaults): 6 exploration points, N = 45,
-    #: 180 s warm-ups; the GP sizes of a real session.
+    #: The lab's own (``hilbo config example``, :class:`~bridge.sim.virtual.VirtualSimConfig`'s
+    #: defaults: the fast walking protocol's 3 exploration points), N = 45, 180 s warm-ups; the
+    #: GP sizes of a real session.
     LAB = "lab"
 
     def settings(self) -> dict[str, Any]:
@@ -93,7 +94,10 @@ class BridgeProtocol(StrEnum):
         defaults for ``quick``, :class:`~bridge.sim.virtual.VirtualSimConfig`'s for ``lab``."""
         source = BridgeRtConfig if self is BridgeProtocol.QUICK else VirtualSimConfig
         keys = ("n_explore", "max_breaths", "warmup_s")
-        return {f.name: f.default for f in fields(source) if f.name in keys}
+        out = {f.name: f.default for f in fields(source) if f.name in keys}
+        if out["n_explore"] is None:  # the walking protocol's: hilbo sim's sound rule walks the fast one
+            out["n_explore"] = protocol_preset(ProtocolKind.FAST)[1]["n_explore"]
+        return out
 
     @classmethod
     def parse(cls, value: str) -> BridgeProtocol:

@@ -73,7 +73,8 @@ def _stopping_command(args: argparse.Namespace, campaign: Any) -> str:
             f"--noise {','.join(f'{n:g}' for n in campaign.noises)} --methods {','.join(campaign.methods)} "
             f"--noise-model {p.noise_model.value} --noise-estimate {p.noise_estimate.value} "
             f"--budget {p.budget} --n-explore {p.n_explore} "
-            f"--max-breaths {p.max_breaths} --window {p.window} --n-candidates {p.n_candidates} "
+            f"--max-breaths {p.max_breaths} --window {p.window} --design {p.design.value} "
+            f"--n-candidates {p.n_candidates} "
             f"--n-local {p.n_local} --seed {campaign.seed} --refit-growth {campaign.refit_growth:g} "
             f"--grid-step {args.grid_step} --out {args.out}"
             + (" --summarize-only" if args.summarize_only else "")
@@ -103,7 +104,7 @@ def _cmd_stopping(args: argparse.Namespace) -> int:
         protocol = StoppingProtocol(n_explore=args.n_explore, max_breaths=args.max_breaths,
                                     window=args.window, budget=args.budget, noise_model=args.noise_model,
                                     noise_estimate=args.noise_estimate, n_candidates=args.n_candidates,
-                                    n_local=args.n_local)
+                                    n_local=args.n_local, design=args.design)
         campaign = StoppingCampaign(functions=tuple(functions), noises=tuple(noises),
                                     methods=tuple(methods), trials=args.trials, seed=args.seed,
                                     protocol=protocol, refit_growth=args.refit_growth)
@@ -230,8 +231,9 @@ def _cmd_hil(args: argparse.Namespace) -> int:
     command = (f"hilbo bench hil --subjects {args.subjects} --seed {args.seed} --spaces {','.join(spaces)} "
                f"--methods {','.join(methods)} --minutes {args.minutes:g} --warmup-s {args.warmup_s:g} "
                f"--condition-s {args.condition_s:g} --popsize {args.popsize} --sigma0 {args.sigma0:g} "
-               f"--penalty-w {args.penalty_w:g} --n-explore {args.n_explore} "
-               f"--max-breaths {args.max_breaths} --window {args.window} --grid-min {args.grid_min:g} "
+               f"--penalty-w {args.penalty_w:g} "
+               + ("" if args.n_explore is None else f"--n-explore {args.n_explore} ")
+               + f"--max-breaths {args.max_breaths} --window {args.window} --grid-min {args.grid_min:g} "
                f"--wearer {args.wearer} "
                + (f"--tuned-k {args.tuned_k} --tune-subjects {args.tune_subjects} --tune-seed "
                   f"{args.tune_seed} --error-weight {args.error_weight:g} "
@@ -392,6 +394,9 @@ def add_bench_parser(subparsers: Any) -> Any:
     st.add_argument("--n-explore", type=_int, default=6, help="exploration points (6)")
     st.add_argument("--max-breaths", type=_int, default=45, help="N, measurements per evaluation (45)")
     st.add_argument("--window", type=_int, default=2, help="Algorithm 2's window W (2)")
+    st.add_argument("--design", default="sobol_only", choices=["sobol_only", "sobol", "maximin"],
+                    help="exploration points: sobol_only (Sobol without a centre point, the seed's "
+                         "Fig. 2 study; default), or a lab session's sobol/maximin (centre first)")
     st.add_argument("--n-candidates", type=_int, default=1024,
                     help="EI candidates per proposal (1024)")
     # docs/results.md §1 ("Campaign time on 2026-12-05: 20 minutes"): 1 is 1.6x faster, but it
@@ -446,7 +451,8 @@ def add_bench_parser(subparsers: Any) -> Any:
     hil.add_argument("--sigma0", type=float, default=0.25, help="CMA-ES initial step in the unit cube (0.25)")
     hil.add_argument("--penalty-w", type=float, default=500.0,
                      help="CMA-ES constraint penalty, W per squared unit-cube distance (500)")
-    hil.add_argument("--n-explore", type=_int, default=6, help="BO exploration points (6)")
+    hil.add_argument("--n-explore", type=_int, default=None,
+                     help="BO exploration points (default: each method's protocol's: sound 3, the seed's 6)")
     hil.add_argument("--max-breaths", type=_int, default=45, help="BO's N (45)")
     hil.add_argument("--window", type=_int, default=2, help="BO's window W (2)")
     hil.add_argument("--grid-min", type=float, default=1.0, help="minutes grid of the summary (1)")

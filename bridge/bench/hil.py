@@ -83,10 +83,18 @@ from hilbo_core.metabolic import MetabolicUKF
 from hilbo_core.optimizer import HILOptimizer, OptimizerConfig
 from hilbo_core.presets import PRESETS, preset
 from hilbo_core.priors import priors_from_evaluations
-from hilbo_core.protocol import ActionKind, SessionPhase, SessionProtocol, SessionProtocolConfig
+from hilbo_core.protocol import (
+    ActionKind,
+    ProtocolKind,
+    SessionPhase,
+    SessionProtocol,
+    SessionProtocolConfig,
+    protocol_preset,
+)
 from hilbo_core.space import ParameterSpace
 
 __all__ = [
+    "ABLATION_METHODS",
     "DEFAULT_HIL_METHODS",
     "HIL_METHODS",
     "PRIOR_METHODS",
@@ -106,6 +114,33 @@ __all__ = [
 
 _PRIOR_E3 = 3  # exploration points of adaptive-prior-e3 (docs/results_thesis.md §2)
 _BO_METHODS = ("sound", "adaptive", "fixed")
+# How each BO method runs in run_insim: (stopping rule, walking protocol, optimizer options,
+# protocol options). The seed's rules keep the seed's protocol (Kim et al. 2019 §IV.A.3); the
+# default "sound" runs hilbo's default (the fast protocol). The "sound-..." methods are the
+# ablations of the default (not run by default), each one change away from its neighbour:
+_BO_VARIANTS: dict[str, tuple[str, str, tuple[tuple[str, Any], ...], tuple[tuple[str, Any], ...]]] = {
+    "sound": ("sound", "fast", (), ()),
+    "adaptive": ("adaptive", "seed", (), ()),
+    "fixed": ("fixed", "seed", (), ()),
+    "adaptive-ahead": ("adaptive", "seed", (), ()),
+    # the default before the fast protocol: the seed's protocol, the best measured setting
+    "sound-seed": ("sound", "seed", (("recommend", "posterior"),), ()),
+    # + the recommendation over the whole feasible set
+    "sound-seed-global": ("sound", "seed", (), ()),
+    # + its confirmation in the last 4 minutes
+    "sound-seed-confirm": ("sound", "seed", (), (("confirm_s", 240.0),)),
+    # the fast protocol without the confirmation
+    "sound-fast-noconfirm": ("sound", "fast", (), (("confirm_s", None),)),
+    # the fast protocol's other candidates: 6 or 4 exploration settings of N breaths; 6 ended
+    # once their SD is 4 % of the estimate; 6 with EI against the lowest posterior mean
+    "sound-e6": ("sound", "fast", (("n_explore", 6),), (("n_explore", 6),)),
+    "sound-e4": ("sound", "fast", (("n_explore", 4),), (("n_explore", 4),)),
+    "sound-explore-sd": ("sound", "fast", (("n_explore", 6), ("explore_rel_sd", 0.04)),
+                         (("n_explore", 6),)),
+    "sound-nei": ("sound", "fast", (("n_explore", 6), ("ei_best", "posterior")), (("n_explore", 6),)),
+}
+ABLATION_METHODS: tuple[str, ...] = tuple(m for m in _BO_VARIANTS if m.startswith("sound-"))
+"""The default's ablations (``--methods sound-seed,...``)."""
 _CMA_STREAM = 0xC3A
 _RANDOM_STREAM = 0x5A3D
 
@@ -117,7 +152,9 @@ class HilProtocol:
     Attributes:
         minutes: Session length on the breath clock, warm-ups included.
         warmup_s: Each of the two unassisted warm-ups (s).
-        n_explore: BO exploration points (bout 1).
+        n_explore: BO exploration points (bout 1); None (default): each method's protocol's
+            (``sound``: the fast protocol's 3; the seed's rules and the seed-003 methods: 6,
+            :attr:`explore_points`).
         max_breaths: BO's N.
         window: Algorithm 2's W.
         condition_s: CMA-ES and random-search condition length (s).
@@ -133,7 +170,7 @@ class HilProtocol:
 
     minutes: float = 60.0
     warmup_s: float = SessionProtocolConfig.warmup_s
-    n_explore: int = OptimizerConfig.n_explore
+    n_explore: int | None = None
     max_breaths: int = OptimizerConfig.max_breaths
     window: int = OptimizerConfig.window
     condition_s: float = 120.0
@@ -149,6 +186,8 @@ class HilProtocol:
         for name, low in (("n_explore", 1), ("max_breaths", 2), ("window", 0), ("popsize", 2),
                           ("bout1_conditions", 0)):
             v = getattr(self, name)
+            if name == "n_explore" and v is None:
+                continue
             if isinstance(v, bool) or not isinstance(v, int) or v < low:
                 raise ConfigError(f"{name}={v!r}; expected an integer >= {low}")
         for name in ("minutes", "condition_s", "sigma0", "grid_min"):
@@ -165,11 +204,11 @@ class HilProtocol:
         # The exploration bout at the slowest mean breathing of the wearer population.
         slowest_s = (WearerConfig().breath_interval_s[1] if self.wearer == WearerKind.LEGACY.value
                      else RealisticWearerConfig().breath_interval_s[1])
-        explore_s = self.n_explore * self.max_breaths * slowest_s
+        explore_s = self.explore_points * self.max_breaths * slowest_s
         if 2 * self.warmup_s + explore_s >= session_s:
             raise ConfigError(
                 f"minutes={self.minutes:g} is too short: the warm-ups ({2 * self.warmup_s / 60:g} min) "
-                f"and the BO exploration ({self.n_explore} × {self.max_breaths} breaths, up to "
+                f"and the BO exploration ({self.explore_points} × {self.max_breaths} breaths, up to "
                 f"{explore_s / 60:.1f} min) leave no optimisation time; give minutes > "
                 f"{math.ceil((2 * self.warmup_s + explore_s) / 60)}"
             )
@@ -178,6 +217,13 @@ class HilProtocol:
                 f"minutes={self.minutes:g} is too short for the warm-ups and "
                 f"{self.bout1_conditions + 1} conditions of {self.condition_s:g} s"
             )
+
+    @property
+    def explore_points(self) -> int:
+        """``n_explore``, else the seed protocol's (the most any method explores)."""
+        if self.n_explore is not None:
+            return self.n_explore
+        return int(protocol_preset(ProtocolKind.SEED)[1]["n_explore"])
 
     def to_json(self) -> dict[str, Any]:
         """JSON-able form."""
@@ -377,12 +423,13 @@ def _run_bo(task: HilTask) -> dict[str, Any]:
     def on_eval(rec: SimEvaluation, opt: HILOptimizer) -> None:
         trace.append((rec.t_end, opt.best()[0]))
 
+    stopping, protocol, options, protocol_options = _BO_VARIANTS[task.method]
     summary = run_insim(
         SimConfig(minutes=proto.minutes, seed=task.seed, preset=task.space, n_explore=proto.n_explore,
                   max_breaths=proto.max_breaths, window=proto.window, warmup_s=proto.warmup_s,
-                  stopping="adaptive" if task.method == "adaptive-ahead" else task.method,
-                  refit="ahead" if task.method == "adaptive-ahead" else "at_proposal",
-                  wearer=proto.wearer),
+                  stopping=stopping, refit="ahead" if task.method == "adaptive-ahead" else "at_proposal",
+                  wearer=proto.wearer, protocol=protocol, options=options,
+                  protocol_options=protocol_options),
         on_evaluation=on_eval,
     )
     evals = summary["evaluations"]
@@ -396,6 +443,12 @@ def _run_bo(task: HilTask) -> dict[str, Any]:
         "assisted_s": sum(e["t_end"] - e["t_start"] for e in evals),
         "bout2_s": (evals[-1]["t_end"] - bout2_start) if opt_evals else 0.0,
         "session_s": summary["session_minutes"] * 60.0,
+        "t_first_proposal_s": summary["t_first_proposal_s"],
+        # The final recommendation's reported estimate against its true cost at the end, in its
+        # reported SDs (the confirmation's own measurement when there is one).
+        "reported_z": (summary["best_mean"] - summary["true_cost_of_best_at_end"])
+        / math.sqrt(summary["best_var"]),
+        "confirmed": bool(summary["confirmation"] and summary["confirmation"]["n_evaluations"]),
     }
 
 
@@ -461,7 +514,7 @@ def _run_random(task: HilTask) -> dict[str, Any]:
 
 def _thesis_arm(task: HilTask) -> Arm:
     proto, m = task.protocol, task.method
-    base = {"n_explore": proto.n_explore, "window": proto.window}
+    base = {"n_explore": proto.explore_points, "window": proto.window}
     return {
         "adaptive-day2": lambda: Arm(m, day=2, **base),
         "adaptive-prior": lambda: Arm(m, day=2, prior=True, **base),
@@ -485,7 +538,7 @@ def _run_thesis(task: HilTask) -> dict[str, Any]:
     priors: list[Any] = []
     if arm.prior:
         # Day 1: the `adaptive` session of this subject (same protocol, seed, breath stream).
-        day1 = run_session(task.seed, Arm("day1", n_explore=task.protocol.n_explore,
+        day1 = run_session(task.seed, Arm("day1", n_explore=task.protocol.explore_points,
                                           window=task.protocol.window), **kwargs)
         priors = priors_from_evaluations(preset(task.space), day1["evaluations"],
                                          label=f"day1 seed {task.seed}")
@@ -516,7 +569,7 @@ def run_training_session(task: HilTask) -> list[list[list[float]]]:
     """
     blas_threads(1)
     proto = task.protocol
-    r = run_session(task.seed, Arm("train", n_explore=proto.n_explore, window=proto.window),
+    r = run_session(task.seed, Arm("train", n_explore=proto.explore_points, window=proto.window),
                     **_session_kwargs(task))
     return r["trajectories"]
 
@@ -553,7 +606,7 @@ def tune_constant_k(trajectories: Sequence[Sequence[Sequence[float]]], protocol:
         raise ConfigError(f"pick={pick!r}; expected 'bo' (BO-RESAMPLE) or 'grid' (exhaustive grid)")
     N = protocol.max_breaths
     cfg = TuneStoppingConfig(family="k", n_max=N, error_weight=error_weight,
-                             reference_window=min(protocol.window, N - 1), n_explore=protocol.n_explore,
+                             reference_window=min(protocol.window, N - 1), n_explore=protocol.explore_points,
                              n_real=n_real, seed=seed)
     tuned = tune_stopping([np.asarray(t, dtype=float) for t in trajectories], cfg)
     k = tuned["recommended"]["k"] if pick == "bo" else tuned["grid_best"]["k"]
@@ -596,7 +649,7 @@ def run_hil_task(task: HilTask) -> dict[str, Any]:
     """
     blas_threads(1)  # wherever it runs: see bridge.bench.common.blas_threads
     t0 = time.perf_counter()
-    runner = {"sound": _run_bo, "adaptive": _run_bo, "fixed": _run_bo, "adaptive-ahead": _run_bo,
+    runner = {**dict.fromkeys(_BO_VARIANTS, _run_bo),
               "cmaes": _run_cmaes, "random": _run_random,
               **dict.fromkeys(THESIS_METHODS, _run_thesis)}[task.method]
     out = runner(task)

@@ -3,7 +3,7 @@ without importing the benchmark)."""
 
 from __future__ import annotations
 
-__all__ = ["DEFAULT_HIL_METHODS", "HIL_METHODS", "PRIOR_METHODS", "THESIS_METHODS"]
+__all__ = ["ABLATION_METHODS", "DEFAULT_HIL_METHODS", "HIL_METHODS", "PRIOR_METHODS", "THESIS_METHODS"]
 
 DEFAULT_HIL_METHODS: tuple[str, ...] = ("sound", "adaptive", "fixed", "cmaes", "random")
 """What ``hilbo bench hil`` runs without ``--methods``."""
@@ -11,5 +11,11 @@ PRIOR_METHODS: tuple[str, ...] = ("adaptive-prior", "adaptive-prior-e3")
 THESIS_METHODS: tuple[str, ...] = ("adaptive-day2", *PRIOR_METHODS, "adaptive-features",
                                    "adaptive-features-only", "adaptive-tuned-k")
 """The Antonova 2016 methods (bridge/bench/hil.py's docstring)."""
-HIL_METHODS: tuple[str, ...] = (*DEFAULT_HIL_METHODS, "adaptive-ahead", *THESIS_METHODS)
+#: The ablations of the default ("sound"), each one change away from its neighbour
+#: (bridge/bench/hil.py, ``_BO_VARIANTS``); not run by default.
+ABLATION_METHODS: tuple[str, ...] = ("sound-seed", "sound-seed-global", "sound-seed-confirm",
+                                     "sound-fast-noconfirm", "sound-e6", "sound-e4",
+                                     "sound-explore-sd", "sound-nei")
+HIL_METHODS: tuple[str, ...] = (*DEFAULT_HIL_METHODS, "adaptive-ahead", *THESIS_METHODS,
+                                *ABLATION_METHODS)
 """Every method ``hilbo bench hil --methods`` accepts."""

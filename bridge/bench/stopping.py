@@ -46,10 +46,10 @@ from bridge.bench.common import blas_threads, markdown_table, round_sig
 from bridge.bench.executors import keep_freed_memory
 from hilbo_core.errors import ConfigError, OptimizerStateError
 from hilbo_core.optimizer import HILOptimizer, OptimizerConfig, Phase
-from hilbo_core.space import DesignKind
 from hilbo_core.studies.benchmarks import (
     _NOISE_STREAM,  # the trial's measurement stream: peers must measure what the BO methods measure
     FUNCTIONS,
+    MEASUREMENT_INTERVAL_S,
     METHODS,
     NOISE_LEVELS,
     NoiseModel,
@@ -150,13 +150,12 @@ def peer_trial(function: str, noise: float, method: str, seed: int,
     rng = np.random.default_rng([int(seed), _NOISE_STREAM])
 
     # Exploration exactly as stopping_trial runs it (same optimizer seed, design, noise stream):
-    # the same points, the same measurements, the same x_0. The study's BO methods are Kim et
-    # al. 2019's rules, whose design is maximin (OptimizerConfig.design).
+    # the same points, the same measurements, the same x_0.
     explorer = HILOptimizer(fn.space(), estimator_factory=estimator, n_explore=proto.n_explore,
                             max_breaths=proto.max_breaths, window=proto.window,
                             budget_breaths=proto.budget, seed=int(seed),
                             n_candidates=proto.n_candidates, n_local=proto.n_local,
-                            design=DesignKind.MAXIMIN)
+                            design=proto.design, recommend="seed")
     explored: list[tuple[dict[str, float], float, list[float]]] = []
     while len(explorer.evaluations) < proto.n_explore:
         params = explorer.ask()
@@ -167,7 +166,7 @@ def peer_trial(function: str, noise: float, method: str, seed: int,
             i += 1
             z = measure(f_true, true_var, rng)
             zs.append(z)
-            step = explorer.observe(float(i), z)
+            step = explorer.observe(i * MEASUREMENT_INTERVAL_S, z)
             if step.stop:
                 break
         if step.phase is not Phase.EXPLORATION or step.evaluation is None:

@@ -167,8 +167,10 @@ def run_session(seed: int, arm: Arm, *, minutes: float = 60.0, preset: str = "hi
                          stopping_k=arm.stopping_k,
                          stopping="adaptive")  # the Antonova 2016 studies are of Kim et al. 2019's rule
     _, opt_cost = wearer.true_optimum
-    # The protocol of run_insim: the minutes are the whole session, no pause between the bouts.
-    plan = SimConfig(minutes=minutes, n_explore=arm.n_explore, max_breaths=max_breaths, warmup_s=warmup_s)
+    # The protocol of run_insim for the seed's rule (Kim et al. 2019's walking protocol): the
+    # minutes are the whole session, no pause between the bouts.
+    plan = SimConfig(minutes=minutes, n_explore=arm.n_explore, max_breaths=max_breaths, warmup_s=warmup_s,
+                     stopping="adaptive", protocol="seed")
     protocol = SessionProtocol(plan.protocol_config(), t_start_s=wearer.t_s)
     trace: list[list[float]] = []
     recommendations: list[list[Any]] = []

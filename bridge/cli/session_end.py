@@ -49,6 +49,10 @@ def ended_text(s: dict[str, Any]) -> str:
     rec = s.get("recommendation")
     if rec is not None:
         text += "\n" + recommendation_text(rec)
+    conf = s.get("confirmation") or {}
+    if conf.get("mean_w") is not None and conf.get("sd_w") is not None:
+        # The recommendation measured in full in the session's last minutes: its own breaths.
+        text += f"\nrecommended, confirmed at {conf['mean_w']:.1f} ± {conf['sd_w']:.1f} W (SD)"
     elif not s["n_evaluations"]:
         text += f"\nno evaluation completed: nothing to recommend (exit status {EXIT_NOTHING_MEASURED})"
     return text

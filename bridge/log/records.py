@@ -57,7 +57,7 @@ __all__ = [
     "json_schema",
 ]
 
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4
 """Version of the log format (channels, their records and schemas).
 
 Stored in ``/config`` and the ``hilbo.session`` metadata. Bump it whenever the writer's output
@@ -72,9 +72,13 @@ otherwise, and a golden file of the new version goes to ``tests/data/logs/v<N>/`
   and evaluations may end with reason ``"decided"``; ``/events`` has ``loop_stall`` (a warning);
   a session's last ``/optimizer_state`` has reason ``"end"`` (what its summary recommends from).
   Older states read with ``accept_z`` None.
+* 4: the optimizer state gains the confirmation of the recommendation (``confirm``,
+  ``confirm_from``, ``confirm_requested``), the config ``explore_rel_sd`` and ``ei_best``, and loses
+  ``remeasure_best_s``; the recommendation may be ``"global"``; evaluations may end with reason
+  ``"precise"``; ``/events`` has ``confirmation``. Older states read without a confirmation.
 """
 
-READABLE_VERSIONS = frozenset({1, 2, 3})
+READABLE_VERSIONS = frozenset({1, 2, 3, 4})
 """Format versions the readers open."""
 
 METADATA_NAME = "hilbo.session"

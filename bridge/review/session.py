@@ -1030,6 +1030,12 @@ def _recommend(contents: Sequence[LogContents], snapshot: rec.OptimizerState | N
         except (HilboError, ValueError, np.linalg.LinAlgError) as err:
             notes.append(f"the optimizer's recommendation failed ({err}); showing the lowest estimate")
             opt = None
+        conf = None if opt is None else opt.confirmation
+        if conf is not None and conf.mean_w is not None and conf.sd_w is not None:
+            # Measured in full at the session's end: its estimate is that measurement.
+            method = (f"the session: recommended, confirmed at {conf.mean_w:.1f} ± {conf.sd_w:.1f} W "
+                      f"({conf.breaths} breaths in its last minutes; the GP predicted "
+                      f"{conf.predicted_mean_w:.1f} ± {conf.predicted_sd_w:.1f} W)")
     else:
         opt = None
     if opt is None:

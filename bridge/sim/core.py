@@ -24,7 +24,7 @@ from typing import Any
 from hilbo_core import HILOptimizer, brockway_watts, fit_hyperparameters, presets
 from hilbo_core.errors import ConfigError
 from hilbo_core.optimizer import BreathStep, Evaluation, OptimizerConfig
-from hilbo_core.protocol import SessionProtocol, SessionProtocolConfig, drive
+from hilbo_core.protocol import ProtocolKind, SessionProtocol, SessionProtocolConfig, drive, protocol_preset
 from virtual_hw.wearer import WearerKind, make_wearer, wearer_kind
 
 __all__ = ["SimConfig", "SimEvaluation", "check_optimisation_ran", "run_insim"]
@@ -41,7 +41,7 @@ class SimConfig:
         seed: Seeds the wearer (the subject) and the optimizer.
         speed: ``None`` for as fast as possible, else the real-time factor (1 = real time).
         preset: Parameter-space preset name.
-        n_explore: Exploration points.
+        n_explore: Exploration points; None: the protocol's (fast 3, seed 6).
         max_breaths: N, the maximum breaths per evaluation.
         window: Algorithm 2's window W.
         warmup_s: Warm-up at the start of each bout, without assistance (seed: 3 min).
@@ -51,23 +51,36 @@ class SimConfig:
             (as the bridge does by default: fitted on the completed evaluations while the next
             setting is measured, ``refit_lag`` 1).
         wearer: The simulated wearer (:class:`virtual_hw.wearer.WearerKind` value): ``realistic``
-            (default) or ``legacy``.
+            (default), ``noisy`` or ``legacy``.
+        protocol: The walking protocol (:class:`hilbo_core.protocol.ProtocolKind` value):
+            ``fast`` (one warm-up, 3 exploration settings, the recommendation confirmed in the
+            last minutes) or ``seed`` (Kim et al. 2019's); None (default): ``fast`` with the
+            sound rule, ``seed`` with the seed's rules (as ``[protocol] protocol``).
+        options: Further :class:`~hilbo_core.optimizer.OptimizerConfig` fields (benchmark
+            variants), applied after the protocol's.
+        protocol_options: Further :class:`~hilbo_core.protocol.SessionProtocolConfig` fields
+            (benchmark variants), applied after the protocol's.
     """
 
     minutes: float = 60.0
     seed: int = 1
     speed: float | None = None
     preset: str = "hip_6d"
-    n_explore: int = OptimizerConfig.n_explore
+    n_explore: int | None = None
     max_breaths: int = OptimizerConfig.max_breaths
     window: int = OptimizerConfig.window
     warmup_s: float = SessionProtocolConfig.warmup_s
     stopping: str = "sound"
     refit: str = "at_proposal"
     wearer: str = WearerKind.REALISTIC.value
+    protocol: str | None = None
+    options: tuple[tuple[str, Any], ...] = ()
+    protocol_options: tuple[tuple[str, Any], ...] = ()
 
     def __post_init__(self) -> None:
         wearer_kind(self.wearer)  # raises ConfigError naming the value and the choices
+        if self.protocol is not None:
+            protocol_preset(self.protocol)  # the same for the protocol's name
         if not (math.isfinite(self.minutes) and 0 < self.minutes <= 600):
             raise ConfigError(f"minutes={self.minutes!r}; expected a number in (0, 600]")
         if self.speed is not None and not (math.isfinite(self.speed) and self.speed > 0):
@@ -79,9 +92,34 @@ class SimConfig:
 
     def protocol_config(self) -> SessionProtocolConfig:
         """The session's protocol: ``minutes`` of walking in all, no pause between the bouts."""
-        return SessionProtocolConfig(warmup_s=self.warmup_s, n_explore=self.n_explore,
-                                     max_breaths=self.max_breaths, session_s=self.minutes * 60.0,
-                                     budget_s=None, pause_between_bouts=False)
+        named, _ = protocol_preset(self.walking_protocol)
+        fields: dict[str, Any] = {
+            **named, "warmup_s": self.warmup_s, "max_breaths": self.max_breaths,
+            "session_s": self.minutes * 60.0, "budget_s": None, "pause_between_bouts": False,
+            "n_explore": self.explore_points, **dict(self.protocol_options)}
+        return SessionProtocolConfig(**fields)
+
+    @property
+    def walking_protocol(self) -> ProtocolKind:
+        """``protocol``, else ``fast`` with the sound rule and ``seed`` with the seed's rules."""
+        if self.protocol is not None:
+            return ProtocolKind(self.protocol)
+        return ProtocolKind.FAST if self.stopping == "sound" else ProtocolKind.SEED
+
+    @property
+    def explore_points(self) -> int:
+        """``n_explore``, else the protocol's."""
+        if self.n_explore is not None:
+            return self.n_explore
+        return int(protocol_preset(self.walking_protocol)[1]["n_explore"])
+
+    def optimizer_config(self) -> OptimizerConfig:
+        """The session's optimizer: no budget of its own (the protocol ends the session)."""
+        fields: dict[str, Any] = {
+            **protocol_preset(self.walking_protocol)[1], "n_explore": self.explore_points,
+            "max_breaths": self.max_breaths, "window": self.window, "stopping": self.stopping,
+            "seed": self.seed, "refit_lag": 1 if self.refit == "ahead" else 0, **dict(self.options)}
+        return OptimizerConfig(**fields)
 
 
 @dataclass(frozen=True)
@@ -149,9 +187,7 @@ def run_insim(
     space = presets.preset(cfg.preset)
     wearer = make_wearer(cfg.wearer, space, seed=cfg.seed)
     # No budget of the optimizer's own: the protocol ends the session on walking time.
-    opt = HILOptimizer(space, n_explore=cfg.n_explore, max_breaths=cfg.max_breaths,
-                       window=cfg.window, stopping=cfg.stopping, seed=cfg.seed,
-                       refit_lag=1 if cfg.refit == "ahead" else 0)
+    opt = HILOptimizer(space, config=cfg.optimizer_config())
     protocol = SessionProtocol(cfg.protocol_config(), t_start_s=wearer.t_s)
     clock = _Clock(cfg.speed)
     records: list[SimEvaluation] = []
@@ -192,6 +228,7 @@ def run_insim(
     opt_params, opt_cost = wearer.true_optimum
     true_best = wearer.true_cost_w(best_params)
     baseline = wearer.baseline_cost_w
+    conf = opt.confirmation
     return {
         "n_evaluations": len(records),
         "n_early_stops": sum(r.evaluation.stopped_early for r in records),
@@ -200,6 +237,12 @@ def run_insim(
         "best_params": best_params,
         "best_mean": best_mean,
         "best_var": best_var,
+        # The recommendation's cost on the breath clock at the end (adaptation included): what
+        # its reported estimate (best_mean, measured in the confirmation) is an estimate of.
+        "true_cost_of_best_at_end": wearer.true_cost_w(best_params, wearer.t_s),
+        "confirmation": None if conf is None else conf.to_json(),
+        "t_first_proposal_s": next((r.t_start for r in records if r.evaluation.phase == "optimization"),
+                                   None),
         "true_optimum": {"params": opt_params, "cost_w": opt_cost},
         "true_cost_of_best": true_best,
         "regret_w": true_best - opt_cost,
@@ -211,9 +254,9 @@ def run_insim(
         "end_reason": None if protocol.end_reason is None else protocol.end_reason.value,
         "thresholds": None if opt.thresholds is None else opt.thresholds.tolist(),
         "config": {"minutes": cfg.minutes, "seed": cfg.seed, "preset": cfg.preset,
-                   "n_explore": cfg.n_explore, "max_breaths": cfg.max_breaths,
+                   "n_explore": cfg.explore_points, "max_breaths": cfg.max_breaths,
                    "window": cfg.window, "warmup_s": cfg.warmup_s, "stopping": cfg.stopping,
-                   "wearer": cfg.wearer,
+                   "wearer": cfg.wearer, "protocol": cfg.walking_protocol.value,
                    "speed": "max" if cfg.speed is None else cfg.speed},
         "wall_time_s": time.perf_counter() - wall0,
     }

@@ -34,6 +34,7 @@ from bridge.runtime import BridgeSession
 from drivers.exosuit import CanBusConfig
 from hilbo_core.errors import ConfigError
 from hilbo_core.presets import preset
+from hilbo_core.protocol import ProtocolKind, protocol_preset
 from virtual_hw.cart import CartLink, LinkKind, VirtualCart
 from virtual_hw.clock import ScaledClock, SkippingClock
 from virtual_hw.exosuit import SUIT_JOINTS, VirtualExosuit
@@ -59,7 +60,9 @@ class VirtualSimConfig:
         speed: Real-time factor (None = :data:`MAX_SPEED`).
         preset: Parameter space.
         stopping: ``sound`` (the default rule), ``adaptive`` (Kim et al. 2019's Algorithm 1/2) or ``fixed``.
-        n_explore, max_breaths, window, warmup_s: The protocol (Kim et al. 2019 §IV.A.3 by default).
+        n_explore, max_breaths, window, warmup_s: The protocol; ``n_explore`` None: the walking
+            protocol's (the sound rule walks the fast protocol: 3; the seed's rules Kim et al.
+            2019's: 6, with a pause and a second warm-up between the bouts).
         body_mass_kg: The simulated wearer's mass.
         feedback_hz: The virtual exosuit's force-feedback rate per actuator.
         exosuit_faults: Fault specs of the virtual exosuit (``virtual_hw.exosuit.EXOSUIT_FAULTS``).
@@ -75,7 +78,7 @@ class VirtualSimConfig:
     speed: float | None = None
     preset: str = "hip_6d"
     stopping: str = "sound"
-    n_explore: int = 6
+    n_explore: int | None = None
     max_breaths: int = 45
     window: int = 2
     warmup_s: float = 180.0
@@ -100,8 +103,12 @@ class VirtualSimConfig:
     def budget_min(self) -> float:
         """The optimisation bout's budget: what the minutes leave after the warm-ups and the
         exploration bout (which takes about n_explore·N breaths of ~3 s)."""
-        explore_s = self.n_explore * self.max_breaths * _MEAN_BREATH_S
-        left_s = self.minutes * 60.0 - 2 * self.warmup_s - explore_s
+        named_proto, named_opt = protocol_preset(ProtocolKind.FAST if self.stopping == "sound"
+                                                 else ProtocolKind.SEED)
+        n_explore = self.n_explore if self.n_explore is not None else named_opt["n_explore"]
+        explore_s = n_explore * self.max_breaths * _MEAN_BREATH_S
+        warm_ups = 2 if named_proto["pause_between_bouts"] or named_proto["warmup_without_pause"] else 1
+        left_s = self.minutes * 60.0 - warm_ups * self.warmup_s - explore_s
         if left_s < 60.0:
             raise ConfigError(
                 f"minutes={self.minutes:g} leaves {max(left_s, 0) / 60:.1f} min for optimisation after "
@@ -130,7 +137,7 @@ preset = "{cfg.preset}"
 
 [protocol]
 warmup_s = {cfg.warmup_s}
-n_explore = {cfg.n_explore}
+{"" if cfg.n_explore is None else f"n_explore = {cfg.n_explore}"}
 max_breaths = {cfg.max_breaths}
 window = {cfg.window}
 # The session ends at the first breath past `minutes` of walking (session_min, as a lab sets
@@ -139,7 +146,6 @@ session_min = {cfg.minutes}
 budget_min = {max(cfg.budget_min, cfg.minutes)}
 stopping = "{cfg.stopping}"
 seed = {cfg.seed}
-pause_between_bouts = true
 gc = "{cfg.gc}"
 proposal_worker = "{cfg.proposal_worker}"
 

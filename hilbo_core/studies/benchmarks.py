@@ -46,10 +46,12 @@ import numpy.typing as npt
 from hilbo_core.errors import ConfigError, OptimizerStateError
 from hilbo_core.metabolic import GaussianProductEstimator, MeasurementNoisePool, PooledNoiseEstimator
 from hilbo_core.optimizer import HILOptimizer, Phase
-from hilbo_core.space import Parameter, ParameterSpace
+from hilbo_core.protocol import DEFAULT_BREATH_INTERVAL_S
+from hilbo_core.space import DesignKind, Parameter, ParameterSpace
 
 __all__ = [
     "FUNCTIONS",
+    "MEASUREMENT_INTERVAL_S",
     "METHODS",
     "NOISE_LEVELS",
     "NoiseEstimate",
@@ -72,6 +74,12 @@ NOISE_LEVELS: tuple[float, ...] = (0.1, 1.0, 10.0)
 
 # Seeds the measurement-noise stream of a trial apart from the optimizer's own stream.
 _NOISE_STREAM = 0x5EED
+
+MEASUREMENT_INTERVAL_S = DEFAULT_BREATH_INTERVAL_S
+"""Seconds between two measurements of the study: each measurement stands for one breath (the
+seed's N = 45 measurements per evaluation are its 45 breaths), at a walking adult's mean breath
+interval. The estimators of the study ignore time; the sound rule's time floor
+(``min_decision_s``, 60 s) reads it, so here it means 20 measurements."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -330,11 +338,14 @@ METHODS: Mapping[str, StoppingMethod] = MappingProxyType({
                             MappingProxyType({"stopping": "fixed"})),
     "adaptive": StoppingMethod("adaptive", "BO with Algorithm 2 thresholds and the σ-scaled offset rule",
                                MappingProxyType({"stopping": "adaptive"})),
+    "sound": StoppingMethod("sound", "BO with hilbo's default rule (sound: time and threshold floors, "
+                            "GP-posterior incumbent, accept stop)", MappingProxyType({"stopping": "sound"})),
 })
 """The registry of methods ``stopping_trial`` accepts by name; pass a :class:`StoppingMethod`
 object for anything else."""
 
-_PROTECTED_OPTIONS = frozenset({"n_explore", "max_breaths", "window", "budget_breaths", "budget_s", "seed"})
+_PROTECTED_OPTIONS = frozenset({"n_explore", "max_breaths", "window", "budget_breaths", "budget_s", "seed",
+                                "design"})
 
 
 @dataclass(frozen=True)
@@ -350,6 +361,10 @@ class StoppingProtocol:
         noise_estimate: ``"pooled"`` or ``"seed"`` (:class:`NoiseEstimate`).
         n_candidates: Feasible Sobol candidates per EI maximisation.
         n_local: Candidates refined locally per EI maximisation.
+        design: The exploration points (:class:`~hilbo_core.space.DesignKind`), the same for
+            every method of a trial: ``sobol_only`` (default: scrambled Sobol points without a
+            centre point, as the seed's Fig. 2 study; the domain's centre is Ackley's optimum and
+            near Levy's), or a lab session's ``sobol``/``maximin`` (both start at the centre).
     """
 
     n_explore: int = 6
@@ -363,10 +378,12 @@ class StoppingProtocol:
     # method's y_T beyond noise on the 6-D functions (docs/results.md §1, "Campaign time on
     # 2026-12-05: 20 minutes"), so it is an option (--n-local 1), not the default.
     n_local: int = 3
+    design: DesignKind = DesignKind.SOBOL_ONLY
 
     def __post_init__(self) -> None:
         choice: type[enum.Enum]
-        for name, choice in (("noise_model", NoiseModel), ("noise_estimate", NoiseEstimate)):
+        for name, choice in (("noise_model", NoiseModel), ("noise_estimate", NoiseEstimate),
+                             ("design", DesignKind)):
             value = getattr(self, name)
             try:
                 object.__setattr__(self, name, choice(value))
@@ -388,7 +405,8 @@ class StoppingProtocol:
         return {"n_explore": self.n_explore, "max_breaths": self.max_breaths, "window": self.window,
                 "budget": self.budget, "noise_model": self.noise_model.value,
                 "noise_estimate": self.noise_estimate.value,
-                "n_candidates": self.n_candidates, "n_local": self.n_local}
+                "n_candidates": self.n_candidates, "n_local": self.n_local,
+                "design": self.design.value}
 
 
 def resolve_function(function: str | TestFunction) -> TestFunction:
@@ -462,7 +480,10 @@ def stopping_trial(
         estimator_factory=estimator_factory(fn, level, proto.noise_estimate),
         n_explore=proto.n_explore, max_breaths=proto.max_breaths, window=proto.window,
         budget_breaths=proto.budget, seed=int(seed), n_candidates=proto.n_candidates,
-        n_local=proto.n_local, **dict(meth.options),
+        n_local=proto.n_local, design=proto.design,
+        # The study's x_t is the GP's estimated minimum among the evaluated points (§III.2), for
+        # every method alike: x_0 is then the same for all of them.
+        **{"recommend": "seed", **dict(meth.options)},
     )
     rng = np.random.default_rng([int(seed), _NOISE_STREAM])
     y = np.full(proto.budget + 1, np.nan)
@@ -492,8 +513,8 @@ def stopping_trial(
         i = 0
         while True:
             i += 1
-            # Measurement times are only an ordering here; one unit per measurement.
-            step = opt.observe(float(i), measure(f_true, true_var, rng))
+            # One breath per measurement (MEASUREMENT_INTERVAL_S): the sound rule's time floor.
+            step = opt.observe(i * MEASUREMENT_INTERVAL_S, measure(f_true, true_var, rng))
             if step.phase is Phase.OPTIMIZATION:
                 t += 1
                 y[t] = y[t - 1]

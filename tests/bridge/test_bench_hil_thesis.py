@@ -11,6 +11,7 @@ import pytest
 
 from bridge.bench.cli import bench_main
 from bridge.bench.hil import (
+    ABLATION_METHODS,
     DEFAULT_HIL_METHODS,
     HIL_METHODS,
     THESIS_METHODS,
@@ -52,7 +53,9 @@ def _check_session(r: dict, proto: HilProtocol) -> None:
 def test_method_lists() -> None:
     assert DEFAULT_HIL_METHODS == ("sound", "adaptive", "fixed", "cmaes", "random")
     # adaptive-ahead: adaptive with the hyperparameters fitted ahead, as the bridge runs it.
-    assert set(HIL_METHODS) == set(DEFAULT_HIL_METHODS) | set(THESIS_METHODS) | {"adaptive-ahead"}
+    # The default's ablations and the fast protocol's other candidates (docs/hour_answer.md).
+    assert set(HIL_METHODS) == (set(DEFAULT_HIL_METHODS) | set(THESIS_METHODS) | {"adaptive-ahead"}
+                                | set(ABLATION_METHODS))
 
 
 def test_day_one_of_the_shared_session_code_is_the_adaptive_session() -> None:

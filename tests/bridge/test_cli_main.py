@@ -54,6 +54,16 @@ def test_the_end_of_hilbo_run_says_why_what_to_set_and_the_minutes_walked() -> N
     assert session_end.run_exit_status({**nothing, "end_reason": "interrupted"}) == 130
 
 
+def test_the_last_lines_of_hilbo_run_give_the_confirmed_recommendation() -> None:
+    summary = {"n_evaluations": 32, "n_early_stops": 15, "end_reason": "session", "recommendation": None,
+               "confirmation": {"mean_w": 351.24, "sd_w": 5.5, "n_evaluations": 1},
+               "walking": {"session_s": 3600.5, "optimization_s": 2950.0}}
+    assert session_end.ended_text(summary).splitlines()[-1] == "recommended, confirmed at 351.2 ± 5.5 W (SD)"
+    # A confirmation that began but did not complete adds nothing.
+    summary["confirmation"] = {"mean_w": None, "sd_w": None, "n_evaluations": 0}
+    assert "confirmed" not in session_end.ended_text(summary)
+
+
 def test_hilbo_run_help_documents_its_exit_statuses(capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit):
         cli.main(["run", "--help"])

@@ -58,13 +58,15 @@ READY_S = 20.0
 SESSION_S = 75.0
 POLL_S = 0.2
 #: The example config's protocol, shrunk (within the ranges `hilbo config check` accepts);
-#: pause_between_bouts stays true. The session's minutes are walked minutes, and at 30x a wall
+#: pause_between_bouts is set to true (the seed protocol's pause; the fast default walks on).
+#: The session's minutes are walked minutes, and at 30x a wall
 #: second is half a walked minute. On a loaded host the exosuit process misses the 100 ms
 #: watchdog now and then; each such pause lasts the resume policy's second and then some, 30-40
 #: walked seconds, and abandons the setting being measured. 2 minutes once ran out after 4 such
 #: pauses with no optimisation evaluation finished (1 minute ended in the exploration bout once);
 #: 5 minutes are 10 s of wall time.
-PROTOCOL = {"warmup_s": "10.0", "n_explore": "2", "max_breaths": "6", "budget_min": "5.0"}
+PROTOCOL = {"warmup_s": "10.0", "n_explore": "2", "max_breaths": "6", "budget_min": "5.0",
+            "pause_between_bouts": "true"}
 
 
 def _free_port() -> int:

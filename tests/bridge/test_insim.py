@@ -80,3 +80,16 @@ def test_cli_rejects_bad_speed(capsys) -> None:
         main(["sim", "--speed", "fast"])
     assert exc.value.code == 2
     assert "speed must be 'max' or a positive number, got 'fast'" in capsys.readouterr().err
+
+
+def test_the_walking_protocol_follows_the_rule_unless_named() -> None:
+    # The sound rule walks the fast protocol (3 exploration settings, a confirmation), the seed's
+    # rules Kim et al. 2019's (6 settings, none), as [protocol] protocol does.
+    assert small().walking_protocol.value == "fast"
+    assert small(stopping="adaptive").walking_protocol.value == "seed"
+    assert small(protocol="seed").walking_protocol.value == "seed"
+    assert SimConfig(stopping="fixed").explore_points == 6 and SimConfig().explore_points == 3
+    assert small().protocol_config().confirm_s == 240.0
+    assert small(stopping="adaptive").protocol_config().confirm_s is None
+    with pytest.raises(ConfigError, match="protocol='quick'"):
+        small(protocol="quick")

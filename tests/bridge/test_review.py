@@ -111,6 +111,11 @@ def test_the_report_recommends_what_the_session_did(reviewed) -> None:
     params, mean = recommended_from_report((out / "report.md").read_text())
     assert params == pytest.approx(summary["best_params"], rel=1e-5)
     assert mean == pytest.approx(summary["best_mean"], abs=0.006)
+    # The default (fast) protocol measured it in full in the session's last minutes.
+    conf = summary["confirmation"]
+    assert conf["n_evaluations"] >= 1 and conf["mean_w"] == pytest.approx(summary["best_mean"])
+    assert f"recommended, confirmed at {conf['mean_w']:.1f} ± {conf['sd_w']:.1f} W" in \
+        (out / "report.md").read_text()
 
 
 def test_the_report_has_every_section(reviewed) -> None:

@@ -31,8 +31,11 @@ def estimator() -> GaussianProductEstimator:
 
 
 def make() -> HILOptimizer:
+    # A measured setting is recommended (recommend = "posterior"), so the force-feedback plot has
+    # an evaluation to look for; the default's global recommendation may be a setting never
+    # measured when nothing confirmed it.
     return HILOptimizer(SPACE, estimator_factory=estimator, n_explore=N_EXPLORE, max_breaths=5, window=1,
-                        budget_breaths=14, seed=5, n_candidates=64, n_local=1)
+                        budget_breaths=14, seed=5, n_candidates=64, n_local=1, recommend="posterior")
 
 
 def watts(k: int, b: int, params: dict[str, float]) -> float:

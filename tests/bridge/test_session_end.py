@@ -100,7 +100,7 @@ def test_a_replay_at_max_speed_is_paced_by_the_session_and_measures(tmp_path: Pa
     assert rec["params"] == s["best_params"] and rec["units"]["F_p"]
     lo, hi = rec["ci95_w"]
     assert lo < rec["mean_w"] < hi
-    assert rec["method"] == "posterior" and rec["n_evaluations"] == s["n_evaluations"]
+    assert rec["method"] == "global" and rec["n_evaluations"] == s["n_evaluations"]
     # The operator view's last frame says the session ended, not "running".
     assert session.status.state.startswith("ended: the cart's data ended")
     assert "running" not in str(render_status(session.status).renderable.renderables[0].columns[1]._cells)

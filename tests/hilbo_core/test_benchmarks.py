@@ -11,8 +11,10 @@ from hypothesis import strategies as st
 
 from hilbo_core.errors import ConfigError
 from hilbo_core.metabolic import GaussianProductEstimator
+from hilbo_core.space import DesignKind
 from hilbo_core.studies.benchmarks import (
     FUNCTIONS,
+    MEASUREMENT_INTERVAL_S,
     METHODS,
     NoiseEstimate,
     StoppingMethod,
@@ -172,7 +174,7 @@ def test_trial_accepts_negative_objectives_and_custom_methods() -> None:
 
 @pytest.mark.parametrize(("kwargs", "match"), [
     ({"function": "rosenbrock"}, "unknown function 'rosenbrock'; choose one of"),
-    ({"method": "bogus"}, r"unknown method 'bogus'; choose one of \['adaptive', 'fixed'\]"),
+    ({"method": "bogus"}, r"unknown method 'bogus'; choose one of \['adaptive', 'fixed', 'sound'\]"),
     ({"noise": 0.0}, "noise=0.0"),
     ({"noise": "loud"}, "noise='loud'"),
     ({"seed": -1}, "seed=-1"),
@@ -192,11 +194,10 @@ def test_noise_models_agree_at_the_prior_variance_and_differ_elsewhere() -> None
     assumed = StoppingProtocol(**proto, noise_model="assumed")  # type: ignore[arg-type]
     same = [stopping_trial("branin", 1.0, "adaptive", 3, p) for p in (matched, assumed)]
     assert same[0] == same[1]
-    # At 10σ̃² "assumed" measures with variance σ̃² only: different data, different stops.
-    # (Seed 5: with data-only GP observations, seed 3's two runs happen to make the
-    # same number of evaluations; the point is only that the data differ.)
+    # At 10σ̃² "assumed" measures with variance σ̃² only: different data, a different run (the
+    # number of evaluations may coincide; the point is only that the data differ).
     high = [stopping_trial("branin", 10.0, "adaptive", 5, p) for p in (matched, assumed)]
-    assert high[0]["evaluations"] != high[1]["evaluations"]
+    assert (high[0]["y"], high[0]["x_final"]) != (high[1]["y"], high[1]["x_final"])
 
 
 def test_protocol_rejects_a_budget_smaller_than_one_evaluation() -> None:
@@ -234,4 +235,31 @@ def test_methods_may_not_override_the_protocol() -> None:
     bad = StoppingMethod("cheat", "bigger budget", {"budget_breaths": 10_000})
     with pytest.raises(ConfigError, match="may not override protocol option"):
         stopping_trial("branin", 1.0, bad, 0, TOY)
-    assert set(METHODS) == {"fixed", "adaptive"}
+    assert set(METHODS) == {"fixed", "adaptive", "sound"}
+
+
+def test_the_study_design_has_no_centre_point_so_x0_is_not_ackleys_optimum() -> None:
+    # Ackley's optimum is the domain's centre: a design that starts there (a lab session's)
+    # would hand every method the answer before the study begins (the seed's Fig. 2 has none).
+    proto = StoppingProtocol(n_explore=6, max_breaths=3, window=1, budget=3, n_candidates=64, n_local=0)
+    assert proto.design is DesignKind.SOBOL_ONLY
+    fn = FUNCTIONS["ackley"]
+    for seed in range(5):
+        r = stopping_trial("ackley", 0.1, "fixed", seed, proto)
+        assert r["f_x0"] > fn.f_min + 1.0
+    lab = StoppingProtocol(n_explore=6, max_breaths=3, window=1, budget=3, n_candidates=64,
+                           n_local=0, design="sobol")
+    assert stopping_trial("ackley", 0.1, "fixed", 0, lab)["f_x0"] < stopping_trial(
+        "ackley", 0.1, "fixed", 0, proto)["f_x0"]
+
+
+def test_the_default_sound_rule_runs_in_the_study_and_stops_after_its_time_floor() -> None:
+    # One measurement is one breath of MEASUREMENT_INTERVAL_S: the sound rule's 60 s floor is
+    # 20 measurements, so with N = 45 it can stop early (before, its floor exceeded N units).
+    assert MEASUREMENT_INTERVAL_S == 3.0
+    proto = StoppingProtocol(n_explore=4, max_breaths=45, window=2, budget=450, n_candidates=64,
+                             n_local=0)
+    r = stopping_trial("branin", 10.0, "sound", 3, proto)
+    assert r["method"] == "sound" and r["measurements"] == 450
+    assert r["early_stops"] >= 1
+    assert r["evaluations"] > 450 // 45

@@ -115,9 +115,10 @@ def test_predict_with_grad_rejects_non_finite_queries() -> None:
 # (the estimator's prior on c divided out), which changes the trials: evaluations, final
 # recommendation and the measurement counts where y_t changed, for three fixed-seed toy stopping
 # trials. They used Kim et al. 2019's estimator, named since the benchmark's default learns the
-# measurement variance.
+# measurement variance, and the design Kim et al. 2019's rules had then (the centre, then
+# maximin), named since the study's default is that paper's Fig. 2 design without a centre point.
 _PROTO = StoppingProtocol(n_explore=4, max_breaths=6, window=1, budget=40, n_candidates=64, n_local=2,
-                          noise_estimate="seed")  # type: ignore[arg-type]
+                          noise_estimate="seed", design="maximin")  # type: ignore[arg-type]
 _REFERENCE = {
     ("branin", 0.1, "adaptive"): (
         19, {"x1": 9.999999999215175, "x2": 3.975828875714184},

@@ -102,7 +102,7 @@ def test_from_dict_rejects_typos_and_missing() -> None:
         s.from_dict(missing)
 
 
-@pytest.mark.parametrize("kind", ["sobol", "maximin"])
+@pytest.mark.parametrize("kind", ["sobol", "maximin", "sobol_only"])
 @pytest.mark.parametrize("make", [hip_6d, hip_ankle_4d])
 def test_designs_are_feasible_spread_and_reproducible(make, kind: str) -> None:
     s = make()
@@ -139,7 +139,8 @@ def test_both_designs_start_at_the_centre_and_maximin_goes_to_the_boundary() -> 
 
 
 def test_an_unknown_design_is_refused_with_the_choices() -> None:
-    with pytest.raises(ConfigError, match=r"design='lhs'; expected one of \['sobol', 'maximin'\]"):
+    choices = r"\['sobol', 'maximin', 'sobol_only'\]"
+    with pytest.raises(ConfigError, match=r"design='lhs'; expected one of " + choices):
         hip_6d().design(6, np.random.default_rng(0), kind="lhs")
 
 
@@ -169,3 +170,37 @@ def test_json_round_trip_and_presets() -> None:
         assert ParameterSpace.from_json(s.to_json()) == s
     with pytest.raises(ConfigError, match="hip_7d"):
         preset("hip_7d")
+
+
+@pytest.mark.parametrize("n", [8192, 100_000])
+def test_sample_unit_fills_large_requests_on_a_thin_space(n: int) -> None:
+    # hip_6d's feasible fraction is about 1/6; a fixed number of rounds used to run out for large
+    # n (8192 failed for some seeds, 100000 always) although [protocol] n_candidates accepts them.
+    s = hip_6d()
+    for seed in range(3):
+        u = s.sample_unit(n, np.random.default_rng(seed))
+        assert u.shape == (n, 6)
+        assert s.feasible_mask(s.from_unit(u)).all()
+        assert len(np.unique(u, axis=0)) == n
+
+
+def test_sample_unit_keeps_the_points_it_drew_before() -> None:
+    # The rounds are unchanged (only their number is no longer capped), so the sets of ordinary
+    # requests (candidates, designs) are the ones drawn before: reference value of the previous
+    # implementation (1024 points on hip_6d take two rounds).
+    u = hip_6d().sample_unit(1024, np.random.default_rng(7))
+    assert u[-1] == pytest.approx([0.208514751866, 0.690816157497, 0.844597280025, 0.187628482468,
+                                   0.20518023055, 0.615428997204], abs=1e-11)
+
+
+def test_sample_unit_refuses_an_empty_region_naming_it_too_thin() -> None:
+    s = ParameterSpace([Parameter("a", 0.0, 1.0), Parameter("b", 0.0, 1.0)],
+                       ["a + b <= 1e-4"])
+    with pytest.raises(InfeasibleError, match="too thin"):
+        s.sample_unit(4, np.random.default_rng(0))
+
+
+@pytest.mark.parametrize("n", [0, -3, 2.5, True])
+def test_sample_unit_refuses_a_bad_count(n: object) -> None:
+    with pytest.raises(ConfigError, match="integer >= 1"):
+        hip_6d().sample_unit(n, np.random.default_rng(0))  # type: ignore[arg-type]

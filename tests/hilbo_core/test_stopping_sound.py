@@ -109,9 +109,9 @@ def test_time_is_required() -> None:
 
 
 # ---------------------------------------------------------------- in the optimizer
-def test_sound_is_the_default_with_the_posterior_recommendation() -> None:
+def test_sound_is_the_default_with_the_global_posterior_recommendation() -> None:
     cfg = OptimizerConfig()
-    assert cfg.stopping is StoppingKind.SOUND and cfg.recommend is RecommendKind.POSTERIOR
+    assert cfg.stopping is StoppingKind.SOUND and cfg.recommend is RecommendKind.GLOBAL
     assert cfg.min_decision_s == 60.0 and cfg.a_floor == 1.0
     assert OptimizerConfig(stopping="adaptive").recommend is RecommendKind.SEED
     assert OptimizerConfig.from_json(cfg.to_json()) == cfg
@@ -119,7 +119,7 @@ def test_sound_is_the_default_with_the_posterior_recommendation() -> None:
 
 @pytest.mark.parametrize("kw, match", [
     ({"a_floor": -1.0}, "a_floor"), ({"min_decision_s": math.inf}, "min_decision_s"),
-    ({"recommend": "lowest"}, "recommend"), ({"remeasure_best_s": 0.0}, "remeasure_best_s"),
+    ({"recommend": "lowest"}, "recommend"), ({"explore_rel_sd": 0.0}, "explore_rel_sd"),
     ({"recommend_beta": -1.0}, "recommend_beta"), ({"gp_prior_stopping": 1}, "gp_prior_stopping"),
 ])
 def test_bad_optimizer_options(kw, match) -> None:
@@ -189,7 +189,7 @@ def _best_gp(opt: HILOptimizer) -> GaussianProcess:
 
 
 def test_best_is_the_posterior_not_the_raw_estimate() -> None:
-    opt = _told()
+    opt = _told("posterior")
     params, mean, var = opt.best()
     gp = _best_gp(opt)
     mu, v = gp.predict(opt._evaluation_units())
@@ -207,24 +207,69 @@ def test_best_seed_kind_reports_the_raw_estimate() -> None:
     assert (params, mean, var) == (ev.params, ev.mean, ev.var)
 
 
-def test_remeasure_best_measures_the_recommendation_once_without_early_stop() -> None:
+def test_confirmation_measures_the_frozen_recommendation_in_full_and_reports_its_own_estimate() -> None:
+    import json
+
     opt = HILOptimizer(SPACE, estimator_factory=product_estimator, n_explore=2, seed=0,
-                       n_candidates=64, max_breaths=10, budget_s=60.0, remeasure_best_s=100.0,
-                       min_decision_s=0.0, a_floor=0.0)
+                       n_candidates=64, max_breaths=10, min_decision_s=0.0, a_floor=0.0)
     rng = np.random.default_rng(3)
     for k in range(4):
         x = SPACE.from_unit(np.clip(OPT_U + rng.normal(0, 0.1, 6), 0, 1))
         if SPACE.is_feasible(x):
             opt.tell(SPACE.to_dict(x), 330.0 + 20.0 * k, 20.0**2, breaths=3)
-    recommended = opt.best()[0]
+    assert opt.confirmation is None
+    recommended, p_mean, p_var = opt.best()
+    assert opt.begin_confirmation() and opt.begin_confirmation()  # idempotent
+    assert opt.confirmation is None  # chosen by the next ask (the proposal worker's GP work)
     assert opt.ask() == recommended
-    for i in range(9):
-        step = opt.observe_breath(3.0 * (i + 1), 900.0)  # looks terrible: still not stopped
-        assert not step.stop
-    step = opt.observe_breath(30.0, 900.0)
-    assert step.stop and step.evaluation.reason == "max_measurements"
-    assert opt.ask() != recommended  # once only
-    assert opt.to_json()["remeasured"] is True
+    conf = opt.confirmation
+    assert conf.params == recommended and conf.mean_w is None and conf.n_evaluations == 0
+    assert (conf.predicted_mean_w, conf.predicted_sd_w**2) == pytest.approx((p_mean, p_var))
+    for k in range(2):
+        if k:
+            assert opt.ask() == recommended
+        for i in range(9):
+            step = opt.observe_breath(3.0 * (i + 1), 900.0)  # looks terrible: still not stopped
+            assert not step.stop
+        step = opt.observe_breath(30.0, 900.0)
+        assert step.stop and step.evaluation.reason == "max_measurements"
+    conf = opt.confirmation
+    assert conf.n_evaluations == 2 and conf.breaths == 20
+    # Its own breaths, not the GP: the estimate is near what was measured (900 W).
+    assert conf.mean_w == pytest.approx(900.0, rel=0.05)
+    assert opt.best() == (recommended, conf.mean_w, conf.sd_w**2)
+    assert "confirmed at" in conf.describe()
+    clone = HILOptimizer.from_json(json.loads(json.dumps(opt.to_json())),
+                                   estimator_factory=product_estimator)
+    assert clone.confirmation == conf and clone.ask() == recommended
+
+
+def test_no_confirmation_during_exploration() -> None:
+    opt = HILOptimizer(SPACE, estimator_factory=product_estimator, n_explore=2, seed=0, n_candidates=64)
+    assert not opt.begin_confirmation() and opt.confirmation is None
+
+
+def test_exploration_ends_once_precise_and_algorithm_2_reads_the_padded_trace() -> None:
+    opt = HILOptimizer(SPACE, n_explore=2, max_breaths=45, seed=0, n_candidates=64,
+                       explore_rel_sd=0.04, min_decision_s=60.0)
+    rng = np.random.default_rng(8)
+    ends = []
+    for _ in range(2):
+        opt.ask()
+        t = 0.0
+        while True:
+            t += 3.0
+            step = opt.observe_breath(t, 400.0 * (1 + 0.08 * rng.standard_normal()))
+            if step.stop:
+                break
+        ends.append((t, step))
+    for t, step in ends:
+        assert 60.0 <= t < 45 * 3.0 and step.evaluation.reason == "precise"
+        assert not step.evaluation.stopped_early  # not a rejection
+        assert math.sqrt(step.var) <= 0.04 * step.mean
+    M, _S = opt.exploration_traces
+    assert M.shape == (2, 45) and opt.thresholds is not None and opt.thresholds.shape == (45,)
+    assert M[0, -1] == opt.evaluations[0].mean
 
 
 def test_json_round_trip_mid_evaluation_keeps_the_candidate_prior() -> None:

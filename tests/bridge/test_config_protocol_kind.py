@@ -1,0 +1,60 @@
+"""[protocol] protocol, confirm_min and explore_rel_sd: the named walking protocols in the config."""
+
+from __future__ import annotations
+
+import pytest
+
+from bridge.config import example_config_text, parse_config
+from bridge.errors import BridgeConfigError
+from hilbo_core.protocol import ProtocolKind
+
+
+def _cfg(extra: str):
+    return parse_config(example_config_text().replace("[protocol]", "[protocol]\n" + extra, 1))
+
+
+def test_the_example_runs_the_fast_protocol() -> None:
+    pr = parse_config(example_config_text()).protocol
+    assert pr.protocol_kind is ProtocolKind.FAST
+    sp = pr.session_protocol_config()
+    assert sp.confirm_s == 240.0 and not sp.warmup_without_pause and not sp.pause_between_bouts
+    assert sp.n_explore == pr.optimizer_config().n_explore == 3
+    assert pr.optimizer_config().explore_rel_sd is None
+
+
+def test_the_seed_protocol_by_name_and_by_the_seeds_rules() -> None:
+    # The protocol's values where the config does not give them (the example gives the fast ones).
+    example = example_config_text()
+    for key in ("n_explore", "pause_between_bouts"):
+        example = "\n".join(line for line in example.splitlines() if not line.startswith(key))
+    for extra in ('protocol = "seed"\n', ''):
+        text = example.replace('protocol = "fast"', extra.strip() or "")
+        if not extra:
+            text = text.replace('stopping = "sound"', 'stopping = "adaptive"')
+        pr = parse_config(text).protocol
+        assert pr.protocol_kind is ProtocolKind.SEED
+        sp = pr.session_protocol_config()
+        assert sp.confirm_s is None and sp.warmup_without_pause and sp.pause_between_bouts
+        assert sp.n_explore == pr.optimizer_config().n_explore == 6
+        assert pr.optimizer_config().explore_rel_sd is None
+
+
+def test_keys_override_the_protocols_values_and_zero_switches_them_off() -> None:
+    pr = _cfg("confirm_min = 2.5\nexplore_rel_sd = 0.05\n").protocol
+    assert pr.session_protocol_config().confirm_s == 150.0
+    assert pr.optimizer_config().explore_rel_sd == 0.05
+    pr = _cfg("confirm_min = 0\nexplore_rel_sd = 0\n").protocol
+    assert pr.session_protocol_config().confirm_s is None
+    assert pr.optimizer_config().explore_rel_sd is None
+
+
+@pytest.mark.parametrize("extra, match", [
+    ('protocol = "quick"\n', "protocol"),
+    ("confirm_min = -1\n", "confirm_min"),
+    ("explore_rel_sd = 0.9\n", "explore_rel_sd"),
+])
+def test_bad_values_name_the_key(extra: str, match: str) -> None:
+    text = example_config_text().replace('protocol = "fast"', "")
+    text = text.replace("[protocol]", "[protocol]\n" + extra, 1)
+    with pytest.raises(BridgeConfigError, match=match):
+        parse_config(text)
