@@ -491,7 +491,7 @@ class CanConfig:
         push_timeout_ms: Ack timeout per profile-push attempt, 10–5000 ms.
         push_retries: Push attempts after the first, 0–10.
         segment_pace_ms: Gap between profile segments, 0–50 ms (1 ms keeps an AssistanceOff
-            from queueing behind a burst: on the wire within 2.68 ms in the worst case;
+            from queueing behind a burst: on the wire within 2.69 ms in the worst case;
             PROTOCOL.md, "Bus budget").
     """
 
