@@ -362,6 +362,11 @@ class ProtocolConfig:
         n_candidates: Feasible Sobol candidates per acquisition maximisation.
         n_local: Candidates refined locally per acquisition maximisation.
         pause_between_bouts: Pause for the operator between the bouts.
+        short_pause_s: A pause (a fault, the operator's ``p``) at most this long, in seconds of
+            walking (breath time), 0–600, ends without a warm-up: the setting it abandoned is
+            measured again at once from the body's current level; a longer pause ends with the
+            bout's warm-up (:class:`hilbo_core.protocol.SessionProtocolConfig`, where the 15 s
+            default is argued from VO2 kinetics). 0: every pause ends with a warm-up.
         refit: When the GP hyperparameters are refitted: ``ahead`` (default: on the completed
             evaluations while the next setting is measured, so the proposal after a stop
             decision only conditions the GP on every observation and maximises EI; the
@@ -397,6 +402,7 @@ class ProtocolConfig:
     n_candidates: int = integer(OptimizerConfig.n_candidates, lo=16, hi=1_000_000)
     n_local: int = integer(OptimizerConfig.n_local, lo=0, hi=100)
     pause_between_bouts: bool = boolean(SessionProtocolConfig.pause_between_bouts)
+    short_pause_s: float = number(SessionProtocolConfig.short_pause_s, lo=0.0, hi=600.0)
     refit: RefitMode = choice(RefitMode, RefitMode.AHEAD)
     proposal_worker: WorkerKind = choice(WorkerKind, WorkerKind.PROCESS)
     gc: GcMode = choice(GcMode, GcMode.FREEZE)
@@ -412,6 +418,7 @@ class ProtocolConfig:
             warmup_s=self.warmup_s, n_explore=self.n_explore, max_breaths=self.max_breaths,
             session_s=None if self.session_min is None else 60.0 * self.session_min, budget_s=self.budget_s,
             budget_breaths=self.budget_breaths, pause_between_bouts=self.pause_between_bouts,
+            short_pause_s=self.short_pause_s,
         )
 
     def optimizer_config(self, *, with_budget: bool = True) -> OptimizerConfig:

@@ -38,7 +38,7 @@ from bridge.errors import UnsafeProfileError
 from bridge.log import EventLevel, LogError, SessionLog
 from bridge.loop_monitor import DEFAULT_PERIOD_S as DEFAULT_LOOP_MONITOR_PERIOD_S
 from bridge.loop_monitor import LoopMonitor
-from bridge.proposals import ProposalWorker, WorkerKind
+from bridge.proposals import Asked, ProposalWorker, WorkerKind
 from bridge.safety import AdmittedProfile
 from bridge.supervisor import PushRefused, Supervisor
 from drivers.errors import DriverError, ProfilePushAborted, ProfilePushError
@@ -334,6 +334,7 @@ class BridgeSession:
         # A hyperparameter fit running ahead of the next proposal (refit_lag >= 1).
         self._fit_ahead: tuple[HyperparameterFit, asyncio.Task[Any]] | None = None
         self._next_ask: asyncio.Task[Any] | None = None  # started at a stop decision
+        self._ask_again = False  # a pause abandoned a setting: measure it again (_propose)
         self.records: list[dict[str, Any]] = []  # completed evaluations with session times
         self._t_session0: float | None = None
 
@@ -510,6 +511,7 @@ class BridgeSession:
                else "the cart's clock re-anchoring")
         self._setting = None
         dropped = self.opt.cancel_current()
+        self._ask_again = dropped is not None
         if dropped is not None:
             self.log.log_optimizer_state(self.opt, reason="cancel")
             self._event("evaluation_cancelled", f"setting abandoned by {why}; it is re-measured")
@@ -519,7 +521,11 @@ class BridgeSession:
         if act.kind is ActionKind.END:
             return act
         end = await self._wait_resumed()
-        return end or p.on_resume(self._breaths.last_t)
+        if end is not None:
+            return end
+        act = p.on_resume(self._breaths.last_t)
+        self._log_recovery(act)
+        return act
 
     async def _propose(self, act: Action) -> bool:
         """Ask for the next setting, push it and wait until the device runs it.
@@ -532,10 +538,12 @@ class BridgeSession:
         # The GP work takes tens of ms: off the loop (a worker process by default, so it does
         # not compete with the CAN traffic for the GIL). Only this task touches the optimizer.
         # After a stop decision the ask was started at the decision (_start_next_ask).
-        task, self._next_ask = self._next_ask, None
-        if task is None:
-            task = await self._start_next_ask()
-        asked = await task
+        asked = self._asked_again()
+        if asked is None:
+            task, self._next_ask = self._next_ask, None
+            if task is None:
+                task = await self._start_next_ask()
+            asked = await task
         self.opt, params = asked.opt, asked.params
         if self._worker.lost is not None and not self._worker_lost_logged:
             self._worker_lost_logged = True
@@ -584,6 +592,29 @@ class BridgeSession:
         self.status.evaluation, self.status.params = index + 1, params
         self.status.breaths_in_setting, self.status.mean_w, self.status.sd_w = 0, None, None
         return True
+
+    def _asked_again(self) -> Asked | None:
+        """After a pause abandoned a setting: that same setting again (HILOptimizer.ask_again:
+        no GP work, so nothing goes to the worker), or None to ask for a new one."""
+        again, self._ask_again = self._ask_again, False
+        params = self.opt.ask_again() if again and self._next_ask is None else None
+        return None if params is None else Asked(self.opt, params, 0.0, 0.0, 0.0, 0.0)
+
+    def _log_recovery(self, act: Action) -> None:
+        """Say how the session goes on after a pause: at once (a short pause) or warmed up."""
+        pause_s = self.protocol.last_pause_s
+        limit_s = self.protocol.config.short_pause_s
+        walked = "" if pause_s is None else f"{pause_s:.0f} s of walking paused; "
+        if act.kind is ActionKind.WARM_UP and act.starts:
+            text = f"{walked}longer than {limit_s:g} s: a warm-up first"
+        elif act.kind in (ActionKind.WARM_UP, ActionKind.PROPOSE):
+            text = f"{walked}at most {limit_s:g} s: no new warm-up" + (
+                ", the abandoned setting is measured again at once"
+                if act.kind is ActionKind.PROPOSE and self._ask_again else "")
+        else:
+            return
+        self._event("recovery", text, pause_s=pause_s, short_pause_s=limit_s,
+                    warm_up=bool(act.kind is ActionKind.WARM_UP and act.starts))
 
     async def _measure(self, rec: BreathRecord, act: Action) -> Action:
         """Give a measured breath to the optimizer; close the evaluation when the stopping rule

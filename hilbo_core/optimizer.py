@@ -516,6 +516,8 @@ class HILOptimizer:
         self._traces_s: list[list[float]] = []
         self._thresholds: np.ndarray | None = None
         self._current: _Current | None = None
+        # The setting cancel_current() abandoned, until the next ask() (ask_again() restarts it).
+        self._cancelled: _Current | None = None
         self._estimator: Estimator | None = None
         self._hyp: GPHyperparameters | None = None
         # Training observations when self._hyp was fitted (None: never, or unknown after loading
@@ -619,6 +621,7 @@ class HILOptimizer:
         """
         if self._current is not None:
             return dict(self._current.params)
+        self._cancelled = None
         phase = self.phase
         if phase is Phase.DONE:
             raise OptimizerStateError(
@@ -768,8 +771,31 @@ class HILOptimizer:
             self._opt_seconds -= cur.breaths[-1][0] if cur.breaths else 0.0
         self._keep_body_level()  # the breaths are discarded, but the body did walk them
         self._current = None
+        self._cancelled = cur
         self._estimator = None
         return dict(cur.params)
+
+    def ask_again(self) -> dict[str, float] | None:
+        """Measure the setting :meth:`cancel_current` abandoned once more, instead of a new
+        proposal (after a short pause: the body is near where that setting left it).
+
+        Same parameters, same phase, same prior for the stopping rule as when it was proposed;
+        its breaths start from zero, with an estimator started from the body's level where the
+        cancelled measurement left it (as for any setting change). Nothing is fitted or
+        proposed, so it costs no GP work.
+
+        Returns:
+            The setting, or None when there is none to measure again (nothing was cancelled, an
+            ``ask()`` came since, a setting is being measured, or the phase changed).
+        """
+        cur = self._cancelled
+        if cur is None or self._current is not None or cur.phase is not self.phase:
+            return None
+        self._cancelled = None
+        self._current = _Current(params=dict(cur.params), x=cur.x.copy(), phase=cur.phase,
+                                 prior=cur.prior, remeasure=cur.remeasure)
+        self._estimator = self._new_estimator()
+        return dict(self._current.params)
 
     # ------------------------------------------------------------------ internals
     def _new_estimator(self) -> Estimator:
