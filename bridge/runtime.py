@@ -73,6 +73,11 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
+# The watchdog woke this much later than asked: this event loop stalled (one device status
+# period, PROTOCOL.md), and it waits for the receive path at most this many periods.
+_STALL_GRACE_S = 0.020
+_MAX_STALL_DEFERRALS = 3
+
 
 class ProfileGate(Protocol):
     """What the session needs from the safety layer (bridge.safety.SafeProfileGate)."""
@@ -906,12 +911,15 @@ class BridgeSession:
         started = self._clock()
         next_counts = started + 5.0
         while True:
+            woke_at = self._clock() + s.watchdog_period_s
             await asyncio.sleep(s.watchdog_period_s)
             now = self._clock()
             if now >= next_counts:
                 next_counts = now + 5.0
                 self._log_counters()
             silent = self.device.silent_for(now, s.n_actuators)
+            if silent > s.device_timeout_s and now - woke_at > _STALL_GRACE_S:
+                silent, now = await self._device_silence_after_stall()
             if silent > s.device_timeout_s and now - started > s.device_timeout_s:
                 healthy = self.status.device == "ok"
                 self.status.device = "LOST"
@@ -948,6 +956,23 @@ class BridgeSession:
                     self.status.cart = "SILENT"
                     await self.supervisor.pause(AssistanceOffReason.INTERNAL_ERROR,
                                                 f"no breath for {now - b.last_wall:.0f} s")
+
+    async def _device_silence_after_stall(self) -> tuple[float, float]:
+        """The device's silence once the receive path has caught up, after this event loop
+        itself stalled: statuses that arrived during the stall still wait in the receive path
+        (the notifier, the endpoint, the subscription), so give it up to
+        :data:`_MAX_STALL_DEFERRALS` status periods before judging the device silent (as the
+        device's own watchdog does for the bridge heartbeat, virtual_hw/exosuit.py). A device
+        that really went silent is still found, at most that much later. Returns (silence,
+        now)."""
+        s = self.settings
+        for _ in range(_MAX_STALL_DEFERRALS):
+            await asyncio.sleep(_STALL_GRACE_S)
+            now = self._clock()
+            silent = self.device.silent_for(now, s.n_actuators)
+            if silent <= s.device_timeout_s:
+                break
+        return silent, now
 
     async def _resume_policy_task(self) -> None:
         """Headless runs: end a pause the operator did not ask for once the device and the cart
