@@ -1155,6 +1155,9 @@ def summarize(cfg: HilboConfig) -> str:
         f"optimisation budget {budget}; {pr.stopping.value} stopping "
         f"(W = {pr.window}{_sound_text(pr)}); {pr.kernel.value} kernel, xi = {pr.xi:g}, seed {pr.seed}; "
         f"{'pause' if pr.pause_between_bouts else 'no pause'} between bouts",
+        "          after a pause: "
+        + (f"up to {pr.short_pause_s:g} s the same setting again at once, longer ones a warm-up "
+           "first" if pr.short_pause_s > 0 else "a warm-up first, then the same setting again"),
         f"          expected end {_expected_end_text(pr)}",
         f"cart      {cfg.cart.transport}, {cfg.cart.format.value}",
         f"can       {c.bus.interface}:{c.bus.channel}, bitrate {c.bus.bitrate}, heartbeat "
