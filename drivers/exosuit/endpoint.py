@@ -655,7 +655,9 @@ class CanEndpoint:
     def counters(self) -> Mapping[str, int]:
         """Frames that did not decode, by reason (``unknown_id``, ``bad_length``, ``bad_value``,
         ``extended_id``, ``remote_frame``, ``error_frame``, ``fd_frame``), plus
-        ``subscriber_overflow``, ``send_retry``, ``heartbeat_overrun``, ``clear_ack_stale`` and
+        ``subscriber_overflow``, ``send_retry``, ``heartbeat_overrun`` (a liveness update of
+        the heartbeat more than one liveness period late: the event loop was blocked; the
+        heartbeat frames themselves went on), ``clear_ack_stale`` and
         the profile answers this endpoint rejected (once it has pushed a profile):
         ``ack_before_commit`` (an answer of the version being pushed before its first commit was
         sent), ``ack_repeated`` (an answer beyond one per commit sent, e.g. a second ack of the
