@@ -618,8 +618,11 @@ class BridgeSession:
                 if act.kind is ActionKind.PROPOSE and self._ask_again else "")
         else:
             return
-        self._event("recovery", text, pause_s=pause_s, short_pause_s=limit_s,
-                    warm_up=bool(act.kind is ActionKind.WARM_UP and act.starts))
+        # In the log only: the view already says "resumed" and then shows the warm-up or the
+        # setting being pushed.
+        logger.info("recovery: %s", text)
+        self.log.log_event("recovery", text, pause_s=pause_s, short_pause_s=limit_s,
+                           warm_up=bool(act.kind is ActionKind.WARM_UP and act.starts))
 
     async def _measure(self, rec: BreathRecord, act: Action) -> Action:
         """Give a measured breath to the optimizer; close the evaluation when the stopping rule
