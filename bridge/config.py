@@ -396,6 +396,11 @@ class ProtocolConfig:
         explore_rel_sd: Exploration settings end once their estimate's SD is at most this
             fraction of it (after ``min_decision_s``), 0-0.5; 0 or absent: N breaths (both
             protocols: ending them early cost regret on the realistic wearer).
+        short_pause_s: A pause (a fault, the operator's ``p``) at most this long, in seconds of
+            walking (breath time), 0–600, ends without a warm-up: the setting it abandoned is
+            measured again at once from the body's current level; a longer pause ends with the
+            bout's warm-up (:class:`hilbo_core.protocol.SessionProtocolConfig`, where the 15 s
+            default is argued from VO2 kinetics). 0: every pause ends with a warm-up.
         refit: When the GP hyperparameters are refitted: ``ahead`` (default: on the completed
             evaluations while the next setting is measured, so the proposal after a stop
             decision only conditions the GP on every observation and maximises EI; the
@@ -434,6 +439,7 @@ class ProtocolConfig:
     protocol: ProtocolKind | None = choice(ProtocolKind, None)
     confirm_min: float | None = number(None, lo=0.0, hi=120.0, optional=True)
     explore_rel_sd: float | None = number(None, lo=0.0, hi=0.5, optional=True)
+    short_pause_s: float = number(SessionProtocolConfig.short_pause_s, lo=0.0, hi=600.0)
     refit: RefitMode = choice(RefitMode, RefitMode.AHEAD)
     proposal_worker: WorkerKind = choice(WorkerKind, WorkerKind.PROCESS)
     gc: GcMode = choice(GcMode, GcMode.FREEZE)
@@ -474,6 +480,7 @@ class ProtocolConfig:
             warmup_s=self.warmup_s, n_explore=self.explore_points, max_breaths=self.max_breaths,
             session_s=None if self.session_min is None else 60.0 * self.session_min, budget_s=self.budget_s,
             budget_breaths=self.budget_breaths, pause_between_bouts=self.pauses_between_bouts,
+            short_pause_s=self.short_pause_s,
         )
         return SessionProtocolConfig(**named)
 
@@ -558,7 +565,7 @@ class CanConfig:
         push_timeout_ms: Ack timeout per profile-push attempt, 10–5000 ms.
         push_retries: Push attempts after the first, 0–10.
         segment_pace_ms: Gap between profile segments, 0–50 ms (1 ms keeps an AssistanceOff
-            from queueing behind a burst: on the wire within 2.68 ms in the worst case;
+            from queueing behind a burst: on the wire within 2.69 ms in the worst case;
             PROTOCOL.md, "Bus budget").
     """
 
@@ -1326,6 +1333,9 @@ def summarize(cfg: HilboConfig) -> str:
         f"{'pause' if pr.pauses_between_bouts else 'no pause'} between bouts; "
         + (f"the last {pr.session_protocol_config().confirm_s / 60:g} min confirm the recommendation"
            if pr.session_protocol_config().confirm_s else "no confirmation"),
+        "          after a pause: "
+        + (f"up to {pr.short_pause_s:g} s the same setting again at once, longer ones a warm-up "
+           "first" if pr.short_pause_s > 0 else "a warm-up first, then the same setting again"),
         f"          expected end {_expected_end_text(pr)}",
         f"cart      {cfg.cart.transport}, {cfg.cart.format.value}",
         f"can       {c.bus.interface}:{c.bus.channel}, bitrate {c.bus.bitrate}, heartbeat "

@@ -39,7 +39,7 @@ from bridge.log import EventLevel, LogError, SessionLog
 from bridge.loop_monitor import DEFAULT_PERIOD_S as DEFAULT_LOOP_MONITOR_PERIOD_S
 from bridge.loop_monitor import LoopMonitor
 from bridge.outcome import SessionEnd, recommendation, session_end
-from bridge.proposals import ProposalWorker, WorkerKind
+from bridge.proposals import Asked, ProposalWorker, WorkerKind
 from bridge.safety import AdmittedProfile
 from bridge.supervisor import PushRefused, Supervisor
 from drivers.errors import DriverError, ProfilePushAborted, ProfilePushError
@@ -73,6 +73,11 @@ __all__ = [
 ]
 
 logger = logging.getLogger(__name__)
+
+# The watchdog woke this much later than asked: this event loop stalled (one device status
+# period, PROTOCOL.md), and it waits for the receive path at most this many periods.
+_STALL_GRACE_S = 0.020
+_MAX_STALL_DEFERRALS = 3
 
 
 class ProfileGate(Protocol):
@@ -390,6 +395,7 @@ class BridgeSession:
         # A hyperparameter fit running ahead of the next proposal (refit_lag >= 1).
         self._fit_ahead: tuple[HyperparameterFit, asyncio.Task[Any]] | None = None
         self._next_ask: asyncio.Task[Any] | None = None  # started at a stop decision
+        self._ask_again = False  # a pause abandoned a setting: measure it again (_propose)
         self.records: list[dict[str, Any]] = []  # completed evaluations with session times
         self._t_session0: float | None = None
         #: Why the session ended (the first cause wins); None while it runs.
@@ -618,6 +624,7 @@ class BridgeSession:
         # _measure): the setting's re-proposal after the pause uses it, as before the pause.
         applied = await self._collect_fit_ahead()
         dropped = self.opt.cancel_current()
+        self._ask_again = dropped is not None
         if dropped is not None or applied:
             self.log.log_optimizer_state(self.opt, reason="cancel")
         if dropped is not None:
@@ -628,7 +635,11 @@ class BridgeSession:
         if act.kind is ActionKind.END:
             return act
         end = await self._wait_resumed()
-        return end or p.on_resume(self._breaths.last_t)
+        if end is not None:
+            return end
+        act = p.on_resume(self._breaths.last_t)
+        self._log_recovery(act)
+        return act
 
     async def _propose(self, act: Action) -> bool:
         """Ask for the next setting, push it and wait until the device runs it.
@@ -641,10 +652,12 @@ class BridgeSession:
         # The GP work takes tens of ms: off the loop (a worker process by default, so it does
         # not compete with the CAN traffic for the GIL). Only this task touches the optimizer.
         # After a stop decision the ask was started at the decision (_start_next_ask).
-        task, self._next_ask = self._next_ask, None
-        if task is None:
-            task = await self._start_next_ask()
-        asked = await task
+        asked = self._asked_again()
+        if asked is None:
+            task, self._next_ask = self._next_ask, None
+            if task is None:
+                task = await self._start_next_ask()
+            asked = await task
         self.opt, params = asked.opt, asked.params
         if self._worker.lost is not None and not self._worker_lost_logged:
             self._worker_lost_logged = True
@@ -699,6 +712,32 @@ class BridgeSession:
         self.status.breaths_in_setting, self.status.mean_w, self.status.sd_w = 0, None, None
         return True
 
+    def _asked_again(self) -> Asked | None:
+        """After a pause abandoned a setting: that same setting again (HILOptimizer.ask_again:
+        no GP work, so nothing goes to the worker), or None to ask for a new one."""
+        again, self._ask_again = self._ask_again, False
+        params = self.opt.ask_again() if again and self._next_ask is None else None
+        return None if params is None else Asked(self.opt, params, 0.0, 0.0, 0.0, 0.0)
+
+    def _log_recovery(self, act: Action) -> None:
+        """Say how the session goes on after a pause: at once (a short pause) or warmed up."""
+        pause_s = self.protocol.last_pause_s
+        limit_s = self.protocol.config.short_pause_s
+        walked = "" if pause_s is None else f"{pause_s:.0f} s of walking paused; "
+        if act.kind is ActionKind.WARM_UP and act.starts:
+            text = f"{walked}longer than {limit_s:g} s: a warm-up first"
+        elif act.kind in (ActionKind.WARM_UP, ActionKind.PROPOSE):
+            text = f"{walked}at most {limit_s:g} s: no new warm-up" + (
+                ", the abandoned setting is measured again at once"
+                if act.kind is ActionKind.PROPOSE and self._ask_again else "")
+        else:
+            return
+        # In the log only: the view already says "resumed" and then shows the warm-up or the
+        # setting being pushed.
+        logger.info("recovery: %s", text)
+        self.log.log_event("recovery", text, pause_s=pause_s, short_pause_s=limit_s,
+                           warm_up=bool(act.kind is ActionKind.WARM_UP and act.starts))
+
     async def _measure(self, rec: BreathRecord, act: Action) -> Action:
         """Give a measured breath to the optimizer; close the evaluation when the stopping rule
         (or the end of the session's time, ``act.final``) says so. Returns the next action."""
@@ -731,7 +770,10 @@ class BridgeSession:
         # warm-up, the pause between the bouts), and the snapshot below records them before
         # the session awaits anything: every state the optimizer is in at an await point can
         # be rebuilt from the log (bridge/log/resume.py replays asks and breaths, not fits).
-        await self._collect_fit_ahead()
+        # At the session's end nothing uses them, and an await before the observation is logged
+        # would leave a log without the evaluation the session's time just closed.
+        if nxt.kind is not ActionKind.END:
+            await self._collect_fit_ahead()
         if nxt.kind is ActionKind.PROPOSE:
             # The next proposal starts now, on a copy taken now; the worker gets it once this
             # task next awaits, after the logging below (the snapshot: 2 ms at 60 evaluations,
@@ -1041,9 +1083,17 @@ class BridgeSession:
             # callback) needs the GIL, then the CAN receive task and the status task a turn of
             # the loop each. A short real wait lets them through first (the loop waits in
             # select, which releases the GIL), so a busy PC is not taken for a silent device.
+            stalled = now - due > _STALL_GRACE_S  # this loop itself woke late
             await asyncio.sleep(_RECEIVE_GRACE_S)
             if self.device.stalest_status(s.n_actuators) != last:
                 continue  # a status came in
+            if stalled and self.supervisor.assisting:
+                # After a stall of this loop, statuses of the stall may still be queued: the
+                # device (whose own watchdog guards the bridge heartbeat, sent by the kernel or a
+                # sender thread through the stall) gets a few status periods more.
+                silent, _ = await self._device_silence_after_stall()
+                if silent <= s.device_timeout_s:
+                    continue
             silent = self.device.silent_for(self._clock(), s.n_actuators)
             healthy = self.status.device == "ok"
             self.status.device = "LOST"
@@ -1094,6 +1144,23 @@ class BridgeSession:
                     self.status.cart = "SILENT"
                     await self.supervisor.pause(AssistanceOffReason.INTERNAL_ERROR,
                                                 f"no breath for {now - b.last_wall:.0f} s")
+
+    async def _device_silence_after_stall(self) -> tuple[float, float]:
+        """The device's silence once the receive path has caught up, after this event loop
+        itself stalled: statuses that arrived during the stall still wait in the receive path
+        (the notifier, the endpoint, the subscription), so give it up to
+        :data:`_MAX_STALL_DEFERRALS` status periods before judging the device silent (as the
+        device's own watchdog does for the bridge heartbeat, virtual_hw/exosuit.py). A device
+        that really went silent is still found, at most that much later. Returns (silence,
+        now)."""
+        s = self.settings
+        for _ in range(_MAX_STALL_DEFERRALS):
+            await asyncio.sleep(_STALL_GRACE_S)
+            now = self._clock()
+            silent = self.device.silent_for(now, s.n_actuators)
+            if silent <= s.device_timeout_s:
+                break
+        return silent, now
 
     async def _resume_policy_task(self) -> None:
         """Headless runs: end a pause the operator did not ask for once the device and the cart

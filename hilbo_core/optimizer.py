@@ -582,6 +582,8 @@ class HILOptimizer:
         self._traces_s: list[list[float]] = []
         self._thresholds: np.ndarray | None = None
         self._current: _Current | None = None
+        # The setting cancel_current() abandoned, until the next ask() (ask_again() restarts it).
+        self._cancelled: _Current | None = None
         self._estimator: Estimator | None = None
         self._hyp: GPHyperparameters | None = None
         # Training observations when self._hyp was fitted (None: never, or unknown after loading
@@ -747,6 +749,7 @@ class HILOptimizer:
         """
         if self._current is not None:
             return dict(self._current.params)
+        self._cancelled = None
         phase = self.phase
         if phase is Phase.DONE:
             raise OptimizerStateError(
@@ -903,8 +906,38 @@ class HILOptimizer:
             self._opt_seconds -= cur.breaths[-1][0] if cur.breaths else 0.0
         self._keep_body_level()  # the breaths are discarded, but the body did walk them
         self._current = None
+        self._cancelled = cur
         self._estimator = None
         return dict(cur.params)
+
+    @property
+    def cancelled_params(self) -> dict[str, float] | None:
+        """The setting :meth:`cancel_current` abandoned and :meth:`ask_again` would measure
+        once more, or None."""
+        cur = self._cancelled
+        return None if cur is None else dict(cur.params)
+
+    def ask_again(self) -> dict[str, float] | None:
+        """Measure the setting :meth:`cancel_current` abandoned once more, instead of a new
+        proposal (after a short pause: the body is near where that setting left it).
+
+        Same parameters, same phase, same prior for the stopping rule as when it was proposed;
+        its breaths start from zero, with an estimator started from the body's level where the
+        cancelled measurement left it (as for any setting change). Nothing is fitted or
+        proposed, so it costs no GP work.
+
+        Returns:
+            The setting, or None when there is none to measure again (nothing was cancelled, an
+            ``ask()`` came since, a setting is being measured, or the phase changed).
+        """
+        cur = self._cancelled
+        if cur is None or self._current is not None or cur.phase is not self.phase:
+            return None
+        self._cancelled = None
+        self._current = _Current(params=dict(cur.params), x=cur.x.copy(), phase=cur.phase,
+                                 prior=cur.prior, remeasure=cur.remeasure)
+        self._estimator = self._new_estimator()
+        return dict(self._current.params)
 
     # ------------------------------------------------------------------ internals
     def _new_estimator(self) -> Estimator:
@@ -1224,6 +1257,14 @@ class HILOptimizer:
                 "breaths": cur.breaths, "prior": None if cur.prior is None else list(cur.prior),
                 "remeasure": cur.remeasure,
             },
+            # The setting a pause abandoned, which ask_again() measures once more: a resume from
+            # a snapshot taken between the cancel and the re-proposal must be able to as well.
+            "cancelled": None if self._cancelled is None else {
+                "params": self._cancelled.params, "x": self._cancelled.x.tolist(),
+                "phase": self._cancelled.phase.value,
+                "prior": None if self._cancelled.prior is None else list(self._cancelled.prior),
+                "remeasure": self._cancelled.remeasure,
+            },
             "confirm": None if self._confirm is None else list(self._confirm),
             "confirm_from": self._confirm_from,
             "confirm_requested": self._confirm_requested,
@@ -1290,6 +1331,13 @@ class HILOptimizer:
             cur = data["current"]
         except (KeyError, TypeError, ValueError) as err:
             raise ConfigError(f"invalid optimizer state: {err!r}") from err
+        gone = data.get("cancelled")  # absent in states written before ask_again existed
+        if gone is not None:
+            prior = gone.get("prior")
+            opt._cancelled = _Current(params=dict(gone["params"]), x=np.array(gone["x"], dtype=float),
+                                      phase=Phase(gone["phase"]),
+                                      prior=None if prior is None else (float(prior[0]), float(prior[1])),
+                                      remeasure=bool(gone.get("remeasure", False)))
         if cur is not None:
             prior = cur.get("prior")
             opt._current = _Current(params=dict(cur["params"]), x=np.array(cur["x"], dtype=float),

@@ -191,6 +191,17 @@ class SessionProtocolConfig:
             confirming the recommendation: from then on :attr:`SessionProtocol.confirm_due` is
             True and the driver measures the recommended setting in full
             (:meth:`~hilbo_core.optimizer.HILOptimizer.begin_confirmation`); None: no confirmation.
+        short_pause_s: A pause at most this long (breath time, s >= 0; 0: none is short) ends
+            without a warm-up: the setting it abandoned is measured again at once, from the
+            body's level at the resume (a warm-up in progress goes on where it was). Longer
+            pauses end with the bout's full warm-up. Why 15 s: VO2 follows a change of walking
+            load with a time constant of about 42 s (Selinger & Donelan 2014, J Appl Physiol
+            117:1406), on and off alike in moderate exercise (Özyener et al. 2001, J Physiol
+            533:891), so 15 s unassisted moves the body only ~30 % of the way from the
+            setting's level towards unassisted walking (1 − e^(−15/42)): a start from a known
+            level such as any setting change makes (Kim et al. 2019 measure settings back to
+            back, their 3-min warm-ups only open a bout). Longer pauses may also mean the wearer
+            stood or stepped off; those get the warm-up.
     """
 
     warmup_s: float = 180.0
@@ -202,6 +213,7 @@ class SessionProtocolConfig:
     pause_between_bouts: bool = True
     warmup_without_pause: bool = True
     confirm_s: float | None = None
+    short_pause_s: float = 15.0
 
     def __post_init__(self) -> None:
         if not _is_number(self.warmup_s) or not (math.isfinite(self.warmup_s) and self.warmup_s >= 0):
@@ -223,6 +235,9 @@ class SessionProtocolConfig:
         c = self.confirm_s
         if c is not None and not (_is_number(c) and math.isfinite(c) and c > 0):
             raise ConfigError(f"confirm_s={c!r}; expected a positive number of seconds or None")
+        if not _is_number(self.short_pause_s) or not (
+                math.isfinite(self.short_pause_s) and self.short_pause_s >= 0):
+            raise ConfigError(f"short_pause_s={self.short_pause_s!r}; expected a number of seconds >= 0")
 
     def to_json(self) -> dict[str, Any]:
         """JSON-able form."""
@@ -328,6 +343,9 @@ class SessionProtocol:
         self._session_used_s = 0.0  # walked before a resume (resumed())
         self._phase = SessionPhase.WARM_UP_EXPLORATION
         self._paused = False
+        self._t_pause: float | None = None  # the last breath before the pause began
+        self._paused_warm_start: float | None = None  # the warm-up's start when the pause began
+        self.last_pause_s: float | None = None  # the breath time of the last pause that ended
         self._warm_start: float | None = t_start_s  # None: the next breath starts the warm-up
         self._proposing = False  # PROPOSE given, on_setting_applied not yet called
         self._t_setting: float | None = None  # the measured setting's switch time
@@ -622,6 +640,8 @@ class SessionProtocol:
         if self._phase is SessionPhase.BOUT_PAUSE:
             return self._action(ActionKind.PAUSED)
         starts = not self._paused
+        if starts:
+            self._t_pause, self._paused_warm_start = self._t_last, self._warm_start
         self._paused = True
         self._proposing, self._t_setting, self._setting_breaths = False, None, 0
         self._final_reason = None
@@ -630,8 +650,11 @@ class SessionProtocol:
 
     def on_resume(self, t_s: float | None = None) -> Action:
         """The operator resumes: after the pause between the bouts, the optimisation bout's
-        warm-up; after another pause, a warm-up of the bout the session is in. The warm-up starts
-        at ``t_s`` (default: the last breath). Returns WARM_UP (starts), PROPOSE or END.
+        warm-up; after another pause, a warm-up of the bout the session is in, unless the pause
+        was short (``short_pause_s``, on the breath clock: from the last breath before it to
+        ``t_s``): then PROPOSE at once (the driver measures the abandoned setting again), or the
+        warm-up it interrupted goes on (WARM_UP, not ``starts``). A warm-up starts at ``t_s``
+        (default: the last breath). Returns WARM_UP, PROPOSE or END.
 
         Raises:
             ProtocolStateError: Nothing is paused.
@@ -648,11 +671,32 @@ class SessionProtocol:
                 raise MeasurementError(f"resume at t_s={t!r}, before the last breath at {self._t_last!r} s")
             if self._t_last is None:  # before any breath: the session starts now
                 self._t_last = self._t0 = t
+        between_bouts = self._phase is SessionPhase.BOUT_PAUSE
         self._paused = False
+        short = self._short_resume(t, between_bouts)
+        if short is not None:
+            return short
         bout = (SessionPhase.WARM_UP_EXPLORATION
                 if self._phase in (SessionPhase.WARM_UP_EXPLORATION, SessionPhase.EXPLORATION)
                 else SessionPhase.WARM_UP_OPTIMIZATION)
         return self._enter_warm_up(bout, t)
+
+    def _short_resume(self, t_s: float | None, between_bouts: bool) -> Action | None:
+        """The end of a short pause (``short_pause_s``): the warm-up it interrupted goes on, or
+        the abandoned setting is proposed again; None when the pause was long (or between the
+        bouts, whose warm-up opens the optimisation bout). Sets :attr:`last_pause_s`."""
+        t = self._t_last if t_s is None else t_s
+        t_pause, warm_start = self._t_pause, self._paused_warm_start
+        self._t_pause = self._paused_warm_start = None
+        pause_s = None if t is None or t_pause is None else t - t_pause
+        self.last_pause_s = pause_s
+        limit_s = self.config.short_pause_s
+        if between_bouts or pause_s is None or limit_s == 0 or pause_s > limit_s:
+            return None
+        if self._phase in _WARM_UP_OF:
+            self._warm_start = warm_start
+            return self._action(ActionKind.WARM_UP)
+        return self._next_setting()
 
     def stop(self) -> Action:
         """End the session now (operator stop). Returns END."""

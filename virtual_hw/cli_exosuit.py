@@ -41,6 +41,7 @@ from virtual_hw.exosuit import (
     DEFAULT_FEEDBACK_HZ,
     EXOSUIT_FAULTS,
     HEARTBEAT_TIMEOUT_S,
+    LIVENESS_TIMEOUT_S,
     SUIT_JOINTS,
     DeviceLimits,
     VirtualExosuit,
@@ -81,8 +82,13 @@ def _add_arguments(parser: argparse.ArgumentParser) -> None:
                         default=DeviceLimits().max_slope_n_per_pct,
                         help="the device's limit on force change per %%GC (default %(default)g)")
     parser.add_argument("--heartbeat-timeout", type=float, default=HEARTBEAT_TIMEOUT_S,
-                        help="bridge-heartbeat watchdog in s (default %(default)g, PROTOCOL.md); "
-                             "longer only on hosts that stall, such as an emulator")
+                        help="bridge-heartbeat bus watchdog in s: no frame with an advanced "
+                             "counter for this long (default %(default)g, PROTOCOL.md); longer "
+                             "only on hosts that stall, such as an emulator")
+    parser.add_argument("--liveness-timeout", type=float, default=LIVENESS_TIMEOUT_S,
+                        help="bridge liveness watchdog in s: the heartbeat's liveness counter "
+                             "unchanged for this long means a hung bridge (default %(default)g, "
+                             "PROTOCOL.md)")
     parser.add_argument("--malformed-rate", type=float, default=50.0,
                         help="malformed frames per second while such a fault is on (default 50)")
     parser.add_argument("--fault", action="append", default=[], metavar="SPEC",
@@ -144,6 +150,7 @@ def _build(args: argparse.Namespace) -> tuple[VirtualExosuit, ScaledClock]:
         faults=args.fault,
         feedback_hz=args.feedback_hz,
         heartbeat_timeout_s=args.heartbeat_timeout,
+        liveness_timeout_s=args.liveness_timeout,
         malformed_rate_hz=args.malformed_rate,
     )
     return device, clock

@@ -153,6 +153,7 @@ __all__ = [
     "EXOSUIT_FAULTS",
     "HARDWARE_FAULTS",
     "HEARTBEAT_TIMEOUT_S",
+    "LIVENESS_TIMEOUT_S",
     "MALFORMED_FAULTS",
     "NACK_FAULTS",
     "PHASE_OFFSETS",
@@ -173,8 +174,11 @@ log = logging.getLogger(__name__)
 
 #: DeviceStatus period per actuator (PROTOCOL.md: the device heartbeat, every 20 ms).
 STATUS_PERIOD_S = 0.020
-#: Bridge-heartbeat watchdog: 5 periods of 20 ms without an advanced counter (PROTOCOL.md).
+#: Bridge-heartbeat bus watchdog: 5 periods of 20 ms without an advanced counter (PROTOCOL.md).
 HEARTBEAT_TIMEOUT_S = 0.100
+#: Bridge liveness watchdog: the heartbeat's Liveness unchanged this long means the bridge
+#: process is hung although its cyclic sender still runs (PROTOCOL.md).
+LIVENESS_TIMEOUT_S = 1.0
 #: The force controller's rate on the real device (ForceFeedback per actuator).
 DEFAULT_FEEDBACK_HZ = 1000.0
 #: Joints per actuator for the parameter-space presets (see the module docstring).
@@ -591,6 +595,57 @@ class _Tracker:
 # ------------------------------------------------------------------------------ the device
 
 
+class _Watchdog:
+    """One watchdog of the bridge heartbeat on the device's event loop (wall clock).
+
+    :meth:`feed` (an advanced counter) re-arms it for ``timeout_s``; when it expires, ``on_lost``
+    is called with it and it stays lost until the next feed. A firmware watchdog never stalls, a
+    Python process on a busy host does: when the callback runs more than one heartbeat period
+    late (this process's own loop was stalled), it waits up to :data:`_MAX_DEFERRALS` more
+    periods for frames still queued in the receive path before it declares the bridge lost.
+    """
+
+    def __init__(self, name: str, on_lost: Callable[[_Watchdog], None],
+                 stats: collections.Counter[str]) -> None:
+        self.name = name
+        self._on_lost = on_lost
+        self._stats = stats
+        self.fresh = False
+        self.back_since = math.inf  # loop time since which it has been fed without expiring
+        self._timer: asyncio.TimerHandle | None = None
+        self._deadline = math.inf
+        self._deferrals = 0
+
+    def feed(self, loop: asyncio.AbstractEventLoop, timeout_s: float) -> None:
+        now = loop.time()
+        if not self.fresh:  # back after a loss (or the first frame)
+            self.back_since = now
+        self.fresh = True
+        if self._timer is not None:
+            self._timer.cancel()
+        self._deadline = now + timeout_s
+        self._deferrals = 0
+        self._timer = loop.call_at(self._deadline, self._expire, loop)
+
+    def cancel(self) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+
+    def _expire(self, loop: asyncio.AbstractEventLoop) -> None:
+        self._timer = None
+        now = loop.time()
+        if now - self._deadline > _STALL_GRACE_S and self._deferrals < _MAX_DEFERRALS:
+            self._deferrals += 1
+            self._stats["watchdog_deferred"] += 1
+            self._deadline = now + _STALL_GRACE_S
+            self._timer = loop.call_at(self._deadline, self._expire, loop)
+            return
+        self.fresh = False
+        self.back_since = math.inf
+        self._on_lost(self)
+
+
 class VirtualExosuit:
     """A simulated exosuit node (see the module docstring for everything it does).
 
@@ -615,7 +670,10 @@ class VirtualExosuit:
         on_applied: called with ``(profiles, t_s)`` whenever the applied assistance changes.
         feedback_hz: ForceFeedback rate per actuator (wall clock); 0 disables feedback.
         status_period_s: DeviceStatus period (wall clock).
-        heartbeat_timeout_s: bridge-heartbeat watchdog (wall clock).
+        heartbeat_timeout_s: bridge-heartbeat bus watchdog: no frame with an advanced
+            Counter for this long (wall clock).
+        liveness_timeout_s: bridge liveness watchdog: the heartbeat's Liveness unchanged for
+            this long (wall clock).
         heartbeat_clear_s: how long the bridge heartbeat must have been back before a
             ClearFaults clears FaultHeartbeatLost (wall clock).
         malformed_rate_hz: malformed frames per wall second while such a fault is on.
@@ -642,6 +700,7 @@ class VirtualExosuit:
         feedback_hz: float = DEFAULT_FEEDBACK_HZ,
         status_period_s: float = STATUS_PERIOD_S,
         heartbeat_timeout_s: float = HEARTBEAT_TIMEOUT_S,
+        liveness_timeout_s: float = LIVENESS_TIMEOUT_S,
         heartbeat_clear_s: float = HEARTBEAT_CLEAR_S,
         malformed_rate_hz: float = 50.0,
         bus_error_hold_s: float = 0.5,
@@ -673,6 +732,8 @@ class VirtualExosuit:
                                              0.0, 10.0, lo_open=True)
         self.heartbeat_timeout_s = _check_number(
             "VirtualExosuit", "heartbeat_timeout_s", heartbeat_timeout_s, 0.0, 60.0, lo_open=True)
+        self.liveness_timeout_s = _check_number(
+            "VirtualExosuit", "liveness_timeout_s", liveness_timeout_s, 0.0, 600.0, lo_open=True)
         self.heartbeat_clear_s = _check_number(
             "VirtualExosuit", "heartbeat_clear_s", heartbeat_clear_s, 0.0, 60.0)
         self.malformed_rate_hz = _check_number(
@@ -713,18 +774,17 @@ class VirtualExosuit:
         self._hw_latched = DeviceFault(0)  # hardware faults, until a ClearFaults after the cause
         self._hb_state: BridgeState | None = None
         self._hb_counter: int | None = None
-        self._hb_fresh = False
-        self._hb_back_since = math.inf  # loop time since which the heartbeat has been back
-        self._hb_timer: asyncio.TimerHandle | None = None
-        self._hb_deadline = math.inf
-        self._hb_deferrals = 0
+        self._hb_liveness: int | None = None
+        # The bus watchdog (Counter advancing) and the liveness watchdog (Liveness advancing).
+        self._stats: collections.Counter[str] = collections.Counter()
+        self._bus_watch = _Watchdog("heartbeat", self._on_heartbeat_lost, self._stats)
+        self._live_watch = _Watchdog("liveness", self._on_heartbeat_lost, self._stats)
         self._can_assist_now = False
         self._arm_t = -math.inf
         self._reported: AppliedTable | None = None
         self._status_counter = [0] * n_actuators
         self._feedback_counter = [0] * n_actuators
         self._trackers: list[_Tracker] = []
-        self._stats: collections.Counter[str] = collections.Counter()
         self._applied_log: list[tuple[int | None, float]] = []
 
     # ------------------------------------------------------------------ lifecycle
@@ -800,9 +860,8 @@ class VirtualExosuit:
         # awaiting it here must not raise it before the bus is closed (it leaked the bus's
         # receive thread).
         await asyncio.gather(*tasks, return_exceptions=True)
-        if self._hb_timer is not None:
-            self._hb_timer.cancel()
-            self._hb_timer = None
+        self._bus_watch.cancel()
+        self._live_watch.cancel()
         if self._endpoint is not None:
             endpoint, self._endpoint = self._endpoint, None
             await endpoint.close()
@@ -917,18 +976,13 @@ class VirtualExosuit:
 
     def _on_heartbeat(self, hb: BridgeHeartbeat) -> None:
         advanced = hb.counter != self._hb_counter
-        self._hb_counter = hb.counter
-        self._hb_state = hb.state
+        live = hb.liveness != self._hb_liveness
+        self._hb_counter, self._hb_liveness, self._hb_state = hb.counter, hb.liveness, hb.state
+        loop = asyncio.get_running_loop()
         if advanced:
-            loop = asyncio.get_running_loop()
-            if not self._hb_fresh:  # back after a loss (or the first heartbeat)
-                self._hb_back_since = loop.time()
-            self._hb_fresh = True
-            if self._hb_timer is not None:
-                self._hb_timer.cancel()
-            self._hb_deadline = loop.time() + self.heartbeat_timeout_s
-            self._hb_deferrals = 0
-            self._hb_timer = loop.call_at(self._hb_deadline, self._on_heartbeat_lost)
+            self._bus_watch.feed(loop, self.heartbeat_timeout_s)
+        if live:
+            self._live_watch.feed(loop, self.liveness_timeout_s)
         stop = hb.state in (BridgeState.PAUSED, BridgeState.SHUTDOWN) or (
             hb.state != BridgeState.RUNNING and any(self._assist)
         )
@@ -936,25 +990,18 @@ class VirtualExosuit:
             self._go_off(f"bridge state {hb.state.name.lower()}")
         self._update_arming()
 
-    def _on_heartbeat_lost(self) -> None:
+    @property
+    def _hb_fresh(self) -> bool:
+        """Both watchdogs of the bridge heartbeat are satisfied."""
+        return self._bus_watch.fresh and self._live_watch.fresh
+
+    def _on_heartbeat_lost(self, watchdog: _Watchdog) -> None:
+        """A watchdog expired: assistance off, FaultHeartbeatLost latched (either watchdog: a
+        lost link and a hung bridge are the same fault class, ``policy``; faults.py)."""
         try:
-            self._hb_timer = None
-            loop = asyncio.get_running_loop()
-            now = loop.time()
-            if now - self._hb_deadline > _STALL_GRACE_S and self._hb_deferrals < _MAX_DEFERRALS:
-                # This event loop itself was stalled past the deadline, so heartbeats that did
-                # arrive may still wait in the receive path: give them one more heartbeat period
-                # (a bounded number of times) before declaring the bridge lost.
-                self._hb_deferrals += 1
-                self._stats["watchdog_deferred"] += 1
-                self._hb_deadline = now + _STALL_GRACE_S
-                self._hb_timer = loop.call_at(self._hb_deadline, self._on_heartbeat_lost)
-                return
-            self._hb_fresh = False
-            self._hb_back_since = math.inf
-            self._stats["heartbeat_lost"] += 1
+            self._stats[f"{watchdog.name}_lost"] += 1
             self._latch_faults |= DeviceFault.HEARTBEAT_LOST
-            self._go_off("bridge heartbeat lost")
+            self._go_off(f"bridge {watchdog.name} lost")
         except Exception as err:  # surfaced through wait()/close(), not swallowed
             self._fail(err)
 
@@ -1044,7 +1091,8 @@ class VirtualExosuit:
         0 while it is lost."""
         if not self._hb_fresh or self._loop is None:
             return 0.0
-        return max(0.0, self._loop.time() - self._hb_back_since)
+        back_since = max(self._bus_watch.back_since, self._live_watch.back_since)
+        return max(0.0, self._loop.time() - back_since)
 
     def _cause_present(self, bit: DeviceFault, t_s: float) -> bool:
         """Whether the cause of a latched fault is still there (so a request cannot clear it)."""

@@ -290,8 +290,18 @@ class _Replay:
             # A second proposal for the same index: the session abandoned the setting
             # (cancel_current, e.g. a pause) and asked again. Do the same.
             self.opt.cancel_current()
-        params = self._ask(msg)
         logged = proposal.params
+        gone = self.opt.cancelled_params
+        if gone is not None and _same_params(gone, logged):
+            # After a pause the session measures the abandoned setting once more
+            # (HILOptimizer.ask_again, bridge/runtime.py) instead of asking for a new one.
+            self.pre_ask_state = self.opt.to_json()
+            params = self.opt.ask_again()
+            self.cur_breaths = 0
+            if params is None:
+                params = self._ask(msg)
+        else:
+            params = self._ask(msg)
         if not _same_params(params, logged):
             raise ResumeError(
                 f"{self.path}: replayed proposal for evaluation {k} is {params}, but the log has {logged} "

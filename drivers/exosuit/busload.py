@@ -37,7 +37,7 @@ __all__ = [
 #: Worst-case bit times (µs at 1 Mbit/s) and periods (µs) of the traffic above the segments:
 #: ForceFeedback 2 × 1 kHz, four drive frames at 1 kHz, DeviceStatus 2 × 50 Hz, the heartbeat.
 HIGHER_PRIORITY_US: tuple[tuple[int, int], ...] = (
-    (2 * 115, 1000), (4 * 135, 1000), (2 * 115, 20000), (75, 20000))
+    (2 * 115, 1000), (4 * 135, 1000), (2 * 115, 20000), (85, 20000))
 #: A ProfileSegment (8 data bytes), worst case with stuff bits, µs at 1 Mbit/s.
 SEGMENT_US = 135
 #: AssistanceOff (1 data byte), worst case, µs.

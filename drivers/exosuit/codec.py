@@ -36,6 +36,7 @@ __all__ = [
     "ASSISTANCE_OFF_ID",
     "DBC_FILENAME",
     "DECODE_REASONS",
+    "HEARTBEAT_SEQUENCE_LEN",
     "N_ACTUATORS",
     "AssistanceOff",
     "AssistanceOffReason",
@@ -56,6 +57,7 @@ __all__ = [
     "database",
     "decode_frame",
     "frame_id",
+    "heartbeat_sequence",
 ]
 
 DBC_FILENAME = "hilbo_exosuit.dbc"
@@ -279,26 +281,69 @@ class AssistanceOff:
 
 @dataclass(frozen=True)
 class BridgeHeartbeat:
-    """Bridge heartbeat (bridge → device), every 20 ms.
+    """Bridge heartbeat (bridge → device), every 20 ms, from a cyclic sender (PROTOCOL.md,
+    "Heartbeats and their timeouts").
 
     Attributes:
-        counter: 0..255, incremented by one per heartbeat (mod 256).
+        counter: 0..255, incremented by one per frame (mod 256) by the cyclic sender itself,
+            which cycles through the :func:`heartbeat_sequence` of 256 frames.
         state: the bridge session state.
+        liveness: 0..255, the application liveness counter: the bridge's event loop advances it
+            (every 200 ms) and hands the cyclic sender new frames; the device's slower liveness
+            watchdog (1 s) sees a hung bridge whose cyclic sender still runs.
     """
 
     counter: int
     state: BridgeState
+    liveness: int = 0
     MESSAGE: ClassVar[str] = "BridgeHeartbeat"
 
     def to_frame(self) -> can.Message:
         """Encode as a CAN frame."""
-        return _encode(self.MESSAGE, {"Counter": self.counter, "State": int(self.state)})
+        return _encode(self.MESSAGE, {"Counter": self.counter, "State": int(self.state),
+                                      "Liveness": self.liveness})
 
     @classmethod
     def from_frame(cls, frame: can.Message) -> BridgeHeartbeat:
         """Decode a frame (raises DecodeError)."""
         v = _decode(_message(cls.MESSAGE), frame)
-        return cls(int(v["Counter"]), _enum(BridgeState, v["State"], "BridgeHeartbeat.State"))
+        return cls(int(v["Counter"]), _enum(BridgeState, v["State"], "BridgeHeartbeat.State"),
+                   int(v["Liveness"]))
+
+
+#: Frames in one cycle of the heartbeat's cyclic sender: one per Counter value, so the counter
+#: advances by one on every frame without user space (256 is also the kernel broadcast
+#: manager's largest sequence, MAX_NFRAMES).
+HEARTBEAT_SEQUENCE_LEN = 256
+
+
+def heartbeat_sequence(state: BridgeState, liveness: int) -> tuple[can.Message, ...]:
+    """The frames a cyclic sender cycles through: Counter 0..255 with this state and liveness.
+
+    Args:
+        state: the bridge state to announce.
+        liveness: the application liveness counter, 0..255.
+
+    Returns:
+        :data:`HEARTBEAT_SEQUENCE_LEN` frames, Counter = index.
+
+    Raises:
+        EncodeError: ``liveness`` outside 0..255 or ``state`` not a BridgeState.
+    """
+    first = BridgeHeartbeat(0, BridgeState(state), liveness).to_frame()
+    # 256 cantools encodes take ~4 ms of the event loop at every liveness update; Counter is a
+    # whole byte (checked against the DBC here), so the other frames differ from the first in
+    # that byte alone.
+    counter = _message(BridgeHeartbeat.MESSAGE).get_signal_by_name("Counter")
+    if counter.start % 8 or counter.length != 8 or counter.byte_order != "little_endian":
+        raise EncodeError("BridgeHeartbeat.Counter is not a whole byte in the DBC")
+    at, data = counter.start // 8, bytearray(first.data)
+    frames = []
+    for k in range(HEARTBEAT_SEQUENCE_LEN):
+        data[at] = k
+        frames.append(can.Message(arbitration_id=first.arbitration_id, data=bytes(data),
+                                  is_extended_id=False))
+    return tuple(frames)
 
 
 @dataclass(frozen=True)

@@ -26,6 +26,8 @@ import enum
 import functools
 import logging
 import math
+import threading
+import time
 import types
 from collections.abc import AsyncIterator, Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -46,7 +48,6 @@ from drivers.exosuit.codec import (
     N_ACTUATORS,
     AssistanceOff,
     AssistanceOffReason,
-    BridgeHeartbeat,
     BridgeState,
     ClearFaults,
     ClearFaultsAck,
@@ -55,6 +56,7 @@ from drivers.exosuit.codec import (
     NackReason,
     ProfileAck,
     decode_frame,
+    heartbeat_sequence,
 )
 from drivers.exosuit.faults import CLEARABLE_FAULTS, describe_faults, fault_names
 from drivers.exosuit.profile import ProfileTransfer, pack_tables
@@ -66,6 +68,9 @@ __all__ = [
     "HEARTBEAT_PERIOD_S",
     "HEARTBEAT_WATCHDOG_S",
     "INTERFACE_OPTIONS",
+    "LIVENESS_PERIOD_S",
+    "LIVENESS_WATCHDOG_S",
+    "NATIVE_CYCLIC_INTERFACES",
     "RETRYABLE_NACKS",
     "CanBusConfig",
     "CanEndpoint",
@@ -82,12 +87,27 @@ log = logging.getLogger(__name__)
 
 #: Bridge heartbeat period (the device's watchdog is 5 periods, 100 ms).
 HEARTBEAT_PERIOD_S = 0.020
-#: The device's bridge-heartbeat watchdog (PROTOCOL.md): 100 ms without an advancing counter
-#: latches ``heartbeat_lost``. The bridge keeps every event-loop stall under half of it.
+#: The device's bus watchdog on the bridge heartbeat (PROTOCOL.md): 100 ms without a frame with
+#: an advanced Counter latches ``heartbeat_lost``. The frames come from a cyclic sender (the
+#: kernel's broadcast manager, or a sender thread), so a stall of the event loop does not trip it.
 HEARTBEAT_WATCHDOG_S = 0.100
+#: How often the event loop advances the heartbeat's Liveness counter (and hands the cyclic
+#: sender new frames): 5 updates per liveness watchdog, so 4 may come late or be lost.
+LIVENESS_PERIOD_S = 0.200
+#: The device's liveness watchdog (PROTOCOL.md): Liveness unchanged for 1 s latches
+#: ``heartbeat_lost``. Longer than the worst event-loop stalls seen on a busy lab PC (0.1-0.7 s),
+#: and about one stride (1.1 s), during which the device keeps executing a table it checked and
+#: acknowledged itself.
+LIVENESS_WATCHDOG_S = 1.0
+#: Interfaces whose python-can bus has a native cyclic sender that cycles through a sequence of
+#: frames and updates them in place (``modify_data``): SocketCAN's kernel broadcast manager.
+#: Every other bus gets python-can's thread-based cyclic sender in this process
+#: (``can.broadcastmanager.ThreadBasedCyclicSendTask``; python-can-remote's own periodic task
+#: sends one frame per identifier and its ``modify_data`` does not work).
+NATIVE_CYCLIC_INTERFACES = frozenset({"socketcan"})
 #: Gap between profile segments: one 135-bit frame per 1 ms is 13.5 % of a 1 Mbit/s bus while a
 #: push lasts (34 ms for 101 points), and an AssistanceOff queued behind segments is on the wire
-#: within 2.68 ms in the worst case (PROTOCOL.md, "Bus budget"; drivers/exosuit/busload.py).
+#: within 2.69 ms in the worst case (PROTOCOL.md, "Bus budget"; drivers/exosuit/busload.py).
 DEFAULT_PACE_S = 0.001
 #: How long to wait for the ack after the commit (the device answers within 10 ms).
 DEFAULT_ACK_TIMEOUT_S = 0.25
@@ -455,6 +475,40 @@ class _LoopNotifier(can.Notifier):
             self._on_error(err)
 
 
+class _CyclicErrors:
+    """``on_error`` of the heartbeat's sender thread (python-can calls it in that thread).
+
+    A full transmit queue is retried (counted ``send_retry``) until it has lasted
+    ``timeout_s``; then, or on any other error, the endpoint is marked failed in its event loop
+    and the sender stops.
+    """
+
+    def __init__(self, endpoint: CanEndpoint, loop: asyncio.AbstractEventLoop, timeout_s: float,
+                 period_s: float) -> None:
+        self._endpoint = endpoint
+        self._loop = loop
+        self._timeout_s = timeout_s
+        self._period_s = period_s
+        self._first: float | None = None
+        self._last = -math.inf
+
+    def __call__(self, exc: Exception) -> bool:
+        now = time.monotonic()
+        if now - self._last > 2 * self._period_s + 0.05:  # frames went out in between
+            self._first = now
+        self._last = now
+        first = now if self._first is None else self._first
+        retry = isinstance(exc, can.CanOperationError) and now - first < self._timeout_s
+        with contextlib.suppress(RuntimeError):  # the loop is closed: nobody to tell
+            if retry:
+                self._loop.call_soon_threadsafe(self._endpoint._count, "send_retry")
+            else:
+                err = TransportError(f"CAN send of the bridge heartbeat failed: {exc}")
+                err.__cause__ = exc
+                self._loop.call_soon_threadsafe(self._endpoint._on_bus_error, err)
+        return retry
+
+
 class CanEndpoint:
     """Async endpoint of the exosuit protocol on one python-can bus.
 
@@ -489,7 +543,10 @@ class CanEndpoint:
         self._reader: can.AsyncBufferedReader | None = None
         self._rx_task: asyncio.Task[None] | None = None
         self._hb_task: asyncio.Task[None] | None = None
-        self._hb_counter = 0
+        self._hb_cyclic: can.broadcastmanager.CyclicSendTaskABC | None = None
+        self._hb_liveness = 0
+        # Held around every transmit when a sender thread shares the bus with this loop.
+        self._send_lock = threading.Lock()
         self._clear_sequence = 0
         # Answer accounting of the latest push (version, commits sent, answers accepted), and
         # the queue of the push waiting for an answer (PROTOCOL.md, "Transfer, commit, ack").
@@ -503,8 +560,21 @@ class CanEndpoint:
         self._error: BaseException | None = None
         self._failed: asyncio.Event | None = None
         self._push_lock: asyncio.Lock | None = None
-        #: State announced in the bridge heartbeat; the device assists only while RUNNING.
-        self.bridge_state = BridgeState.IDLE
+        self._bridge_state = BridgeState.IDLE
+
+    @property
+    def bridge_state(self) -> BridgeState:
+        """State announced in the bridge heartbeat; the device assists only while RUNNING.
+
+        Setting it hands the cyclic sender new frames at once (the next heartbeat carries it).
+        """
+        return self._bridge_state
+
+    @bridge_state.setter
+    def bridge_state(self, state: BridgeState) -> None:
+        self._bridge_state = BridgeState(state)
+        if self._hb_cyclic is not None:
+            self._modify_heartbeat()
 
     # --- lifecycle --------------------------------------------------------------------------
 
@@ -585,7 +655,9 @@ class CanEndpoint:
     def counters(self) -> Mapping[str, int]:
         """Frames that did not decode, by reason (``unknown_id``, ``bad_length``, ``bad_value``,
         ``extended_id``, ``remote_frame``, ``error_frame``, ``fd_frame``), plus
-        ``subscriber_overflow``, ``send_retry``, ``heartbeat_overrun``, ``clear_ack_stale`` and
+        ``subscriber_overflow``, ``send_retry``, ``heartbeat_overrun`` (a liveness update of
+        the heartbeat more than one liveness period late: the event loop was blocked; the
+        heartbeat frames themselves went on), ``clear_ack_stale`` and
         the profile answers this endpoint rejected (once it has pushed a profile):
         ``ack_before_commit`` (an answer of the version being pushed before its first commit was
         sent), ``ack_repeated`` (an answer beyond one per commit sent, e.g. a second ack of the
@@ -700,6 +772,9 @@ class CanEndpoint:
         for sub in self._subs:
             sub._put(_FAILED)
 
+    def _count(self, name: str) -> None:
+        self._counters[name] += 1
+
     def _on_task_done(self, task: asyncio.Task[None]) -> None:
         if task.cancelled():
             return
@@ -726,7 +801,8 @@ class CanEndpoint:
         bus = self._check_usable()
         frame = message if isinstance(message, can.Message) else message.to_frame()
         try:
-            bus.send(frame, timeout=0)
+            with self._send_lock:
+                bus.send(frame, timeout=0)
         except can.CanError as err:
             raise TransportError(f"CAN send of 0x{frame.arbitration_id:03X} failed: {err}") from err
 
@@ -751,7 +827,8 @@ class CanEndpoint:
             if before_try is not None:
                 before_try()
             try:
-                bus.send(frame, timeout=0)
+                with self._send_lock:
+                    bus.send(frame, timeout=0)
                 return
             except can.CanOperationError as err:
                 # Typically ENOBUFS / "Transmit buffer full": the adapter queue is busy.
@@ -855,47 +932,95 @@ class CanEndpoint:
 
     # --- heartbeat --------------------------------------------------------------------------
 
-    def start_heartbeat(self, period_s: float = HEARTBEAT_PERIOD_S) -> asyncio.Task[None]:
-        """Start (or return the running) heartbeat task.
+    def start_heartbeat(
+        self, period_s: float = HEARTBEAT_PERIOD_S, *, liveness_period_s: float = LIVENESS_PERIOD_S
+    ) -> asyncio.Task[None]:
+        """Start the bridge heartbeat (or return its running liveness task).
 
-        The heartbeat is sent by this loop task, not by a kernel or adapter periodic job
-        (python-can ``send_periodic`` on socketcan uses the kernel BCM, which keeps sending
-        while the bridge is hung): each frame carries a counter the loop advances, so the
-        device's watchdog sees a hung bridge. A send failure ends the task and marks the
-        endpoint failed (:meth:`wait_failed`).
+        Two layers (PROTOCOL.md, "Heartbeats and their timeouts"):
+
+        * a **cyclic sender** sends BridgeHeartbeat every ``period_s``, cycling through the 256
+          frames of :func:`~drivers.exosuit.codec.heartbeat_sequence` so that Counter advances
+          on every frame: python-can ``send_periodic`` on SocketCAN (the kernel's broadcast
+          manager), python-can's thread-based cyclic sender elsewhere
+          (:data:`NATIVE_CYCLIC_INTERFACES`). A busy or stalled event loop does not delay it.
+        * a **liveness task** of this event loop advances Liveness every ``liveness_period_s``
+          and hands the sender the new frames (``modify_data``); a hung bridge stops advancing
+          it, and the device's liveness watchdog (1 s) turns assistance off.
+
+        A send failure of either ends the task and marks the endpoint failed
+        (:meth:`wait_failed`).
+
+        Returns:
+            The liveness task.
         """
-        if not period_s > 0:
-            raise DriverConfigError(f"heartbeat period_s must be > 0, got {period_s}")
-        self._check_usable()
+        if not period_s > 0 or not liveness_period_s > 0:
+            raise DriverConfigError(
+                f"heartbeat period_s and liveness_period_s must be > 0, got {period_s}, "
+                f"{liveness_period_s}")
+        bus = self._check_usable()
         if self._hb_task is not None and not self._hb_task.done():
             return self._hb_task
-        task = asyncio.get_running_loop().create_task(
-            self._heartbeat_loop(period_s), name="can-endpoint-heartbeat"
-        )
+        loop = asyncio.get_running_loop()
+        frames = heartbeat_sequence(self._bridge_state, self._hb_liveness)
+        try:
+            if self.config.interface in NATIVE_CYCLIC_INTERFACES:
+                self._hb_cyclic = bus.send_periodic(frames, period_s)
+            else:
+                self._hb_cyclic = can.broadcastmanager.ThreadBasedCyclicSendTask(
+                    bus, self._send_lock, frames, period_s,
+                    on_error=_CyclicErrors(self, loop, self._send_timeout_s, period_s))
+        except (can.CanError, OSError, ValueError) as err:
+            raise TransportError(f"cannot start the bridge heartbeat: {err}") from err
+        task = loop.create_task(self._liveness_loop(liveness_period_s),
+                                name="can-endpoint-heartbeat")
         task.add_done_callback(self._on_task_done)
         self._hb_task = task
         return task
 
     async def stop_heartbeat(self) -> None:
-        """Stop the heartbeat task (idempotent)."""
+        """Stop the liveness task and the cyclic sender (idempotent)."""
         task, self._hb_task = self._hb_task, None
         if task is not None and not task.done():
             task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await task
+        cyclic, self._hb_cyclic = self._hb_cyclic, None
+        if cyclic is not None:
+            with contextlib.suppress(can.CanError, OSError, ValueError):
+                cyclic.stop()  # a failed bus may refuse the request; it sends nothing either way
+            thread = getattr(cyclic, "thread", None)
+            if isinstance(thread, threading.Thread) and thread is not threading.current_thread():
+                await asyncio.to_thread(thread.join, 1.0)
 
-    async def _heartbeat_loop(self, period_s: float) -> None:
+    def _modify_heartbeat(self) -> None:
+        """Hand the cyclic sender the frames of the current state and liveness."""
+        cyclic = self._hb_cyclic
+        if not isinstance(cyclic, can.ModifiableCyclicTaskABC):
+            raise DriverError(f"the heartbeat's cyclic sender {cyclic!r} cannot be updated")
+        try:
+            cyclic.modify_data(heartbeat_sequence(self._bridge_state, self._hb_liveness))
+        except (can.CanError, OSError) as err:
+            raise TransportError(f"cannot update the bridge heartbeat: {err}") from err
+
+    async def _liveness_loop(self, period_s: float) -> None:
         loop = asyncio.get_running_loop()
         next_t = loop.time()
         while True:
-            await self.send(BridgeHeartbeat(self._hb_counter, self.bridge_state))
-            self._hb_counter = (self._hb_counter + 1) % 256
+            self._check_usable()
+            self._hb_liveness = (self._hb_liveness + 1) % 256
+            self._modify_heartbeat()
             next_t += period_s
             delay = next_t - loop.time()
             if delay < 0:  # the loop was blocked for more than a period: resynchronise
                 self._counters["heartbeat_overrun"] += 1
                 next_t, delay = loop.time(), 0.0
-            await asyncio.sleep(delay)
+            if self._failed is None:
+                raise DriverError("endpoint is not open")
+            # Sleep, but end at once when the bus fails (the sender thread reports it).
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(delay):
+                    await self._failed.wait()
 
     # --- profile push -----------------------------------------------------------------------
 

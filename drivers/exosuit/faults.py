@@ -39,9 +39,10 @@ __all__ = [
     "recovery_of",
 ]
 
-#: How long the bridge heartbeat must have been back (advancing, no watchdog expiry) before a
-#: device clears FaultHeartbeatLost on request: one watchdog period (5 heartbeats of 20 ms), so
-#: a bridge that is still stalling every few hundred ms cannot clear it between two stalls.
+#: How long the bridge heartbeat must have been back (its counter and its liveness advancing, no
+#: watchdog expiry) before a device clears FaultHeartbeatLost on request: one watchdog period
+#: (5 heartbeats of 20 ms), so a bridge that is still stalling every few hundred ms cannot clear
+#: it between two stalls.
 HEARTBEAT_CLEAR_S = 0.100
 
 
@@ -109,7 +110,8 @@ FAULT_INFO: Mapping[DeviceFault, FaultInfo] = types.MappingProxyType({
                   "cleared by the bridge once the encoder and the gait sensor work again",
                   FaultRecovery.PERSON),
         FaultInfo(DeviceFault.HEARTBEAT_LOST, "heartbeat_lost",
-                  "the bridge heartbeat was lost for 100 ms",
+                  "the bridge heartbeat was lost for 100 ms, or its liveness counter stood "
+                  "still for 1 s (a hung bridge)",
                   "cleared by the bridge once the bridge heartbeat is back for "
                   f"{HEARTBEAT_CLEAR_S * 1e3:.0f} ms", FaultRecovery.POLICY),
         FaultInfo(DeviceFault.FORCE_LIMIT, "force_limit",

@@ -101,8 +101,9 @@ def test_fault_flags_are_the_status_bits_in_order() -> None:
 GOLDEN = [
     (AssistanceOff(AssistanceOffReason.OPERATOR_STOP), 0x010, "01"),
     (AssistanceOff(AssistanceOffReason.INTERNAL_ERROR), 0x010, "06"),
-    (BridgeHeartbeat(5, BridgeState.RUNNING), 0x020, "0501"),
-    (BridgeHeartbeat(255, BridgeState.SHUTDOWN), 0x020, "ff03"),
+    # counter, state, liveness: one byte each
+    (BridgeHeartbeat(5, BridgeState.RUNNING), 0x020, "050100"),
+    (BridgeHeartbeat(255, BridgeState.SHUTDOWN, 0x9A), 0x020, "ff039a"),
     # 123.4 N = 1234 = 0x04D2; -1.5 N = -15 = 0xFFF1; 42.5 % = 85 = 0x55; counter 200 = 0xC8
     (ForceFeedback(0, 123.4, -1.5, 42.5, 200), 0x110, "d204f1ff55c8"),
     (ForceFeedback(1, 0.0, 0.0, None, 0), 0x111, "00000000ff00"),
@@ -144,15 +145,16 @@ def test_frame_id_lookup() -> None:
         (frame(0x7FF, "00"), "unknown_id"),
         (frame(0x011, "01"), "unknown_id"),
         (frame(0x010, "01", is_extended_id=True), "extended_id"),
-        (can.Message(arbitration_id=0x020, is_remote_frame=True, dlc=2, is_extended_id=False),
+        (can.Message(arbitration_id=0x020, is_remote_frame=True, dlc=3, is_extended_id=False),
          "remote_frame"),
         (can.Message(arbitration_id=0, is_error_frame=True), "error_frame"),
         (can.Message(arbitration_id=0x020, data=b"\x00" * 12, is_fd=True, is_extended_id=False),
          "fd_frame"),
-        (frame(0x020, "05"), "bad_length"),  # heartbeat needs 2 bytes
-        (frame(0x020, "050100"), "bad_length"),
+        (frame(0x020, "05"), "bad_length"),  # heartbeat needs 3 bytes
+        (frame(0x020, "0501"), "bad_length"),  # the version-1 heartbeat, without Liveness
+        (frame(0x020, "05010000"), "bad_length"),
         (frame(0x010, ""), "bad_length"),
-        (frame(0x020, "0509"), "bad_value"),  # state 9
+        (frame(0x020, "050900"), "bad_value"),  # state 9
         (frame(0x010, "00"), "bad_value"),  # reason 0 is not defined
         (frame(0x120, "0900ff000000"), "bad_value"),  # mode 9
         (frame(0x110, "00000000c900"), "bad_value"),  # gait phase 201 * 0.5 %
@@ -201,6 +203,7 @@ def test_gait_phase_sentinel_and_edges() -> None:
         lambda: ForceFeedback(-1, 1.0, 0.0, 10.0, 0),
         lambda: BridgeHeartbeat(256, BridgeState.IDLE),
         lambda: BridgeHeartbeat(-1, BridgeState.IDLE),
+        lambda: BridgeHeartbeat(0, BridgeState.IDLE, 256),
         lambda: DeviceStatus(0, DeviceMode.OFF, DeviceFault(0), None, 256, 0, 0),
         lambda: DeviceStatus(0, DeviceMode.OFF, DeviceFault(0x100), None, 1, 0, 0),
         lambda: ProfileSegment(0, 0, (0.0, 0.0, 0.0)),
@@ -243,7 +246,7 @@ force_i16 = st.integers(-0x8000, 0x7FFF).map(lambda r: scaled(r, 0.1))
 
 messages = st.one_of(
     st.builds(AssistanceOff, st.sampled_from(AssistanceOffReason)),
-    st.builds(BridgeHeartbeat, u8, st.sampled_from(BridgeState)),
+    st.builds(BridgeHeartbeat, u8, st.sampled_from(BridgeState), u8),
     st.builds(ForceFeedback, st.integers(0, 1), force_u16, force_i16, gait, u8),
     st.builds(DeviceStatus, st.integers(0, 1), st.sampled_from(DeviceMode),
               st.integers(0, 255).map(DeviceFault), gait, u8, u8, u8),

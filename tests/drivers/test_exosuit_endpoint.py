@@ -135,9 +135,9 @@ async def test_bad_frames_are_counted_by_reason_and_never_stop_the_endpoint(
         for f in [
             can.Message(arbitration_id=0x555, data=b"\x00", is_extended_id=False),
             can.Message(arbitration_id=0x020, data=b"\x01", is_extended_id=False),
-            can.Message(arbitration_id=0x020, data=b"\x01\x09", is_extended_id=False),
-            can.Message(arbitration_id=0x020, data=b"\x01\x01", is_extended_id=True),
-            can.Message(arbitration_id=0x020, is_remote_frame=True, dlc=2, is_extended_id=False),
+            can.Message(arbitration_id=0x020, data=b"\x01\x09\x00", is_extended_id=False),
+            can.Message(arbitration_id=0x020, data=b"\x01\x01\x00", is_extended_id=True),
+            can.Message(arbitration_id=0x020, is_remote_frame=True, dlc=3, is_extended_id=False),
             can.Message(arbitration_id=0, is_error_frame=True),
         ]:
             peer.send(f)

@@ -37,7 +37,9 @@ def kp(a: Action) -> tuple[ActionKind, SessionPhase]:
 
 
 def test_reference_sequence_two_bouts_pause_transition_and_a_pause_that_runs_out_the_budget() -> None:
-    cfg = SessionProtocolConfig(warmup_s=6.0, n_explore=1, budget_s=14.0, pause_between_bouts=True)
+    # short_pause_s = 0: every pause ends with a warm-up (short pauses: test_protocol_short_pause.py)
+    cfg = SessionProtocolConfig(warmup_s=6.0, n_explore=1, budget_s=14.0, pause_between_bouts=True,
+                                short_pause_s=0.0)
     p = SessionProtocol(cfg, t_start_s=0.0)
     a = p.start()
     assert kp(a) == (K.WARM_UP, P.WARM_UP_EXPLORATION) and a.starts and a.t_s == 0.0

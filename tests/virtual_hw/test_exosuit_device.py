@@ -309,7 +309,9 @@ async def test_watchdog_waits_for_heartbeats_queued_while_the_device_loop_was_st
                 for counter in itertools.cycle(range(256)):
                     if stop.is_set():
                         return
-                    bus.send(BridgeHeartbeat(counter, BridgeState.RUNNING).to_frame())
+                    # Liveness advances too (every 10 frames), as the bridge's loop does.
+                    bus.send(BridgeHeartbeat(counter, BridgeState.RUNNING,
+                                             counter // 10).to_frame())
                     time.sleep(0.02)  # a heartbeat period in a real thread: the watchdog is wall time
 
         beater = threading.Thread(target=bridge_in_another_thread, daemon=True)

@@ -1,0 +1,74 @@
+"""A pause proportionate to the fault, end to end on the virtual devices: the operator's p then
+r a few seconds later measures the very setting it abandoned again, at once, without a warm-up
+(the log shows the same parameters for the same evaluation index); a long pause warms up first
+and then measures that same setting again too."""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+
+import pytest
+
+from bridge.log.reader import read_log
+from bridge.runtime import BridgeSession, Command
+from bridge.sim.virtual import VirtualSimConfig, run_virtual_sim
+
+pytestmark = pytest.mark.slow
+
+
+def small() -> VirtualSimConfig:
+    return VirtualSimConfig(minutes=6.0, seed=2, n_explore=3, max_breaths=10, warmup_s=20.0,
+                            proposal_worker="thread")
+
+
+EVALUATION = 5  # the second of the optimisation bout (3 exploration settings before it)
+
+
+def pause_in_evaluation(pause_s: float):
+    """An operator who presses p after 2 breaths of evaluation 5 and r ``pause_s`` of walking
+    later; records the breath times of both."""
+    times: dict[str, float] = {}
+
+    def operator(session: BridgeSession) -> None:
+        session.settings = dataclasses.replace(session.settings, operator_present=True)
+
+        async def p_then_r() -> None:
+            st = session.status
+            while not (st.evaluation == EVALUATION and st.breaths_in_setting >= 2):
+                await asyncio.sleep(0.01)
+            times["p"] = st.breath_time_s
+            session.command(Command.PAUSE)
+            while st.breath_time_s < times["p"] + pause_s:
+                await asyncio.sleep(0.01)
+            times["r"] = st.breath_time_s
+            session.command(Command.RESUME)
+        asyncio.get_running_loop().create_task(p_then_r())
+
+    return operator, times
+
+
+def proposals_of(log, index: int) -> list[dict]:
+    return [p for p in log.data("/proposals") if p["index"] == index]
+
+
+@pytest.mark.parametrize(("pause_s", "warm_up"), [(5.0, False), (40.0, True)],
+                         ids=["short-no-warm-up", "long-warm-up"])
+def test_the_abandoned_setting_is_measured_again(tmp_path, pause_s: float, warm_up: bool) -> None:
+    operator, times = pause_in_evaluation(pause_s)
+    asyncio.run(run_virtual_sim(small(), tmp_path, on_session=operator))
+    log = read_log(tmp_path / "session.mcap")
+    assert "r" in times
+    # Evaluation 5 (index 4), a GP proposal: proposed, abandoned by the pause, proposed again.
+    proposed = proposals_of(log, EVALUATION - 1)
+    assert [p["phase"] for p in proposed] == ["optimization", "optimization"]
+    again = [p["params"] for p in proposed]
+    assert again[0] == again[1]
+    events = log.data("/events")
+    (recovery,) = [e for e in events if e["kind"] == "recovery"]
+    assert recovery["details"]["warm_up"] is warm_up
+    i_resume = next(i for i, e in enumerate(events) if e["kind"] == "resume")
+    # Measured to its end after the resume: an evaluation with index 1 and those parameters.
+    done = [o for o in log.data("/observations") if o["index"] == EVALUATION - 1]
+    assert done and done[0]["params"] == again[0]
+    assert i_resume < events.index(recovery)
