@@ -1217,6 +1217,12 @@ class BridgeSession:
             self.log.log_rejects("cart", cart_counts, t_s=self._breaths.last_t)
         if self.endpoint.counters:
             self.log.log_rejects("can", self.endpoint.counters, t_s=self._breaths.last_t)
+        flagged = self.opt.flagged_breaths
+        if flagged:
+            # Breaths the cart passed but the estimator left out as implausible for the level:
+            # counted like the cart's rejects, not dropped silently.
+            self.log.log_rejects("estimator", {"implausible_for_level": flagged},
+                                 t_s=self._breaths.last_t)
 
     async def _bus_failure_task(self) -> None:
         err = await self.endpoint.wait_failed()

@@ -585,6 +585,9 @@ class HILOptimizer:
         # The setting cancel_current() abandoned, until the next ask() (ask_again() restarts it).
         self._cancelled: _Current | None = None
         self._estimator: Estimator | None = None
+        # Breaths the estimators left out as implausible for the level, in settings already
+        # ended (this process's; TransitionEstimator.n_flagged).
+        self._flagged_done = 0
         self._hyp: GPHyperparameters | None = None
         # Training observations when self._hyp was fitted (None: never, or unknown after loading
         # an older state; either way the next proposal refits).
@@ -907,8 +910,15 @@ class HILOptimizer:
         self._keep_body_level()  # the breaths are discarded, but the body did walk them
         self._current = None
         self._cancelled = cur
+        self._flagged_done += _flagged(self._estimator)
         self._estimator = None
         return dict(cur.params)
+
+    @property
+    def flagged_breaths(self) -> int:
+        """Breaths the estimators left out as physiologically implausible for the level (a
+        0.1x or 3x breath; hilbo_core/estimation.py), counted over this process's settings."""
+        return self._flagged_done + _flagged(self._estimator)
 
     @property
     def cancelled_params(self) -> dict[str, float] | None:
@@ -1025,6 +1035,7 @@ class HILOptimizer:
                 M, S = self.exploration_traces
                 self._thresholds = threshold_schedule(M, S, self.config.window)
         self._current = None
+        self._flagged_done += _flagged(self._estimator)
         self._estimator = None
         return BreathStep(True, mean, var, i, cur.phase, decision, ev)
 
@@ -1357,6 +1368,12 @@ _ESTIMATORS: dict[EstimatorKind, Callable[[], Estimator]] = {
     EstimatorKind.TRANSITION: TransitionEstimator,
     EstimatorKind.SEED_UKF: MetabolicUKF,
 }
+
+
+def _flagged(est: Estimator | None) -> int:
+    """The breaths ``est`` left out as implausible (0 for an estimator that flags none)."""
+    n = getattr(est, "n_flagged", 0)
+    return int(n) if isinstance(n, int) else 0
 
 
 def _check_mean_var(mean: float, var: float, what: str) -> None:

@@ -20,7 +20,7 @@ import itertools
 import math
 import os
 from collections import Counter
-from collections.abc import AsyncIterator, Callable, Iterator
+from collections.abc import AsyncIterator, Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -273,10 +273,13 @@ class Cart:
     """A breath every ``BREATH_S`` through the real validator; ``restart_at_s`` restarts the
     cart's clock (it starts again near 0) at that loop time."""
 
-    def __init__(self, restart_at_s: float | None = None, n: int = 10_000) -> None:
+    def __init__(self, restart_at_s: float | None = None, n: int = 10_000,
+                 scaled: Mapping[int, float] | None = None) -> None:
         self.validator = BreathValidator()
         self.restart_at_s = restart_at_s
         self.n = n
+        #: Breath number -> factor on its VO2 and VCO2 (an implausible single breath).
+        self.scaled = dict(scaled or {})
 
     def __aiter__(self) -> AsyncIterator[BreathRecord]:
         return self._breaths()
@@ -289,7 +292,7 @@ class Cart:
             await asyncio.sleep(BREATH_S)
             if self.restart_at_s is not None and offset == 0.0 and loop.time() >= self.restart_at_s:
                 offset = loop.time() - 1.0
-            vo2 = 1200.0 * (1 + 0.05 * rng.standard_normal())
+            vo2 = 1200.0 * (1 + 0.05 * rng.standard_normal()) * self.scaled.get(i, 1.0)
             raw = BreathRecord(t_s=(i + 1) * BREATH_S - offset, vo2_ml_min=vo2, vco2_ml_min=0.85 * vo2)
             rec = self.validator.check(raw)
             if rec is not None:
@@ -380,7 +383,8 @@ def run_session(tmp: Path, *, at: int | None = None, at_time_s: float | None = N
                 fault: str = "pause", n_evaluations: int = 4, resume_after_s: float = 5.0,
                 end_after_s: float | None = None, cart_restart_at_s: float | None = None,
                 worker_start_s: float = 0.0, fault_s: float = 0.5,
-                operator_r_s: tuple[float, ...] = (), n_explore: int = 2, warmup_s: float = 0.0,
+                operator_r_s: tuple[float, ...] = (), scaled_breaths: Mapping[int, float] | None = None,
+                n_explore: int = 2, warmup_s: float = 0.0,
                 refit_lag: int = 0, fit_s: float = 0.03, resume_from: Path | None = None,
                 watch: Callable[[int, BridgeSession, Any], None] | None = None,
                 optimizer: HILOptimizer | None = None, protocol: SessionProtocol | None = None,
@@ -403,6 +407,7 @@ def run_session(tmp: Path, *, at: int | None = None, at_time_s: float | None = N
         worker_start_s: The proposal worker answers its first call after this long (loop time).
         fault_s: How long a ``device:<name>`` fault's cause lasts (loop time).
         operator_r_s: The operator presses "r" at these loop times as well.
+        scaled_breaths: Breath number -> factor on that breath's gas exchange (the cart's).
         n_explore: Exploration points.
         warmup_s: Each bout's warm-up (breath time, s).
         refit_lag: The optimizer's (1: hyperparameters fitted ahead, as the bridge's default).
@@ -469,7 +474,7 @@ def run_session(tmp: Path, *, at: int | None = None, at_time_s: float | None = N
     inj = Injector(device, at, fire if at is not None else None)
     if watch is not None:
         inj.watch = lambda k, coro: watch(k, holder["session"], coro) if "session" in holder else None
-    cart = Cart(restart_at_s=cart_restart_at_s)
+    cart = Cart(restart_at_s=cart_restart_at_s, scaled=scaled_breaths)
     events: list[str] = []
     log_path = tmp / f"s{next(_RUNS)}.mcap"
 
