@@ -3,7 +3,7 @@
 Why: a full ("generation 2") collection walks every container object the interpreter tracks,
 holding the GIL. After a session's imports (numpy, scipy, cantools, mcap, python-can) that is
 about 85 000 objects; one full collection took 20–56 ms on this project's test machine, and
-37–66 ms inside real-time sessions (docs/results.md §3, "Bridge at real time", with the
+37–66 ms inside real-time sessions (docs/results.md, "Compute latency", "Bridge at real time", with the
 commands). CPython starts one by itself whenever enough objects have survived younger
 collections, and 2000 CAN frames/s of force feedback allocate enough for one every few minutes,
 at a moment nothing chooses: an instrumented ``scripts/loop_lag_probe.py`` run found a 53.6 ms

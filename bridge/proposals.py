@@ -4,7 +4,7 @@ Why a process by default: the bridge's event loop handles about 2000 CAN frames/
 feedback plus heartbeats and logging, in Python. A proposal computed in a thread of the same
 process competes with that loop for the GIL: in ``hilbo bench perf --bridge-minutes 5`` the
 proposal thread used ≈ 15 ms of CPU per proposal but took 35–48 ms of wall time
-(docs/results.md §3). A worker process computes on the other core.
+(docs/results.md, "Compute latency"). A worker process computes on the other core.
 
 The worker is a plain child interpreter, ``python -m bridge.proposals``, that reads requests from
 its stdin and answers on its stdout (length-prefixed pickles), read by the event loop itself

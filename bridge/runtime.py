@@ -395,7 +395,9 @@ class BridgeSession:
         # A hyperparameter fit running ahead of the next proposal (refit_lag >= 1).
         self._fit_ahead: tuple[HyperparameterFit, asyncio.Task[Any]] | None = None
         self._next_ask: asyncio.Task[Any] | None = None  # started at a stop decision
-        self._ask_again = False  # a pause abandoned a setting: measure it again (_propose)
+        # A pause abandoned a setting: measure it again (_propose). A resumed session whose
+        # log ended between such a cancel and the re-proposal does the same.
+        self._ask_again = optimizer.cancelled_params is not None
         self.records: list[dict[str, Any]] = []  # completed evaluations with session times
         self._t_session0: float | None = None
         #: Why the session ended (the first cause wins); None while it runs.
@@ -680,7 +682,7 @@ class BridgeSession:
             # Never transmit what the limits forbid, and never clip (bridge/safety.py): nothing
             # is sent, the device keeps its last acknowledged profile, the setting is dropped
             # and the optimizer asked again; after too many in a row, assistance-off and pause.
-            self.opt.cancel_current()
+            self.opt.cancel_current(again=False)
             self._t_stop = t_stop  # the next proposal still answers that stop decision
             self.log.log_optimizer_state(self.opt, reason="cancel")
             self.log.log_event("unsafe_proposal", str(err), verdict=err.verdict.to_json(), params=params)
@@ -779,6 +781,7 @@ class BridgeSession:
             # task next awaits, after the logging below (the snapshot: 2 ms at 60 evaluations,
             # 4-9 ms at 160, measured): the snapshot must reach the file before anything the
             # session awaits, where a kill would leave a log without it.
+            self._begin_confirmation_if_due()  # before the snapshot below, which records it
             self._next_ask = self._worker.start_ask(self.opt)
         t_end = self._session_time(rec.t_s)
         self.records.append({**ev.to_json(), "t_start": setting.t_start, "t_end": t_end})
@@ -834,6 +837,14 @@ class BridgeSession:
         fit, self._fit_ahead = self._fit_ahead, None
         await _cancel_and_wait(None if fit is None else fit[1], "a hyperparameter fit ahead")
 
+    def _begin_confirmation_if_due(self) -> None:
+        """In the session's last minutes (``[protocol] confirm_min``), mark the recommendation
+        for confirmation before the next ask: that ask freezes it (in the worker) and every
+        setting from then on measures it in full."""
+        if self.protocol.confirm_due and not self.opt.confirming and self.opt.begin_confirmation():
+            self._event("confirmation", "the session's last minutes: measuring the recommended "
+                        "setting in full")
+
     async def _start_next_ask(self) -> asyncio.Task[Any]:
         """Start ``ask()`` in the worker on the optimizer as it is now.
 
@@ -842,11 +853,7 @@ class BridgeSession:
         applied unlogged: the ask then fits the hyperparameters itself, which a resume replays.
         """
         await self._collect_fit_ahead(apply=False)
-        if self.protocol.confirm_due and not self.opt.confirming and self.opt.begin_confirmation():
-            # The session's last minutes: the next ask freezes the recommendation (in the
-            # worker) and every setting from here on measures it in full.
-            self._event("confirmation", "the session's last minutes: measuring the recommended "
-                        "setting in full")
+        self._begin_confirmation_if_due()
         return self._worker.start_ask(self.opt)
 
     async def _push(self, admitted: AdmittedProfile, version: int, index: int, *,

@@ -102,6 +102,9 @@ def open_regular_file(
         raise
 
 
+_CHUNK_BYTES = 1 << 20
+
+
 def read_regular_file(
     path: str | PathLike[str], *, max_bytes: int, what: str, error: ErrorFactory = DriverConfigError
 ) -> bytes:
@@ -112,8 +115,18 @@ def read_regular_file(
         Exception: ``error(message)``: not a regular file, or more than ``max_bytes`` (also
             when it grows past them while being read).
     """
+    # In chunks: read(n) allocates n bytes up front, and a bound of gigabytes is more memory
+    # than a small machine (or the test's user-mode Linux) may have, whatever the file's size.
+    chunks: list[bytes] = []
+    total = 0
     with open_regular_file(path, max_bytes=max_bytes, what=what, error=error) as fh:
-        data = fh.read(max_bytes + 1)
+        while total <= max_bytes:
+            chunk = fh.read(min(_CHUNK_BYTES, max_bytes + 1 - total))
+            if not chunk:
+                break
+            chunks.append(chunk)
+            total += len(chunk)
+    data = b"".join(chunks)
     if len(data) > max_bytes:
         raise error(f"{fspath(path)}: grew past {describe_size(max_bytes)} while being read; "
                     f"expected {what}")

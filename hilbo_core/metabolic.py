@@ -593,8 +593,8 @@ class MeasurementNoisePool:
     variance below). The TransitionEstimator's ν0 = 10 belongs to a prior measured on real
     breaths (their median CV); an assumed σ_z² may be 10× off, and a run pools hundreds of
     measurements, so the prior only has to carry the first breaths. With ν0 = 10 a prior 10×
-    too high still weighed 100 measurements' worth after exploration (docs/results.md §1,
-    "Learning the measurement variance").
+    too high still weighed 100 measurements' worth after exploration (measured: docs/results.md's
+    git history, "Learning the measurement variance").
 
     The variance an estimate uses is the Student-t's, ``s²·ν/(ν − 2)`` with ν the degrees of
     freedom, so it describes the errors while ν is small (the same inflation as the

@@ -102,7 +102,7 @@ _FIT_AHEAD_STREAM = 0xF17
 _MAX_WATTS = 5000.0
 # The sound rule's accept stop: a candidate 3 σ better than the incumbent has beaten it (if the
 # σ is calibrated, wrongly with probability 0.13 % at one look); chosen as the conventional
-# "decided" margin, not tuned (docs/results.md §5).
+# "decided" margin, not tuned (docs/results.md, "Stopping on pairs" and its git history).
 DEFAULT_ACCEPT_Z = 3.0
 
 
@@ -895,11 +895,15 @@ class HILOptimizer:
             return None
         return self._step(True, "budget", None).evaluation
 
-    def cancel_current(self) -> dict[str, float] | None:
+    def cancel_current(self, *, again: bool = True) -> dict[str, float] | None:
         """Abandon the setting being measured (e.g. the device refused it); returns it.
 
         Its breaths are discarded and count against no budget; the next ``ask()`` proposes
         afresh (exploration points are asked again).
+
+        Args:
+            again: Keep it for :meth:`ask_again` (a pause: the same setting is measured once
+                more); False for a setting that must not come back (the safety limits refused it).
         """
         cur = self._current
         if cur is None:
@@ -909,7 +913,7 @@ class HILOptimizer:
             self._opt_seconds -= cur.breaths[-1][0] if cur.breaths else 0.0
         self._keep_body_level()  # the breaths are discarded, but the body did walk them
         self._current = None
-        self._cancelled = cur
+        self._cancelled = cur if again else None
         self._flagged_done += _flagged(self._estimator)
         self._estimator = None
         return dict(cur.params)

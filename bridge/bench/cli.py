@@ -399,13 +399,13 @@ def add_bench_parser(subparsers: Any) -> Any:
                          "Fig. 2 study; default), or a lab session's sobol/maximin (centre first)")
     st.add_argument("--n-candidates", type=_int, default=1024,
                     help="EI candidates per proposal (1024)")
-    # docs/results.md §1 ("Campaign time on 2026-12-05: 20 minutes"): 1 is 1.6x faster, but it
-    # changed the fixed method's y_T beyond noise on the 6-D functions.
+    # 1 is 1.6x faster, but it changed the fixed method's y_T beyond noise on the 6-D functions
+    # (docs/results.md, "Stopping benchmarks"; the campaign of 2026-12-05 in its git history).
     st.add_argument("--n-local", type=_int, default=3,
                     help="best candidates refined by SLSQP per proposal, as hilbo run does (3)")
     st.add_argument("--seed", type=_int, default=0, help="seed of the first trial (0)")
-    # 1.25, not the optimizer's 1.0: measured in docs/results.md §1 ("Refitting the GP
-    # hyperparameters less often"): the same y_t within noise, expensive adaptive trials ≈ 8× cheaper.
+    # 1.25, not the optimizer's 1.0: the same y_t within noise, expensive adaptive trials ≈ 8×
+    # cheaper (docs/results.md, "Stopping benchmarks"; the measurement is in its git history).
     st.add_argument("--refit-growth", type=float, default=1.25, metavar="G",
                     help="refit the GP hyperparameters once the observations have grown by the "
                          "factor G since the last fit, else re-condition with the last ones; the "

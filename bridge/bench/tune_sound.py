@@ -18,7 +18,7 @@ trajectories (a session's exploration bout), as in ``tune_stopping``.
 What the replay leaves out: in a session the sound rule watches the data-only estimate fused with
 the GP's predictive at x_t, and the incumbent is the GP posterior at x*; offline both are the
 estimator's data-only estimates. The tuned constants are therefore checked in whole sessions on
-held-out subjects (docs/results.md §5).
+held-out subjects (docs/results.md, "Stopping on pairs" and its git history).
 
 :func:`realistic_trajectories` draws the training trajectories from the realistic wearer
 (:class:`bridge.sim.devices.RealisticWearerConfig`): random feasible settings, one after another,
@@ -211,8 +211,9 @@ def tune_sound(trajectories: Sequence[Any], config: TuneSoundConfig | None = Non
 
     An episode's cost applies the penalty to that one trajectory's rates; since max(0, ·) is
     convex, the mean over episodes overstates the penalty of the pooled rates and pulls
-    BO-RESAMPLE towards conservative constants (docs/results.md §5 measured it), so compare its
-    recommendation with ``grid_best``, the pooled cost's minimum on the grid.
+    BO-RESAMPLE towards conservative constants (measured: docs/results.md's git history,
+    "Tuning the sound rule's two constants offline"), so compare its recommendation with
+    ``grid_best``, the pooled cost's minimum on the grid.
 
     Returns:
         JSON-able: ``recommended`` (BO-RESAMPLE's), its pooled ``recommended_stats``, the

@@ -397,7 +397,7 @@ def _tune_sound_cmd(args: argparse.Namespace, console: Any, trajs: list[np.ndarr
                       f"{100 * r['rejected_better']:.1f} % of better candidates rejected, "
                       f"{100 * r['ended_30s']:.1f} % ended within 30 s (cost {r['cost']:.3f})")
     console.print("(BO-RESAMPLE's episodes penalise each trajectory's own rates, which pulls it towards "
-                  "conservative floors; the grid's best minimises the pooled cost: docs/results.md §5)")
+                  "conservative floors; the grid's best minimises the pooled cost)")
     _write_result(args, result)
     return 0
 

@@ -270,7 +270,7 @@ class NoiseEstimate(enum.Enum):
     (:class:`~hilbo_core.metabolic.MeasurementNoisePool`, 3 pseudo-measurements), as hilbo's
     breath estimator learns a person's breath noise. Under ``assumed`` with σ_z² ≠ σ̃² Kim et al. 2019's
     estimator is over- or under-confident by the factor σ_z²/σ̃² at every measurement
-    (docs/results.md §1); the pooled one learns σ̃² during exploration.
+    (docs/results.md, "Stopping benchmarks" and its git history); the pooled one learns σ̃² during exploration.
     """
 
     SEED = "seed"
@@ -375,8 +375,8 @@ class StoppingProtocol:
     noise_estimate: NoiseEstimate = NoiseEstimate.POOLED
     n_candidates: int = 1024
     # OptimizerConfig's 3. One refinement makes the campaign 1.6x faster but changed the fixed
-    # method's y_T beyond noise on the 6-D functions (docs/results.md §1, "Campaign time on
-    # 2026-12-05: 20 minutes"), so it is an option (--n-local 1), not the default.
+    # method's y_T beyond noise on the 6-D functions (docs/results.md's git history, "Campaign
+    # time on 2026-12-05: 20 minutes"), so it is an option (--n-local 1), not the default.
     n_local: int = 3
     design: DesignKind = DesignKind.SOBOL_ONLY
 

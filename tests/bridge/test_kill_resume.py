@@ -134,8 +134,10 @@ def check_rebuilt(kill: Kill, tmp: Path) -> Path:
         raise AssertionError(f"{where}: {err}") from err
     dying = kill.state
     if dying["current"] is not None and kept.current_params is None:
-        # The process had asked for the setting but not logged it yet: asking reproduces it.
-        assert kept.ask() == dying["current"]["params"], where
+        # The process had asked for the setting but not logged it yet: asking reproduces it, as
+        # the resumed session asks: the setting a pause abandoned once more, else a new one.
+        again = kept.ask_again()
+        assert (again if again is not None else kept.ask()) == dying["current"]["params"], where
     assert _frozen(kept) == dying, where
     # 0 evaluations lost or doubled (the cut-off setting is discarded by default).
     assert [e.to_json() for e in discarded.evaluations] == dying["evaluations"], where
@@ -149,7 +151,11 @@ def check_resumed(kill: Kill, crashed: Path, tmp: Path) -> None:
     where = f"kill at suspension {kill.k} in {kill.site}"
     n_done = len(kill.state["evaluations"])
     dying = HILOptimizer.from_json(kill.state)
-    expected = dying.current_params if dying.current_params is not None else dying.ask()
+    if dying.current_params is not None:
+        expected = dying.current_params
+    else:
+        again = dying.ask_again()
+        expected = again if again is not None else dying.ask()
     resumed = run_session(tmp, resume_from=crashed, **BASE)
     evs = [e.to_json() for e in resumed.session.opt.evaluations]
     assert evs[:n_done] == kill.state["evaluations"], where

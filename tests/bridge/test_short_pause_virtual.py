@@ -13,12 +13,13 @@ import pytest
 from bridge.log.reader import read_log
 from bridge.runtime import BridgeSession, Command
 from bridge.sim.virtual import VirtualSimConfig, run_virtual_sim
+from hilbo_core.types import BreathRecord
 
 pytestmark = pytest.mark.slow
 
 
 def small() -> VirtualSimConfig:
-    return VirtualSimConfig(minutes=6.0, seed=2, n_explore=3, max_breaths=10, warmup_s=20.0,
+    return VirtualSimConfig(minutes=9.0, seed=2, n_explore=3, max_breaths=10, warmup_s=20.0,
                             proposal_worker="thread")
 
 
@@ -32,18 +33,18 @@ def pause_in_evaluation(pause_s: float):
 
     def operator(session: BridgeSession) -> None:
         session.settings = dataclasses.replace(session.settings, operator_present=True)
+        st = session.status
 
-        async def p_then_r() -> None:
-            st = session.status
-            while not (st.evaluation == EVALUATION and st.breaths_in_setting >= 2):
-                await asyncio.sleep(0.01)
-            times["p"] = st.breath_time_s
-            session.command(Command.PAUSE)
-            while st.breath_time_s < times["p"] + pause_s:
-                await asyncio.sleep(0.01)
-            times["r"] = st.breath_time_s
-            session.command(Command.RESUME)
-        asyncio.get_running_loop().create_task(p_then_r())
+        # At the breaths themselves (the session's listeners), not by polling in wall time: at
+        # 100x on a busy machine a poll could miss the evaluation's second breath.
+        def on_breath(rec: BreathRecord) -> None:
+            if "p" not in times and st.evaluation == EVALUATION and st.breaths_in_setting >= 2:
+                times["p"] = st.breath_time_s
+                session.command(Command.PAUSE)
+            elif "p" in times and "r" not in times and st.breath_time_s >= times["p"] + pause_s:
+                times["r"] = st.breath_time_s
+                session.command(Command.RESUME)
+        session.breath_listeners.append(on_breath)
 
     return operator, times
 
