@@ -335,7 +335,7 @@ def perf_table(result: dict[str, Any]) -> str:
         return f"median {q['cpu_median']:.{digits}f} ms, {key} {q[f'cpu_{key}']:.{digits}f} ms"
 
     b = result["breath_latency_ms"]
-    rows = [["breath (UKF update + stopping decision)",
+    rows = [["breath (estimator update + stopping decision)",
              f"median {b['median']:.3f} ms, p99 {b['p99']:.3f} ms", cpu(b, "p99", 3),
              f"p99 < {TARGETS['breath_p99_ms']:g} ms", met(b["p99"], TARGETS["breath_p99_ms"])]]
     t60 = TARGETS["proposal_p95_ms_at_60"]

@@ -53,7 +53,7 @@ def test_table_marks_targets_met_and_missed() -> None:
         "session_60min_wall_s": 12.0, "sessions": [{}, {}], "config": {"session_minutes": 60.0},
     }
     table = perf_table(result)
-    assert ("| breath (UKF update + stopping decision) | median 0.400 ms, p99 1.500 ms | – "
+    assert ("| breath (estimator update + stopping decision) | median 0.400 ms, p99 1.500 ms | – "
             "| p99 < 2 ms | yes |") in table
     assert ("| proposal, 60 observations (GP fit + EI) | median 90.0 ms, p95 140.0 ms | – "
             "| p95 < 100 ms | no |") in table
