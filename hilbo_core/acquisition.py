@@ -17,7 +17,8 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 from scipy.optimize import minimize
@@ -316,28 +317,14 @@ def maximize_ei(
         ).reshape(d)
         return -float(lei[0]), -grad
 
-    constraints = (
-        [{"type": "ineq", "fun": lambda u: b - A @ u, "jac": lambda u: -A}] if A.shape[0] else []
-    )
-    for idx in ranked[:n_local]:
-        if not math.isfinite(log_ei[idx]):
-            continue
-        res = minimize(
-            objective,
-            U[idx],
-            jac=predict_grad is not None,
-            method="SLSQP",
-            bounds=[(0.0, 1.0)] * d,
-            constraints=constraints,
-            options={"maxiter": 100, "ftol": 1e-7},
-        )
-        u = np.clip(np.asarray(res.x, dtype=float), 0.0, 1.0)
-        if not (np.all(np.isfinite(u)) and feasible(u)):
-            continue
+    def neg_log_ei(u: np.ndarray) -> float:
         m, v = _check_predict(*predict(u[None, :]), 1)
-        lei = float(log_expected_improvement(m, np.sqrt(v), best, xi)[0])
-        if lei > best_log:
-            best_u, best_log = u, lei
+        return -float(log_expected_improvement(m, np.sqrt(v), best, xi)[0])
+
+    starts = [U[idx] for idx in ranked[:n_local] if math.isfinite(log_ei[idx])]
+    best_u, neg_best = _refine_locally(objective, starts, neg_log_ei, best_u, -best_log, A=A, b=b,
+                                       feasible=feasible, jac=predict_grad is not None)
+    best_log = -neg_best
     _log.debug("maximize_ei: log EI %.4g at %s", best_log, best_u)
     m, v = _check_predict(*predict(best_u[None, :]), 1)
     ei = float(expected_improvement(m, np.sqrt(v), best, xi)[0])
@@ -399,18 +386,41 @@ def minimize_lcb(
                 + beta * np.asarray(dv, dtype=float).reshape(d) / (2.0 * sd))
         return float(m[0]) + beta * sd, grad
 
+    def lcb(u: np.ndarray) -> float:
+        m, v = _check_predict(*predict(u[None, :]), 1)
+        return float(m[0] + beta * math.sqrt(v[0]))
+
+    best_u, _ = _refine_locally(objective, [U[idx] for idx in ranked[:n_local]], lcb, best_u,
+                                best_score, A=A, b=b, feasible=feasible, jac=predict_grad is not None)
+    return best_u
+
+
+def _refine_locally(
+    objective: Callable[[np.ndarray], Any],
+    starts: Sequence[np.ndarray],
+    value: Callable[[np.ndarray], float],
+    best_u: np.ndarray,
+    best_value: float,
+    *,
+    A: np.ndarray,
+    b: np.ndarray,
+    feasible: Callable[[np.ndarray], bool],
+    jac: bool,
+) -> tuple[np.ndarray, float]:
+    """SLSQP on ``objective`` from each start, under the box and ``A u <= b``; a refined point
+    (clipped to the box) replaces ``best_u`` only if it is feasible and its ``value`` is lower.
+    Returns the best point (d,) and its value."""
+    d = best_u.shape[0]
     constraints = (
         [{"type": "ineq", "fun": lambda u: b - A @ u, "jac": lambda u: -A}] if A.shape[0] else []
     )
-    for idx in ranked[:n_local]:
-        res = minimize(objective, U[idx], jac=predict_grad is not None, method="SLSQP",
-                       bounds=[(0.0, 1.0)] * d, constraints=constraints,
-                       options={"maxiter": 100, "ftol": 1e-7})
+    for start in starts:
+        res = minimize(objective, start, jac=jac, method="SLSQP", bounds=[(0.0, 1.0)] * d,
+                       constraints=constraints, options={"maxiter": 100, "ftol": 1e-7})
         u = np.clip(np.asarray(res.x, dtype=float), 0.0, 1.0)
         if not (np.all(np.isfinite(u)) and feasible(u)):
             continue
-        m, v = _check_predict(*predict(u[None, :]), 1)
-        value = float(m[0] + beta * math.sqrt(v[0]))
-        if value < best_score:
-            best_u, best_score = u, value
-    return best_u
+        val = value(u)
+        if val < best_value:
+            best_u, best_value = u, val
+    return best_u, best_value
