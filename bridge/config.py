@@ -399,7 +399,7 @@ class ProtocolConfig:
         short_pause_s: A pause (a fault, the operator's ``p``) at most this long, in seconds of
             walking (breath time), 0–600, ends without a warm-up: the setting it abandoned is
             measured again at once from the body's current level; a longer pause ends with the
-            bout's warm-up (:class:`hilbo_core.protocol.SessionProtocolConfig`, where the 15 s
+            bout's warm-up (:class:`hilbo_core.protocol.SessionProtocolConfig`, where the 30 s
             default is argued from VO2 kinetics). 0: every pause ends with a warm-up.
         refit: When the GP hyperparameters are refitted: ``ahead`` (default: on the completed
             evaluations while the next setting is measured, so the proposal after a stop

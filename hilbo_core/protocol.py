@@ -194,14 +194,17 @@ class SessionProtocolConfig:
         short_pause_s: A pause at most this long (breath time, s >= 0; 0: none is short) ends
             without a warm-up: the setting it abandoned is measured again at once, from the
             body's level at the resume (a warm-up in progress goes on where it was). Longer
-            pauses end with the bout's full warm-up. Why 15 s: VO2 follows a change of walking
+            pauses end with the bout's full warm-up. Why 30 s: VO2 follows a change of walking
             load with a time constant of about 42 s (Selinger & Donelan 2014, J Appl Physiol
             117:1406), on and off alike in moderate exercise (Özyener et al. 2001, J Physiol
-            533:891), so 15 s unassisted moves the body only ~30 % of the way from the
-            setting's level towards unassisted walking (1 − e^(−15/42)): a start from a known
-            level such as any setting change makes (Kim et al. 2019 measure settings back to
-            back, their 3-min warm-ups only open a bout). Longer pauses may also mean the wearer
-            stood or stepped off; those get the warm-up.
+            533:891), so 30 s unassisted moves the body about half of the way from the
+            setting's level towards unassisted walking (1 − e^(−30/42) = 0.51): a step no larger
+            than a change from a good setting to a poor one, which Kim et al. 2019 measure back
+            to back (their 3-min warm-ups only open a bout) and the transition estimator models
+            from the body's level at the push. 30 s also holds a glitch that the resume policy
+            ends (its wait for 10 s of health after the cause is gone, plus the detection), so
+            a heartbeat lost for a moment on a busy PC does not cost a 3-min warm-up. Longer
+            pauses may mean the wearer stood or stepped off; those get the warm-up.
     """
 
     warmup_s: float = 180.0
@@ -213,7 +216,7 @@ class SessionProtocolConfig:
     pause_between_bouts: bool = True
     warmup_without_pause: bool = True
     confirm_s: float | None = None
-    short_pause_s: float = 15.0
+    short_pause_s: float = 30.0
 
     def __post_init__(self) -> None:
         if not _is_number(self.warmup_s) or not (math.isfinite(self.warmup_s) and self.warmup_s >= 0):

@@ -53,7 +53,9 @@ def proposals_of(log, index: int) -> list[dict]:
     return [p for p in log.data("/proposals") if p["index"] == index]
 
 
-@pytest.mark.parametrize(("pause_s", "warm_up"), [(5.0, False), (40.0, True)],
+# Both far from short_pause_s (30 s): at 100x on a busy machine a key may take effect a few
+# breaths after it was pressed, which must not move a pause across the threshold.
+@pytest.mark.parametrize(("pause_s", "warm_up"), [(5.0, False), (90.0, True)],
                          ids=["short-no-warm-up", "long-warm-up"])
 def test_the_abandoned_setting_is_measured_again(tmp_path, pause_s: float, warm_up: bool) -> None:
     operator, times = pause_in_evaluation(pause_s)

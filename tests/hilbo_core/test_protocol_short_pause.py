@@ -28,7 +28,7 @@ def measuring(short_pause_s: float = 15.0) -> SessionProtocol:
 
 
 def test_the_default_short_pause_is_15_s() -> None:
-    assert SessionProtocolConfig().short_pause_s == 15.0
+    assert SessionProtocolConfig().short_pause_s == 30.0
 
 
 @given(st.floats(0.0, 15.0))
