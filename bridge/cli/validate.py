@@ -64,7 +64,9 @@ def add_validate_parser(subparsers: Any) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "validate", help="the validation walk: the recommended setting vs a generic one vs unassisted",
         description="Measure the recommended setting of an optimisation session (its log, --from), "
-                    "the generic setting of [validation] generic and unassisted walking, each for "
+                    "the generic setting of [validation] generic, unassisted walking (assistance "
+                    "off) and, with [validation] zero_force = true, zero-force walking (the suit "
+                    "actuated, 0 N at every point), each for "
                     "[validation] condition_min minutes in a randomised order ([validation] seed), "
                     "with the session's estimator and cart, as hilbo run measures (the same "
                     "safety limits, pauses, keys and resume policy). Prints each condition's "
