@@ -259,7 +259,10 @@ class SubprotocolFront:
             finally:
                 for task in (up, down):
                     task.cancel()
-                await asyncio.gather(up, down, return_exceptions=True)
+                ended = await asyncio.gather(up, down, return_exceptions=True)
+            for err in ended:  # a pipe's own failure (OSError is its peer's end, not one)
+                if isinstance(err, Exception):
+                    self._failed(type(err).__name__, f"live view: relaying a connection failed: {err!r}")
         finally:
             sdk_w.close()
 

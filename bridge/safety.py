@@ -719,13 +719,13 @@ class SafeProfileGate:
     def admit_zero_force(self, params: Mapping[str, float]) -> AdmittedProfile:
         """The tables of ``params`` with every force 0 N, through the same checks as :meth:`admit`.
 
-        Zero-force tracking: the suit worn and actuated, its controller holding the cables at zero
-        force, so the wearer carries the suit's mass and the drive's friction and inertia but gets
-        no assistance. drivers/PROTOCOL.md has no command for it (Mode ``transparent`` is only the
-        device's state before its first profile), so it is a profile like any other: the same
-        actuators and grid as the setting's tables, every point 0 N. It differs from assistance-off,
-        where the device ramps to slack and stops following a table. The setting itself must still
-        be feasible (it names the tables' actuators and grid; ``params`` of the result is it).
+        Zero-force tracking: the suit worn and actuated, its force controller running and tracking
+        0 N, so the wearer feels the suit's mass and what the tracking leaves, but no assistance.
+        drivers/PROTOCOL.md has no command for it (Mode ``transparent`` is only the device's state
+        before its first profile), so it is a profile like any other: the same actuators and grid
+        as the setting's tables, every point 0 N. It differs from assistance-off, where the device
+        ramps to slack and stops following a table. The setting itself must still be feasible (it
+        names the tables' actuators and grid; ``params`` of the result is it).
 
         Raises:
             UnsafeProfileError: As :meth:`admit` (the setting is outside its space, or the builder

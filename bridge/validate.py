@@ -21,16 +21,17 @@ assisted condition's reduction against walking without assistance. Here:
   measured and re-measures the same one.
 
 **Zero force is not unassisted.** Unassisted here is assistance off: the device ramps to slack
-and follows no table (the cables hang loose, the drives idle). Zero force is the suit worn and
-*actuated* in transparent mode: a profile of 0 N at every point, pushed like any other through
-the same safety gate (:meth:`SafeProfileGate.admit_zero_force`; drivers/PROTOCOL.md has no
-separate transparent command, and an all-zero table is within every limit), so the controller
-keeps the cables taut at zero force and the wearer also walks against the drive's friction and
-inertia. The exosuit literature separates the suit's own cost (mass, friction) from what its
-assistance saves this way: Kim et al. 2019's multi-joint study reports its reductions against a
-slack (powered-off) suit as well as against no suit (its Table II). Its reduction against
-unassisted walking is the suit's actuated-but-not-assisting cost (expected ≤ 0 on a person); the
-simulated wearers of ``virtual_hw`` model neither mass nor friction, so for them a zero table is
+and follows no table, its force controller idle. Zero force is the suit worn and *actuated*
+with a profile of 0 N at every point, pushed like any other through the same safety gate
+(:meth:`SafeProfileGate.admit_zero_force`; drivers/PROTOCOL.md has no separate command for the
+transparent mode, and an all-zero table is within every limit), so the force controller runs
+and tracks zero force: the wearer feels the suit's mass and whatever force the tracking leaves
+(its error, friction and inertia of the drive it does not cancel), and no assistance. The
+exosuit literature separates the suit's own cost from what its assistance saves this way: Kim
+et al. 2019's multi-joint study reports its reductions against a slack (powered-off) suit as
+well as against no suit (its Table II). The zero-force condition's reduction against unassisted
+walking is that cost of the running suit (expected at or below 0 on a person); the simulated
+wearers of ``virtual_hw`` model no mass, friction or tracking error, so for them a zero table is
 unassisted walking exactly and the true reduction is 0.
 
 The result per condition (estimate, 95 % interval, reduction against unassisted with its 95 %

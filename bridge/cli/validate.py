@@ -39,7 +39,8 @@ def _cmd_validate(args: argparse.Namespace) -> int:
                   f"({v.condition_breaths} breaths) in the order "
                   + ", ".join(c.name for c in plan.conditions) + f" (seed {v.seed})", highlight=False)
     if v.generic is None:
-        console.print("hilbo validate: note: no [validation] generic setting: OPT against unassisted only")
+        console.print("hilbo validate: note: no [validation] generic setting: OPT against unassisted"
+                      + (" and zero-force walking" if v.zero_force else " only"))
     if (args.auto_resume is None and cfg.watchdog.auto_resume_s is None
             and (args.no_view or not sys.stdin.isatty())):
         console.print("hilbo validate: note: no keyboard: a pause lasts until SIGTERM/Ctrl-C; give "
