@@ -961,12 +961,16 @@ class ValidationConfig:
         breath_interval_s: The breath interval that turns minutes into breaths, 1-10 s.
         seed: Seeds the conditions' randomised order (0 or more; one per subject counterbalances
             a study).
+        zero_force: Also measure zero-force walking, the suit actuated with every force 0 N
+            (bridge/validate.py: it separates the suit's own cost from its assistance's saving;
+            default false).
     """
 
     generic: Mapping[str, float] | None = None
     condition_min: float = number(5.0, lo=1.0, hi=30.0)
     breath_interval_s: float = number(3.0, lo=1.0, hi=10.0)
     seed: int = integer(0, lo=0)
+    zero_force: bool = boolean(False)
 
     @property
     def condition_breaths(self) -> int:

@@ -1,7 +1,7 @@
 """Live view: the session's log channels streamed to Foxglove over a WebSocket.
 
-A :class:`LiveServer` wraps the Foxglove SDK's WebSocket server (``foxglove-sdk``, subprotocol
-``foxglove.sdk.v1``). The session log mirrors every record it writes with :meth:`LiveServer.publish`:
+A :class:`LiveServer` wraps the Foxglove SDK's WebSocket server (``foxglove-sdk``). The session
+log mirrors every record it writes with :meth:`LiveServer.publish`:
 the same topic, schema name, JSON schema and JSON bytes as the MCAP file, so Foxglove shows the
 same panels live as it does on the file afterwards. One channel per topic, created on first use.
 
@@ -12,14 +12,24 @@ nothing. Each server has its own ``foxglove.Context``, so two servers (tests) ne
 
 Slow clients: ``Channel.log`` only hands the bytes to the SDK, which queues them per client
 (``message_backlog_size`` messages; when full the *oldest* data message is dropped, and a client
-whose control queue fills is disconnected). tests/bridge/test_live.py measures publishing to a
+whose control queue fills is disconnected); the front below passes that on (it stops reading
+from the SDK while a client does not read). tests/bridge/test_live.py measures publishing to a
 client that never reads.
 
-The SDK's own log lines (a client refused at the handshake: an older client that offers only
-the ``foxglove.websocket.v1`` subprotocol gets HTTP 400 from this SDK; a dropped slow client)
-go through Python logging (``foxglove.set_log_level``) to :attr:`LiveServer.on_sdk_log` — the
-session log's events in ``hilbo run`` — and never to the terminal, where they were printed over
-the operator view.
+Both subprotocol names connect. The SDK accepts only ``foxglove.sdk.v1`` and answers HTTP 400
+to a client that offers only the older ``foxglove.websocket.v1`` (older Foxglove app versions,
+Lichtblick); for now the two are the same protocol under two names, and the SDK has no option
+for a second name. So the SDK listens on an ephemeral port of 127.0.0.1 and a small TCP front
+(:class:`bridge.live_front.SubprotocolFront`, its own thread, ended at :meth:`LiveServer.stop`)
+listens on the configured host and port, rewrites only the handshake's
+``Sec-WebSocket-Protocol`` header (``foxglove.websocket.v1`` → ``foxglove.sdk.v1``, and the
+answer back to the name the client offered) and then passes the bytes both ways. A client
+offering neither name is refused by the SDK as before (HTTP 400).
+
+The SDK's own log lines (a client refused at the handshake; a dropped slow client) go through
+Python logging (``foxglove.set_log_level``), and the front's (a connection that failed) straight,
+to :attr:`LiveServer.on_sdk_log` — the session log's events in ``hilbo run`` — and never to the
+terminal, where they were printed over the operator view.
 
 Binds 127.0.0.1 by default: the stream carries the session's data, and nothing here
 authenticates a client. Open it in Foxglove with "Open connection" → "Foxglove WebSocket" →
@@ -36,6 +46,7 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 from bridge.errors import BridgeError
+from bridge.live_front import SubprotocolFront
 
 __all__ = [
     "DEFAULT_HOST",
@@ -53,6 +64,7 @@ DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 8765
 """Foxglove's default WebSocket port (what its "Open connection" dialog proposes)."""
 _DEFAULT_BACKLOG = 1024  # messages queued per client before the oldest is dropped (SDK default)
+_SDK_HOST = "127.0.0.1"  # the SDK itself is reached only through the front (module docstring)
 
 
 class LiveError(BridgeError, ValueError):
@@ -116,6 +128,7 @@ class LiveServer:
         self._requested_port = port
         self._backlog = message_backlog_size
         self._server: Any = None
+        self._front: SubprotocolFront | None = None
         self._context: Any = None
         self._channels: dict[str, Any] = {}
         self._schemas: dict[str, str] = {}
@@ -146,19 +159,26 @@ class LiveServer:
             self._route_sdk_logging(foxglove)
             self._context = foxglove.Context()
             self._server = foxglove.start_server(
-                name=self.name, host=self.host, port=self._requested_port, context=self._context,
+                name=self.name, host=_SDK_HOST, port=0, context=self._context,
                 message_backlog_size=self._backlog)
+            # A taken or foreign address fails here; stop() below then ends the SDK's server.
+            self._front = SubprotocolFront(self.host, self._requested_port, int(self._server.port),
+                                           on_error=self._front_error)
+            self._front.start()
         except (ImportError, OSError, RuntimeError, ValueError, TypeError) as err:
             self.start_error = f"{type(err).__name__}: {err}"
             logger.error("live view: cannot listen on %s:%s (%s); the session goes on without it",
                          self.host, self._requested_port, self.start_error)
-            self._context = None
+            self.stop()
             return False
         logger.info("live view: %s", self.url)
         return True
 
     def stop(self) -> None:
-        """Close the channels and stop the server. Idempotent."""
+        """Close the channels and the front's connections, stop the server. Idempotent."""
+        front, self._front = self._front, None
+        if front is not None:
+            front.stop()  # first: its clients see the end of the stream, not a reset
         server, self._server = self._server, None
         channels, self._channels = self._channels, {}
         for topic, channel in channels.items():
@@ -185,14 +205,18 @@ class LiveServer:
         sdk.addHandler(self._sdk_handler)
         sdk.propagate = False
 
-    def _sdk_line(self, text: str, level: int) -> None:
-        self.stats.errors["sdk_" + logging.getLevelName(level).lower()] += 1
+    def _sdk_line(self, text: str, level: int, *, kind: str | None = None) -> None:
+        self.stats.errors[kind or "sdk_" + logging.getLevelName(level).lower()] += 1
         callback = self.on_sdk_log
         if callback is not None:
             try:
                 callback(text, level)
             except Exception:  # the live view never ends a session (module docstring)
                 logger.debug("live view: forwarding an SDK log line failed", exc_info=True)
+
+    def _front_error(self, kind: str, text: str) -> None:
+        # From the front's thread: counted, and forwarded like the SDK's own lines.
+        self._sdk_line(text, logging.WARNING, kind="front_" + kind)
 
     @property
     def running(self) -> bool:
@@ -201,8 +225,15 @@ class LiveServer:
 
     @property
     def port(self) -> int | None:
-        """The port it listens on (the free port chosen for ``port=0``), or None when off."""
-        return None if self._server is None else int(self._server.port)
+        """The port clients connect to (the free port chosen for ``port=0``), or None when off."""
+        if self._server is None or self._front is None:
+            return None
+        return self._front.port
+
+    @property
+    def translated(self) -> int:
+        """Connections that offered only ``foxglove.websocket.v1`` and were let in."""
+        return 0 if self._front is None else self._front.translated
 
     @property
     def url(self) -> str | None:

@@ -36,7 +36,10 @@ Decisions (documented because they are safety policy, not implementation detail)
 - **Peak step.** ``max_peak_change_n`` bounds the change of an actuator's peak force between the
   profile the device last *acknowledged* and the next one. The first profile of a session, and
   the first after assistance-off (:meth:`SafeProfileGate.assistance_off`), have no baseline: the
-  wearer comes from slack, and only ``max_force_n`` bounds them.
+  wearer comes from slack, and only ``max_force_n`` bounds them. An all-zero table (zero-force
+  tracking, :meth:`SafeProfileGate.admit_zero_force`) is slack too, so it is no baseline either,
+  and a step *to* an all-zero table is never a peak-change violation: it is what the device does
+  at once on AssistanceOff (drivers/PROTOCOL.md, "Assistance-off (safe state)").
 - **Rate of change** is the table's slope in N per %GC between neighbouring points, including the
   seam from 100 % back to 0 % of the next cycle (treated as one grid step: the device wraps the
   table every stride, so a jump there is as real as one mid-table).
@@ -443,7 +446,7 @@ def _check_table(t: _Table, lim: ActuatorLimits, n_points: int,
                              f"{a}: slope {slopes[i]:.4g} N/%GC {where} exceeds "
                              f"max_slope_n_per_pct = {lim.max_slope_n_per_pct:g} N/%GC",
                              a, i, float(g[i]), float(slopes[i]), lim.max_slope_n_per_pct))
-    if previous_peak_n is not None:
+    if previous_peak_n is not None and bool((f >= ZERO_FORCE_N).any()):
         i = int(np.argmax(f))
         change = abs(float(f[i]) - previous_peak_n)
         if not change <= lim.max_peak_change_n:  # `not <=`: a NaN baseline is a violation too
@@ -460,7 +463,9 @@ def _previous_peaks(previous: Sequence[ForceProfile] | None) -> dict[str, float]
     peaks: dict[str, float] = {}
     for p in previous:
         f = np.asarray(p.force_n, dtype=float)
-        peaks[p.actuator] = float(np.max(f)) if f.size and np.all(np.isfinite(f)) else math.nan
+        peak = float(np.max(f)) if f.size and np.all(np.isfinite(f)) else math.nan
+        if not peak < ZERO_FORCE_N:  # an all-zero table is slack: no baseline (module docstring)
+            peaks[p.actuator] = peak
     return peaks
 
 
@@ -475,7 +480,8 @@ def check_profile(
     this order: length (``limits.n_points``), finiteness, the grid ``100·k/(n−1)`` %GC (a table
     failing one of these is not checked further), negative force, ``max_force_n``, force outside
     ``[min_onset_pct, max_offset_pct]``, slope (seam included), and the change of the peak from
-    ``previous`` (matched by actuator; an actuator absent from ``previous`` has no baseline).
+    ``previous`` (matched by actuator; an actuator absent from ``previous``, or all zero there, has
+    no baseline, and an all-zero table is never a peak change: module docstring, "Peak step").
 
     Args:
         profiles: The tables to send, one per actuator.
@@ -672,12 +678,15 @@ class SafeProfileGate:
         """``limits.max_consecutive_rejections`` proposals in a row were refused: pause for the operator."""
         return self._consecutive_rejections >= self.limits.max_consecutive_rejections
 
-    def _evaluate(self, params: object) -> tuple[LimitVerdict, dict[str, float] | None, list[_Table]]:
+    def _evaluate(self, params: object, *, zero_force: bool = False
+                  ) -> tuple[LimitVerdict, dict[str, float] | None, list[_Table]]:
         full, verdict = _canonical_params(self.space, params)
         if full is None:
             return verdict, None, []
         try:
             built = self._builder(MappingProxyType(full))
+            if zero_force:
+                built = [ForceProfile(p.actuator, p.gait_pct, np.zeros(np.shape(p.force_n))) for p in built]
         except Exception as err:  # any builder failure means "send nothing"; it is reported
             return LimitVerdict((Violation(ViolationKind.BUILD,
                                            f"the profile builder refused {full}: "
@@ -705,7 +714,27 @@ class SafeProfileGate:
             UnsafeProfileError: The setting is outside its space, the builder refused it, or a
                 table breaks a limit; ``err.verdict`` lists every violation. Nothing is clipped.
         """
-        verdict, full, tables = self._evaluate(params)
+        return self._admit(params, zero_force=False)
+
+    def admit_zero_force(self, params: Mapping[str, float]) -> AdmittedProfile:
+        """The tables of ``params`` with every force 0 N, through the same checks as :meth:`admit`.
+
+        Zero-force tracking: the suit worn and actuated, its force controller running and tracking
+        0 N, so the wearer feels the suit's mass and what the tracking leaves, but no assistance.
+        drivers/PROTOCOL.md has no command for it (Mode ``transparent`` is only the device's state
+        before its first profile), so it is a profile like any other: the same actuators and grid
+        as the setting's tables, every point 0 N. It differs from assistance-off, where the device
+        ramps to slack and stops following a table. The setting itself must still be feasible (it
+        names the tables' actuators and grid; ``params`` of the result is it).
+
+        Raises:
+            UnsafeProfileError: As :meth:`admit` (the setting is outside its space, or the builder
+                refused it); an all-zero table itself is within every limit.
+        """
+        return self._admit(params, zero_force=True)
+
+    def _admit(self, params: Mapping[str, float], *, zero_force: bool) -> AdmittedProfile:
+        verdict, full, tables = self._evaluate(params, zero_force=zero_force)
         if not verdict.ok or full is None:
             self._consecutive_rejections += 1
             self.rejected_count += 1

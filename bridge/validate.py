@@ -6,7 +6,8 @@ assisted condition's reduction against walking without assistance. Here:
 
 * the **conditions**: the session's recommended setting (read from its log through the
   optimizer's own recommendation, :meth:`HILOptimizer.best`), the generic setting of
-  ``[validation] generic``, and unassisted walking (assistance off, the suit worn);
+  ``[validation] generic``, unassisted walking (assistance off, the suit worn), and, with
+  ``[validation] zero_force = true``, zero-force walking (below);
 * their **order** is randomised with ``[validation] seed`` (one seed per subject
   counterbalances a study), after the protocol's unassisted warm-up;
 * each is measured for ``[validation] condition_min`` minutes of walking (as breaths) with the
@@ -18,6 +19,20 @@ assisted condition's reduction against walking without assistance. Here:
   for the same number of breaths, and a gate (:class:`ConditionGate`) turns the unassisted
   condition into "assistance off" instead of a profile. A pause abandons the condition being
   measured and re-measures the same one.
+
+**Zero force is not unassisted.** Unassisted here is assistance off: the device ramps to slack
+and follows no table, its force controller idle. Zero force is the suit worn and *actuated*
+with a profile of 0 N at every point, pushed like any other through the same safety gate
+(:meth:`SafeProfileGate.admit_zero_force`; drivers/PROTOCOL.md has no separate command for the
+transparent mode, and an all-zero table is within every limit), so the force controller runs
+and tracks zero force: the wearer feels the suit's mass and whatever force the tracking leaves
+(its error, friction and inertia of the drive it does not cancel), and no assistance. The
+exosuit literature separates the suit's own cost from what its assistance saves this way: Kim
+et al. 2019's multi-joint study reports its reductions against a slack (powered-off) suit as
+well as against no suit (its Table II). The zero-force condition's reduction against unassisted
+walking is that cost of the running suit (expected at or below 0 on a person); the simulated
+wearers of ``virtual_hw`` model no mass, friction or tracking error, so for them a zero table is
+unassisted walking exactly and the true reduction is 0.
 
 The result per condition (estimate, 95 % interval, reduction against unassisted with its 95 %
 interval by the delta method) goes into the summary and the log (a ``validation_result``
@@ -68,10 +83,14 @@ class ConditionKind(enum.Enum):
     RECOMMENDED = "recommended"  # OPT: the session's recommended setting
     GENERIC = "generic"  # FIX: [validation] generic
     UNASSISTED = "unassisted"  # assistance off, the suit worn
+    ZERO_FORCE = "zero_force"  # the suit actuated, tracking 0 N (module docstring)
 
 
 _NAMES = {ConditionKind.RECOMMENDED: "OPT", ConditionKind.GENERIC: "FIX",
-          ConditionKind.UNASSISTED: "unassisted"}
+          ConditionKind.UNASSISTED: "unassisted", ConditionKind.ZERO_FORCE: "zero-force"}
+# What the conditions without a setting of their own do, for the text.
+_WITHOUT_SETTING = {ConditionKind.UNASSISTED: "assistance off",
+                    ConditionKind.ZERO_FORCE: "zero force (suit actuated, 0 N at every point)"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -79,10 +98,11 @@ class Condition:
     """One condition of the validation walk.
 
     Attributes:
-        name: ``OPT``, ``FIX`` or ``unassisted``.
+        name: ``OPT``, ``FIX``, ``unassisted`` or ``zero-force``.
         kind: :class:`ConditionKind`.
-        params: The setting; for unassisted walking, the setting the optimizer records for it
-            (the recommended one: nothing of it reaches the device, assistance is off).
+        params: The setting; for unassisted and zero-force walking, the setting the optimizer
+            records for it (the recommended one: for unassisted nothing of it reaches the device;
+            for zero force only its tables' actuators and grid do, every force 0 N).
     """
 
     name: str
@@ -111,21 +131,29 @@ def recommended_setting(log: Path) -> tuple[dict[str, float], float, float]:
 
 
 def plan_conditions(recommended: Mapping[str, float], generic: Mapping[str, float] | None,
-                    seed: int) -> list[Condition]:
-    """The conditions in their randomised order (``np.random.default_rng(seed)``)."""
+                    seed: int, *, zero_force: bool = False) -> list[Condition]:
+    """The conditions in their randomised order (``np.random.default_rng(seed)``).
+
+    Args:
+        recommended: OPT's setting.
+        generic: FIX's setting, or None for no FIX.
+        seed: Seeds the order.
+        zero_force: Include the zero-force condition (module docstring).
+    """
     opt = ConditionKind.RECOMMENDED
     conditions = [Condition(_NAMES[opt], opt, dict(recommended))]
     if generic is not None:
         conditions.append(Condition(_NAMES[ConditionKind.GENERIC], ConditionKind.GENERIC, dict(generic)))
-    off = ConditionKind.UNASSISTED
-    conditions.append(Condition(_NAMES[off], off, dict(recommended)))
+    without = [ConditionKind.UNASSISTED] + ([ConditionKind.ZERO_FORCE] if zero_force else [])
+    conditions += [Condition(_NAMES[kind], kind, dict(recommended)) for kind in without]
     order = np.random.default_rng(seed).permutation(len(conditions))
     return [conditions[int(k)] for k in order]
 
 
 class ConditionGate:
     """The session's gate for the validation walk: the assisted conditions pass the safety gate
-    as in ``hilbo run``; the unassisted one is ``None`` (assistance off, nothing pushed).
+    as in ``hilbo run``; the unassisted one is ``None`` (assistance off, nothing pushed); the
+    zero-force one is the gate's all-zero tables (:meth:`SafeProfileGate.admit_zero_force`).
 
     Args:
         gate: The config's safety gate.
@@ -141,8 +169,11 @@ class ConditionGate:
 
     def admit(self, params: dict[str, float]) -> AdmittedProfile | None:
         """The safety gate's verdict, or None for the unassisted condition."""
-        if self.conditions[self.current()].kind is ConditionKind.UNASSISTED:
+        kind = self.conditions[self.current()].kind
+        if kind is ConditionKind.UNASSISTED:
             return None
+        if kind is ConditionKind.ZERO_FORCE:
+            return self.gate.admit_zero_force(params)
         return self.gate.admit(params)
 
     def acknowledge(self, admitted: AdmittedProfile) -> None:
@@ -214,8 +245,9 @@ def condition_results(conditions: Sequence[Condition], records: Sequence[Mapping
     for k, c in enumerate(conditions):
         r = by_index.get(k)
         row: dict[str, Any] = {"order": k + 1, **c.to_json(), "measured": r is not None}
-        if c.kind is ConditionKind.UNASSISTED:
+        if c.kind in _WITHOUT_SETTING:
             row["params"] = None
+            row["setting"] = _WITHOUT_SETTING[c.kind]
         else:
             row["setting"] = format_params(c.params, units or {})
         if r is not None:
@@ -274,7 +306,8 @@ class ValidationPlan:
         """The plan for the session of ``source_log`` (its recommendation) and ``cfg``."""
         params, _, _ = recommended_setting(source_log)
         cfg.space.space.check(params)
-        conditions = plan_conditions(params, cfg.validation.generic, cfg.validation.seed)
+        conditions = plan_conditions(params, cfg.validation.generic, cfg.validation.seed,
+                                     zero_force=cfg.validation.zero_force)
         return cls(conditions, str(source_log), _optimizer(cfg, conditions),
                    _protocol(cfg, len(conditions)), cfg.space.space.units)
 

@@ -39,7 +39,8 @@ def _cmd_validate(args: argparse.Namespace) -> int:
                   f"({v.condition_breaths} breaths) in the order "
                   + ", ".join(c.name for c in plan.conditions) + f" (seed {v.seed})", highlight=False)
     if v.generic is None:
-        console.print("hilbo validate: note: no [validation] generic setting: OPT against unassisted only")
+        console.print("hilbo validate: note: no [validation] generic setting: OPT against unassisted"
+                      + (" and zero-force walking" if v.zero_force else " only"))
     if (args.auto_resume is None and cfg.watchdog.auto_resume_s is None
             and (args.no_view or not sys.stdin.isatty())):
         console.print("hilbo validate: note: no keyboard: a pause lasts until SIGTERM/Ctrl-C; give "
@@ -64,7 +65,9 @@ def add_validate_parser(subparsers: Any) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "validate", help="the validation walk: the recommended setting vs a generic one vs unassisted",
         description="Measure the recommended setting of an optimisation session (its log, --from), "
-                    "the generic setting of [validation] generic and unassisted walking, each for "
+                    "the generic setting of [validation] generic, unassisted walking (assistance "
+                    "off) and, with [validation] zero_force = true, zero-force walking (the suit "
+                    "actuated, 0 N at every point), each for "
                     "[validation] condition_min minutes in a randomised order ([validation] seed), "
                     "with the session's estimator and cart, as hilbo run measures (the same "
                     "safety limits, pauses, keys and resume policy). Prints each condition's "

@@ -264,10 +264,13 @@ def _validation_blocks(session: Session) -> list[_Block]:
                      "–" if red is None else f"{100 * red:.1f}",
                      "–" if red is None else f"{100 * rci[0]:.1f} to {100 * rci[1]:.1f}",
                      str(r.get("breaths", "–"))))
+    zero = any(r.get("kind") == "zero_force" for r in session.validation or ())
     return [_p("Each condition measured in this order with the session's estimator, from the level "
                "the previous one left (Kim et al. 2019 §IV.A.3: the optimised setting OPT, a generic "
-               "one FIX, walking without assistance). Reduction: 1 − cost / unassisted cost, its "
-               "interval by the delta method."),
+               "one FIX, walking without assistance"
+               + ("; zero-force: the suit actuated with 0 N at every point, whose reduction is the "
+                  "suit's own cost against assistance off" if zero else "")
+               + "). Reduction: 1 − cost / unassisted cost, its interval by the delta method."),
             _table(("order", "condition", "setting", "estimate (W)", "95 % CI (W)",
                     "reduction vs unassisted (%)", "95 % CI (%)", "breaths"), rows)]
 

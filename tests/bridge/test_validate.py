@@ -6,10 +6,12 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import itertools
 import uuid
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from supervision_harness import run_session as harness_session
 
@@ -17,8 +19,9 @@ from bridge.config import parse_config
 from bridge.log.reader import read_log
 from bridge.review.command import review_session
 from bridge.run import run_session
+from bridge.safety import SafeProfileGate
 from bridge.sim.virtual import VirtualSimConfig, sim_config_text
-from bridge.validate import ConditionKind, ValidationPlan, condition_results, plan_conditions
+from bridge.validate import ConditionGate, ConditionKind, ValidationPlan, condition_results, plan_conditions
 from drivers.exosuit import CanBusConfig
 from virtual_hw.cart import CartLink, LinkKind, VirtualCart
 from virtual_hw.clock import ScaledClock
@@ -38,6 +41,38 @@ def test_the_order_is_randomised_by_the_seed_and_complete() -> None:
     assert [c.name for c in plan_conditions(rec, None, 0)] in (["OPT", "unassisted"], ["unassisted", "OPT"])
 
 
+def test_zero_force_is_a_condition_only_when_asked_and_takes_its_place_in_the_random_order() -> None:
+    rec = {"t_on": 5.0, "t_p": 30.0, "t_off": 50.0, "F_p": 200.0, "F_r": 0.5, "F_f": 0.5}
+    assert all("zero-force" not in [c.name for c in plan_conditions(rec, GENERIC, seed)] for seed in range(6))
+    plans = [plan_conditions(rec, GENERIC, seed, zero_force=True) for seed in range(12)]
+    assert all(sorted(c.name for c in p) == ["FIX", "OPT", "unassisted", "zero-force"] for p in plans)
+    assert len({[c.name for c in p].index("zero-force") for p in plans}) > 2  # not always in one place
+    (zero,) = [c for c in plans[0] if c.kind is ConditionKind.ZERO_FORCE]
+    assert zero.params == rec  # the tables' actuators and grid; every force is 0 N (the gate)
+    assert [c.name for c in plan_conditions(rec, None, 5, zero_force=True)] in (
+        [list(p) for p in itertools.permutations(["OPT", "unassisted", "zero-force"])])
+
+
+def test_the_zero_force_condition_passes_the_safety_gate_as_an_all_zero_table() -> None:
+    _, cfg = validation_config(Path("/tmp"), zero_force=True)
+    gate = SafeProfileGate(cfg.space.space, cfg.limits)
+    rec = {"t_on": 5.0, "t_p": 30.0, "t_off": 50.0, "F_p": 200.0, "F_r": 0.5, "F_f": 0.5}
+    conditions = plan_conditions(rec, GENERIC, 0, zero_force=True)
+    current = [0]
+    cgate = ConditionGate(gate, conditions, lambda: current[0])
+    by_kind = {}
+    for k, c in enumerate(conditions):
+        current[0] = k  # the condition being proposed
+        by_kind[c.kind] = cgate.admit(dict(c.params))
+    assert by_kind[ConditionKind.UNASSISTED] is None  # assistance off: nothing pushed
+    zero = by_kind[ConditionKind.ZERO_FORCE]
+    opt = by_kind[ConditionKind.RECOMMENDED]
+    assert zero is not None and opt is not None
+    assert [p.actuator for p in zero.profiles] == [p.actuator for p in opt.profiles]
+    for z, o in zip(zero.profiles, opt.profiles, strict=True):
+        assert np.array_equal(z.gait_pct, o.gait_pct) and not z.force_n.any() and o.peak_n > 100.0
+
+
 def test_the_reduction_and_its_interval_by_the_delta_method() -> None:
     rec = {"t_on": 5.0}
     conditions = plan_conditions(rec, None, 0)
@@ -51,11 +86,11 @@ def test_the_reduction_and_its_interval_by_the_delta_method() -> None:
     assert opt["ci95_w"] == pytest.approx([300.0 - 1.959964 * 4.0, 300.0 + 1.959964 * 4.0], rel=1e-6)
 
 
-def validation_config(tmp_path: Path) -> tuple[VirtualSimConfig, Any]:
+def validation_config(tmp_path: Path, *, zero_force: bool = False) -> tuple[VirtualSimConfig, Any]:
     sim = VirtualSimConfig(minutes=30.0, seed=4, warmup_s=60.0, wearer="legacy")
     text = sim_config_text(sim, tmp_path) + (
         "\n[validation]\ngeneric = { " + ", ".join(f"{k} = {v}" for k, v in GENERIC.items())
-        + " }\ncondition_min = 4.0\nseed = 2\n")
+        + " }\ncondition_min = 4.0\nseed = 2\n" + ("zero_force = true\n" if zero_force else ""))
     return sim, parse_config(text, source="<test>")
 
 
@@ -85,14 +120,16 @@ def run_validation(tmp_path: Path, sim: VirtualSimConfig, cfg: Any, plan: Valida
 @pytest.mark.timeout(240)
 def test_validate_on_the_virtual_devices_matches_the_wearers_truth(tmp_path: Path) -> None:
     # The optimisation session to validate: a short one (its recommendation is what matters).
+    # With the zero-force condition, so all four kinds of condition are measured in one walk.
     source = harness_session(tmp_path, n_evaluations=4).log
-    sim, cfg = validation_config(tmp_path)
+    sim, cfg = validation_config(tmp_path, zero_force=True)
     wearer = make_wearer(sim.wearer, cfg.space.space, seed=sim.seed, body_mass_kg=sim.body_mass_kg)
     plan = ValidationPlan.new(cfg, source)
     summary = run_validation(tmp_path, sim, cfg, plan, wearer)
     assert summary["end_reason"] == "conditions_done"
     results = {r["name"]: r for r in summary["validation"]}
-    assert set(results) == {"OPT", "FIX", "unassisted"} and all(r["measured"] for r in results.values())
+    assert set(results) == {"OPT", "FIX", "unassisted", "zero-force"}
+    assert all(r["measured"] for r in results.values())
     assert [r["name"] for r in summary["validation"]] == [c.name for c in plan.conditions]
     baseline = wearer.baseline_cost_w
     lo, hi = results["unassisted"]["ci95_w"]
@@ -103,6 +140,18 @@ def test_validate_on_the_virtual_devices_matches_the_wearers_truth(tmp_path: Pat
         rlo, rhi = r["reduction_ci95"]
         assert rlo <= truth <= rhi, (name, truth, r)
         assert r["breaths"] == cfg.validation.condition_breaths
+    # Zero force: the simulated wearer has no suit mass or friction, so an all-zero table costs
+    # what unassisted walking costs (virtual_hw/wearer.py, cost_of_profiles) and the truth is 0.
+    zero = results["zero-force"]
+    assert zero["params"] is None and zero["breaths"] == cfg.validation.condition_breaths
+    zlo, zhi = zero["ci95_w"]
+    assert zlo <= wearer.cost_of_profiles(()) == baseline <= zhi, zero
+    rlo, rhi = zero["reduction_ci95"]
+    assert rlo <= 0.0 <= rhi, zero
+    # What reached the device for it: the suit's tables, every force 0 N.
+    k = [c.name for c in plan.conditions].index("zero-force")
+    sent = [p for p in read_log(tmp_path / "validate.mcap").records("/profiles_sent") if p.index == k]
+    assert sent and all(not any(p.force_n) and p.profiles for p in sent)
     # The log holds the plan and the result, and hilbo review reports them.
     kinds = [e.kind for e in read_log(tmp_path / "validate.mcap").records("/events")]
     assert "validation_plan" in kinds and "validation_result" in kinds
@@ -111,7 +160,11 @@ def test_validate_on_the_virtual_devices_matches_the_wearers_truth(tmp_path: Pat
     assert s.validation is not None and [r["name"] for r in s.validation] == [c.name for c in plan.conditions]
     md = (review.out_dir / "report.md").read_text()
     assert "## Validation walk" in md
-    assert f"{100 * results['OPT']['reduction']:.1f}" in md.split("## Validation walk")[1].split("\n## ")[0]
+    section = md.split("## Validation walk")[1].split("\n## ")[0]
+    assert f"{100 * results['OPT']['reduction']:.1f}" in section
+    (row,) = [line for line in section.splitlines() if "| zero-force |" in line]
+    assert "zero force" in row and f"{100 * zero['reduction']:.1f}" in row
+    assert "zero-force: the suit actuated" in section
 
 
 def test_validate_needs_one_source(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -125,6 +178,20 @@ def test_validate_needs_one_source(tmp_path: Path, capsys: pytest.CaptureFixture
     # An optimisation log is not a validation walk to resume.
     assert main(["validate", str(config), "--resume", str(source)]) == 1
     assert "is not a validation walk's log" in capsys.readouterr().err
+
+
+def test_the_zero_force_key_of_the_config() -> None:
+    from bridge.errors import BridgeConfigError
+
+    text = sim_config_text(VirtualSimConfig(minutes=30.0), Path("/tmp")) + "\n[validation]\n"
+    assert parse_config(text).validation.zero_force is False
+    assert parse_config(text + "zero_force = true\n").validation.zero_force is True
+    for bad in ('"yes"', "1"):
+        with pytest.raises(BridgeConfigError, match=r"validation\.zero_force = .*: expected true or false"):
+            parse_config(text + f"zero_force = {bad}\n")
+    with pytest.raises(BridgeConfigError, match=r"unknown key validation\.zeroforce = True "
+                                                r"\(did you mean 'zero_force'\?\)"):
+        parse_config(text + "zeroforce = true\n")
 
 
 def test_a_generic_setting_outside_the_space_is_refused_by_the_config() -> None:
