@@ -36,7 +36,6 @@ import enum
 import io
 import ipaddress
 import math
-import os
 import re
 import sys
 import tomllib
@@ -45,10 +44,12 @@ from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 from types import MappingProxyType
-from typing import Any, TextIO
+from typing import Annotated, Any, Literal, TextIO
 
 import can
+import msgspec
 import numpy as np
+from msgspec import Meta
 
 from bridge.collector import GcMode
 from bridge.errors import BridgeConfigError
@@ -62,21 +63,12 @@ from bridge.safety import (
 )
 from drivers.cart import CartConfig
 from drivers.cart.pipeline import describe_record
+from drivers.config_model import decode, range_text, unknown_key_message
 from drivers.errors import DriverConfigError
 from drivers.exosuit.endpoint import INTERFACE_OPTIONS, CanBusConfig
 from drivers.exosuit.rating import RATED_FORCE_N
 from drivers.files import read_regular_file
-from hilbo_core.config_model import (
-    MISSING,
-    Table,
-    boolean,
-    choice,
-    integer,
-    number,
-    read_fields,
-    reject_unknown,
-    string,
-)
+from hilbo_core.config_model import MISSING, Table, reject_unknown
 from hilbo_core.errors import ConfigError, InfeasibleError
 from hilbo_core.gp import KernelKind
 from hilbo_core.optimizer import DEFAULT_ACCEPT_Z, OptimizerConfig, PriorObservation, StoppingKind
@@ -125,7 +117,6 @@ __all__ = [
 TABLES = ("session", "space", "protocol", "cart", "can", "limits", "watchdog", "prior", "live", "validation")
 _REQUIRED_TABLES = ("session", "space", "cart", "can")
 
-_SUBJECT = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
 
 # --------------------------------------------------------------------------------------------
@@ -149,8 +140,7 @@ def _reject_unknown(data: Mapping[str, Any], allowed: Iterable[str], where: str)
 # --------------------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class SessionConfig:
+class SessionConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     """``[session]``: who walks, and where the session's files go.
 
     Attributes:
@@ -163,51 +153,19 @@ class SessionConfig:
             owner only, they hold health data: VO2, heart rate, body mass).
     """
 
-    # subject and file_mode are patterns, out_dir a path: _parse_session reads those.
-    subject: str
-    body_mass_kg: float = number(lo=20.0, hi=250.0)
+    subject: Annotated[str, Meta(min_length=1, pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$", description=(
+        "1-64 letters, digits, '_', '.', '-' (it is used in file names), starting with a letter or digit"))]
+    body_mass_kg: Annotated[float, Meta(ge=20.0, le=250.0)]
     out_dir: Path = Path("sessions")
-    notes: str = string("", non_empty=False)
-    file_mode: str = "0600"
+    notes: str = ""
+    file_mode: Annotated[str, Meta(min_length=1, pattern=r"^0?[0-7]{3}$", description=(
+        'octal permission bits such as "0600" (owner read/write: session files hold health data) '
+        'or "0640"'))] = "0600"
 
     @property
     def file_mode_bits(self) -> int:
         """:attr:`file_mode` as an integer (``0o600``)."""
         return int(self.file_mode, 8)
-
-
-def _parse_session(data: object) -> SessionConfig:
-    t = _table(data, "session", ALLOWED_KEYS["session"])
-    subject = t.string("subject")
-    if not _SUBJECT.match(subject):
-        raise BridgeConfigError(
-            f"session.subject = {subject!r}: expected 1-64 letters, digits, '_', '.', '-' "
-            "(it is used in file names), starting with a letter or digit"
-        )
-    return SessionConfig(
-        subject=subject,
-        out_dir=_out_dir(t),
-        file_mode=_file_mode(t),
-        **read_fields(SessionConfig, t),
-    )
-
-
-def _out_dir(t: Table) -> Path:
-    # "~/hilbo-sessions" means the home folder (as in a shell), never a folder named "~" here.
-    text = t.string("out_dir", "sessions")
-    expanded = os.path.expanduser(text)
-    if expanded.startswith("~"):
-        raise BridgeConfigError(f"{t.name('out_dir')} = {text!r}: the home folder of "
-                                f"{text.split('/', 1)[0]!r} is unknown; give the full path")
-    return Path(expanded)
-
-
-def _file_mode(t: Table) -> str:
-    text = t.string("file_mode", "0600")
-    if not re.fullmatch(r"0?[0-7]{3}", text):
-        raise BridgeConfigError(f"{t.name('file_mode')} = {text!r}: expected octal permission bits such as "
-                                "\"0600\" (owner read/write: session files hold health data) or \"0640\"")
-    return text
 
 
 # --------------------------------------------------------------------------------------------
@@ -340,8 +298,7 @@ _DEFAULT_BUDGET_S = SessionProtocolConfig.budget_s
 _DEFAULT_BUDGET_MIN = None if _DEFAULT_BUDGET_S is None else _DEFAULT_BUDGET_S / 60.0
 
 
-@dataclass(frozen=True)
-class ProtocolConfig:
+class ProtocolConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """``[protocol]``: the walking protocol and the optimizer (Kim et al. 2019 §IV.A.3, Algorithm 1).
 
     Two bouts: the exploration bout (``n_explore`` settings of ``max_breaths`` breaths each), then
@@ -414,35 +371,40 @@ class ProtocolConfig:
     """
 
     # The defaults are declared once: the protocol's in hilbo_core.protocol, the optimizer's in
-    # hilbo_core.optimizer (a dataclass field's default is its class attribute).
-    # The ranges are declared here (hilbo_core.config_model); window's upper bound is
-    # max_breaths - 1 and the budgets are either-or, so _parse_protocol reads those three.
-    warmup_s: float = number(SessionProtocolConfig.warmup_s, lo=0.0, hi=1800.0)
-    n_explore: int | None = integer(None, lo=1, hi=200, optional=True)
-    max_breaths: int = integer(OptimizerConfig.max_breaths, lo=2, hi=1000)
-    window: int = OptimizerConfig.window
-    budget_min: float | None = _DEFAULT_BUDGET_MIN
-    budget_breaths: int | None = SessionProtocolConfig.budget_breaths
-    session_min: float | None = number(None, lo=0.0, hi=1440.0, lo_open=True, optional=True)
-    stopping: StoppingKind = choice(StoppingKind, OptimizerConfig.stopping)
-    min_decision_s: float = number(OptimizerConfig.min_decision_s, lo=0.0, hi=600.0)
-    a_floor: float = number(OptimizerConfig.a_floor, lo=0.0, hi=10.0)
-    accept_stop: bool = boolean(OptimizerConfig.accept_z is not None)
-    accept_z: float = number(DEFAULT_ACCEPT_Z, lo=0.0, hi=10.0)
-    design: DesignKind | None = choice(DesignKind, OptimizerConfig.design)
-    seed: int = integer(OptimizerConfig.seed, lo=0, hi=2**63 - 1)
-    xi: float = number(OptimizerConfig.xi, lo=-1e6, hi=1e6)
-    kernel: KernelKind = choice(KernelKind, OptimizerConfig.kernel)
-    n_candidates: int = integer(OptimizerConfig.n_candidates, lo=16, hi=1_000_000)
-    n_local: int = integer(OptimizerConfig.n_local, lo=0, hi=100)
-    pause_between_bouts: bool | None = boolean(None, optional=True)
-    protocol: ProtocolKind | None = choice(ProtocolKind, None)
-    confirm_min: float | None = number(None, lo=0.0, hi=120.0, optional=True)
-    explore_rel_sd: float | None = number(None, lo=0.0, hi=0.5, optional=True)
-    short_pause_s: float = number(SessionProtocolConfig.short_pause_s, lo=0.0, hi=600.0)
-    refit: RefitMode = choice(RefitMode, RefitMode.AHEAD)
-    proposal_worker: WorkerKind = choice(WorkerKind, WorkerKind.PROCESS)
-    gc: GcMode = choice(GcMode, GcMode.FREEZE)
+    # hilbo_core.optimizer (a dataclass field's default is its class attribute). window's upper
+    # bound is max_breaths - 1 (__post_init__); the budgets are either-or (_parse_protocol).
+    warmup_s: Annotated[float, Meta(ge=0.0, le=1800.0)] = SessionProtocolConfig.warmup_s
+    n_explore: Annotated[int, Meta(ge=1, le=200)] | None = None
+    max_breaths: Annotated[int, Meta(ge=2, le=1000)] = OptimizerConfig.max_breaths
+    window: Any = OptimizerConfig.window  # an int in [0, max_breaths - 1]: __post_init__
+    budget_min: Annotated[float, Meta(gt=0.0, le=1440.0)] | None = _DEFAULT_BUDGET_MIN
+    budget_breaths: Annotated[int, Meta(ge=1, le=100_000)] | None = SessionProtocolConfig.budget_breaths
+    session_min: Annotated[float, Meta(gt=0.0, le=1440.0)] | None = None
+    stopping: StoppingKind = OptimizerConfig.stopping
+    min_decision_s: Annotated[float, Meta(ge=0.0, le=600.0)] = OptimizerConfig.min_decision_s
+    a_floor: Annotated[float, Meta(ge=0.0, le=10.0)] = OptimizerConfig.a_floor
+    accept_stop: bool = OptimizerConfig.accept_z is not None
+    accept_z: Annotated[float, Meta(ge=0.0, le=10.0)] = DEFAULT_ACCEPT_Z
+    design: DesignKind | None = OptimizerConfig.design
+    seed: Annotated[int, Meta(ge=0, le=2**63 - 1)] = OptimizerConfig.seed
+    xi: Annotated[float, Meta(ge=-1e6, le=1e6)] = OptimizerConfig.xi
+    kernel: KernelKind = OptimizerConfig.kernel
+    n_candidates: Annotated[int, Meta(ge=16, le=1_000_000)] = OptimizerConfig.n_candidates
+    n_local: Annotated[int, Meta(ge=0, le=100)] = OptimizerConfig.n_local
+    pause_between_bouts: bool | None = None
+    protocol: ProtocolKind | None = None
+    confirm_min: Annotated[float, Meta(ge=0.0, le=120.0)] | None = None
+    explore_rel_sd: Annotated[float, Meta(ge=0.0, le=0.5)] | None = None
+    short_pause_s: Annotated[float, Meta(ge=0.0, le=600.0)] = SessionProtocolConfig.short_pause_s
+    refit: RefitMode = RefitMode.AHEAD
+    proposal_worker: WorkerKind = WorkerKind.PROCESS
+    gc: GcMode = GcMode.FREEZE
+
+    def __post_init__(self) -> None:
+        w = self.window
+        if isinstance(w, bool) or not isinstance(w, int) or not 0 <= w < self.max_breaths:
+            raise ValueError(f"window = {w!r}: expected an integer in "
+                             f"{range_text(0, self.max_breaths - 1)}")
 
     @property
     def protocol_kind(self) -> ProtocolKind:
@@ -513,21 +475,9 @@ class ProtocolConfig:
 
 
 def _parse_protocol(data: object) -> ProtocolConfig:
-    t = _table(data, "protocol", ALLOWED_KEYS["protocol"])
-    d = ProtocolConfig  # the defaults
-    declared = read_fields(ProtocolConfig, t, skip=("window", "budget_min", "budget_breaths"))
-    if not (t.has("budget_min") or t.has("budget_breaths")):
-        budget_min: float | None = d.budget_min  # Kim et al. 2019 §IV.A.3: a 40-minute optimisation bout
-        budget_breaths: int | None = d.budget_breaths
-    else:
-        budget_min = t.number("budget_min", lo=0.0, hi=1440.0, lo_open=True) if t.has("budget_min") else None
-        budget_breaths = t.integer("budget_breaths", lo=1, hi=100_000) if t.has("budget_breaths") else None
-    cfg = ProtocolConfig(
-        **declared,
-        window=t.integer("window", d.window, lo=0, hi=declared["max_breaths"] - 1),
-        budget_min=budget_min,
-        budget_breaths=budget_breaths,
-    )
+    if isinstance(data, Mapping) and ("budget_min" in data or "budget_breaths" in data):
+        data = {"budget_min": None, "budget_breaths": None, **data}  # either budget, or both
+    cfg = decode(ProtocolConfig, data, "protocol", BridgeConfigError)
     try:
         cfg.optimizer_config()  # the optimizer's own validation is the final word
     except ConfigError as err:
@@ -553,8 +503,27 @@ def _parse_cart(data: object) -> CartConfig:
 # --------------------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class CanConfig:
+class _CanTiming(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    heartbeat_period_ms: Annotated[float, Meta(ge=5.0, le=50.0)] = 20.0
+    push_timeout_ms: Annotated[float, Meta(ge=10.0, le=5000.0)] = 250.0
+    push_retries: Annotated[int, Meta(ge=0, le=10)] = 3
+    segment_pace_ms: Annotated[float, Meta(ge=0.0, le=50.0)] = 1.0
+
+
+_Interface = Literal[tuple(sorted(can.VALID_INTERFACES))]  # type: ignore[valid-type]
+
+
+class _CanTable(_CanTiming, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """``[can]`` as the TOML gives it: the bus's keys and the timing."""
+
+    interface: _Interface
+    channel: Annotated[Annotated[str, Meta(min_length=1)] | int, Meta(
+        description="a non-empty string or an integer (e.g. 'vcan0', 'PCAN_USBBUS1', 0)")]
+    bitrate: Annotated[int, Meta(ge=10_000, le=8_000_000)] = 1_000_000
+    options: dict[str, Any] = {}
+
+
+class CanConfig(_CanTiming, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """``[can]``: the exosuit's CAN bus and the timing of the bridge's side of the protocol.
 
     Attributes:
@@ -570,10 +539,6 @@ class CanConfig:
     """
 
     bus: CanBusConfig
-    heartbeat_period_ms: float = number(20.0, lo=5.0, hi=50.0)
-    push_timeout_ms: float = number(250.0, lo=10.0, hi=5000.0)
-    push_retries: int = integer(3, lo=0, hi=10)
-    segment_pace_ms: float = number(1.0, lo=0.0, hi=50.0)
 
     @property
     def heartbeat_period_s(self) -> float:
@@ -596,24 +561,18 @@ class CanConfig:
 
 
 def _parse_can(data: object) -> CanConfig:
-    t = _table(data, "can", ALLOWED_KEYS["can"])
-    interface = t.string("interface", choices=can.VALID_INTERFACES)
-    channel = t.raw("channel", MISSING, "a non-empty string or an integer (e.g. 'vcan0', 'PCAN_USBBUS1', 0)")
-    if isinstance(channel, bool) or not isinstance(channel, str | int) or channel == "":
-        raise BridgeConfigError(
-            f"can.channel = {channel!r}: expected a non-empty string or an integer "
-            "(e.g. 'vcan0', 'PCAN_USBBUS1', 0)"
-        )
-    bitrate = t.integer("bitrate", 1_000_000, lo=10_000, hi=8_000_000)
-    options = t.table("options", {})
-    allowed = INTERFACE_OPTIONS.get(interface)
-    if allowed is not None:
-        _reject_unknown(options, allowed, "can.options")
+    t = decode(_CanTable, data, "can", BridgeConfigError)
+    allowed = INTERFACE_OPTIONS.get(t.interface)
+    unknown = [k for k in t.options if allowed is not None and k not in allowed]
+    if unknown:
+        raise BridgeConfigError(unknown_key_message("can.options", unknown[0],
+                                                    f"{t.options[unknown[0]]!r:.60}", allowed or ()))
     try:
-        bus = CanBusConfig(interface=interface, channel=channel, bitrate=bitrate, options=dict(options))
+        bus = CanBusConfig(interface=t.interface, channel=t.channel, bitrate=t.bitrate, options=t.options)
     except DriverConfigError as err:
         raise BridgeConfigError(str(err)) from err
-    return CanConfig(bus=bus, **read_fields(CanConfig, t))
+    timing = {k: getattr(t, k) for k in _CanTiming.__struct_fields__}
+    return CanConfig(bus=bus, **timing)
 
 
 # --------------------------------------------------------------------------------------------
@@ -659,8 +618,7 @@ class BusErrorPolicy(enum.Enum):
     STOP = "stop"  # assistance-off, end the session (continue later with --resume)
 
 
-@dataclass(frozen=True)
-class WatchdogConfig:
+class WatchdogConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     """``[watchdog]``: when the bridge gives up on a device and commands assistance-off.
 
     Attributes:
@@ -679,20 +637,15 @@ class WatchdogConfig:
             pause that would need one stops the session instead of waiting for nobody.
     """
 
-    device_heartbeat_timeout_ms: float = number(100.0, lo=40.0, hi=1000.0)
-    cart_data_timeout_s: float = number(15.0, lo=2.0, hi=300.0)
-    bus_error: BusErrorPolicy = choice(BusErrorPolicy, BusErrorPolicy.PAUSE)
-    auto_resume_s: float | None = number(None, lo=0.0, hi=3600.0, optional=True)
-    max_auto_resumes: int = integer(10, lo=1, hi=1000)
+    device_heartbeat_timeout_ms: Annotated[float, Meta(ge=40.0, le=1000.0)] = 100.0
+    cart_data_timeout_s: Annotated[float, Meta(ge=2.0, le=300.0)] = 15.0
+    bus_error: BusErrorPolicy = BusErrorPolicy.PAUSE
+    auto_resume_s: Annotated[float, Meta(ge=0.0, le=3600.0)] | None = None
+    max_auto_resumes: Annotated[int, Meta(ge=1, le=1000)] = 10
 
     def to_json(self) -> dict[str, Any]:
         """JSON-able form."""
         return _jsonable(self)
-
-
-def _parse_watchdog(data: object) -> WatchdogConfig:
-    t = _table(data, "watchdog", ALLOWED_KEYS["watchdog"])
-    return WatchdogConfig(**read_fields(WatchdogConfig, t))
 
 
 # --------------------------------------------------------------------------------------------
@@ -927,8 +880,7 @@ def _parse_prior(data: object, space: ParameterSpace) -> PriorConfig:
 # --------------------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class LiveConfig:
+class LiveConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """``[live]``: stream the session's log channels to Foxglove while it runs (bridge/live.py).
 
     Attributes:
@@ -938,18 +890,12 @@ class LiveConfig:
         port: TCP port, 0-65535 (8765 is Foxglove's default; 0 picks a free port).
     """
 
-    enabled: bool = boolean(False)
-    host: str = string("127.0.0.1")
-    port: int = integer(8765, lo=0, hi=65535)
+    enabled: bool = False
+    host: Annotated[str, Meta(min_length=1)] = "127.0.0.1"
+    port: Annotated[int, Meta(ge=0, le=65535)] = 8765
 
 
-def _parse_live(data: object) -> LiveConfig:
-    t = _table(data, "live", ALLOWED_KEYS["live"])
-    return LiveConfig(**read_fields(LiveConfig, t))
-
-
-@dataclass(frozen=True)
-class ValidationConfig:
+class ValidationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """``[validation]``: the validation walk of ``hilbo validate`` (Kim et al. 2019 §IV.A.3: the
     optimised setting against a generic one and walking without assistance, 5 minutes each).
 
@@ -963,10 +909,10 @@ class ValidationConfig:
             a study).
     """
 
-    generic: Mapping[str, float] | None = None
-    condition_min: float = number(5.0, lo=1.0, hi=30.0)
-    breath_interval_s: float = number(3.0, lo=1.0, hi=10.0)
-    seed: int = integer(0, lo=0)
+    generic: Mapping[str, float] | None = None  # checked against [space] by _parse_validation
+    condition_min: Annotated[float, Meta(ge=1.0, le=30.0)] = 5.0
+    breath_interval_s: Annotated[float, Meta(ge=1.0, le=10.0)] = 3.0
+    seed: Annotated[int, Meta(ge=0)] = 0
 
     @property
     def condition_breaths(self) -> int:
@@ -975,11 +921,10 @@ class ValidationConfig:
 
 
 def _parse_validation(data: object, space: ParameterSpace) -> ValidationConfig:
-    t = _table(data, "validation", ALLOWED_KEYS["validation"])
-    fields_ = read_fields(ValidationConfig, t, skip=("generic",))
-    generic = None
-    if t.has("generic"):
-        raw = t.raw("generic", None, "a table of parameter = value")
+    given = dict(data) if isinstance(data, Mapping) else data
+    raw = given.pop("generic", None) if isinstance(given, dict) else None
+    cfg = decode(ValidationConfig, given, "validation", BridgeConfigError)
+    if raw is not None:
         if not isinstance(raw, Mapping):
             raise BridgeConfigError(f"validation.generic = {raw!r:.60}: expected a table such as "
                                     f"{{ {', '.join(f'{n} = ...' for n in space.names)} }}")
@@ -999,8 +944,8 @@ def _parse_validation(data: object, space: ParameterSpace) -> ValidationConfig:
             space.check(values)
         except InfeasibleError as err:
             raise BridgeConfigError(f"validation.generic is not a feasible setting: {err}") from err
-        generic = MappingProxyType(values)
-    return ValidationConfig(generic=generic, **fields_)
+        cfg = msgspec.structs.replace(cfg, generic=MappingProxyType(values))
+    return cfg
 
 
 # --------------------------------------------------------------------------------------------
@@ -1048,9 +993,7 @@ class HilboConfig:
             "watchdog": self.watchdog.to_json(),
             "prior": _jsonable(self.prior),
             "live": _jsonable(self.live),
-            "validation": {**_jsonable(dataclasses.replace(self.validation, generic=None)),
-                           "generic": None if self.validation.generic is None
-                           else dict(self.validation.generic)},
+            "validation": _jsonable(self.validation),
             "toml": self.text,
         }
 
@@ -1059,6 +1002,8 @@ def _jsonable(obj: Any) -> Any:
     """Dataclasses, enums, paths and mappings as plain JSON values (non-finite floats as text)."""
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
         return {f.name: _jsonable(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, msgspec.Struct):
+        return {name: _jsonable(getattr(obj, name)) for name in obj.__struct_fields__}
     if isinstance(obj, enum.Enum):
         return obj.value
     if isinstance(obj, Path):
@@ -1177,7 +1122,7 @@ def parse_config(text: str, source: str = "<string>") -> HilboConfig:
             f"{source}: missing table(s) {', '.join(f'[{t}]' for t in missing)}; "
             "`hilbo config example` prints a complete config"
         )
-    session = _parse_session(data["session"])
+    session = decode(SessionConfig, data["session"], "session", BridgeConfigError)
     space = _parse_space(data["space"])
     cfg = HilboConfig(
         session=session,
@@ -1186,9 +1131,9 @@ def parse_config(text: str, source: str = "<string>") -> HilboConfig:
         cart=_parse_cart(data["cart"]),
         can=_parse_can(data["can"]),
         limits=_parse_limits(data.get("limits", {})),
-        watchdog=_parse_watchdog(data.get("watchdog", {})),
+        watchdog=decode(WatchdogConfig, data.get("watchdog", {}), "watchdog", BridgeConfigError),
         prior=_parse_prior(data.get("prior", {}), space.space),
-        live=_parse_live(data.get("live", {})),
+        live=decode(LiveConfig, data.get("live", {}), "live", BridgeConfigError),
         validation=_parse_validation(data.get("validation", {}), space.space),
         source=source,
         text=text,
@@ -1476,14 +1421,13 @@ def add_config_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 #: The keys each table allows (``[cart]``'s are the cart driver's: drivers/cart/FORMAT.md).
 ALLOWED_KEYS: Mapping[str, tuple[str, ...]] = MappingProxyType({
-    "session": ("subject", "body_mass_kg", "out_dir", "notes", "file_mode"),
+    "session": SessionConfig.__struct_fields__,
     "space": ("preset", "bounds", "constraints", "profile", "parameters", "derived"),
-    "protocol": tuple(f.name for f in dataclasses.fields(ProtocolConfig)),
-    "can": ("interface", "channel", "bitrate", "options", "heartbeat_period_ms", "push_timeout_ms",
-            "push_retries", "segment_pace_ms"),
+    "protocol": ProtocolConfig.__struct_fields__,
+    "can": _CanTable.__struct_fields__,
     "limits": (*ACTUATOR_LIMIT_RANGES, "n_points", "max_consecutive_rejections", "actuators"),
-    "watchdog": tuple(f.name for f in dataclasses.fields(WatchdogConfig)),
+    "watchdog": WatchdogConfig.__struct_fields__,
     "prior": ("observations", "logs", "table", "table_baseline_w", "inflation"),
-    "live": tuple(f.name for f in dataclasses.fields(LiveConfig)),
-    "validation": tuple(f.name for f in dataclasses.fields(ValidationConfig)),
+    "live": LiveConfig.__struct_fields__,
+    "validation": ValidationConfig.__struct_fields__,
 })
