@@ -63,12 +63,11 @@ from bridge.safety import (
 )
 from drivers.cart import CartConfig
 from drivers.cart.pipeline import describe_record
-from drivers.config_model import decode, range_text, unknown_key_message
+from drivers.config_model import FINITE, decode, range_text, unknown_key_message
 from drivers.errors import DriverConfigError
 from drivers.exosuit.endpoint import INTERFACE_OPTIONS, CanBusConfig
 from drivers.exosuit.rating import RATED_FORCE_N
 from drivers.files import read_regular_file
-from hilbo_core.config_model import MISSING, Table, reject_unknown
 from hilbo_core.errors import ConfigError, InfeasibleError
 from hilbo_core.gp import KernelKind
 from hilbo_core.optimizer import DEFAULT_ACCEPT_Z, OptimizerConfig, PriorObservation, StoppingKind
@@ -119,20 +118,9 @@ _REQUIRED_TABLES = ("session", "space", "cart", "can")
 
 
 
-# --------------------------------------------------------------------------------------------
-# Reading tables: unknown keys, types and ranges, with errors that name table.key
-# --------------------------------------------------------------------------------------------
-
-
-# The one configuration model (hilbo_core/config_model.py), raising this package's error.
-
-
-def _table(data: object, where: str, allowed: Iterable[str]) -> Table:
-    return Table(data, where, allowed, BridgeConfigError)
-
-
-def _reject_unknown(data: Mapping[str, Any], allowed: Iterable[str], where: str) -> None:
-    reject_unknown(data, allowed, where, BridgeConfigError)
+# Every table is a msgspec Struct decoded by drivers.config_model.decode: unknown keys refused
+# with a suggestion, types and ranges checked, errors naming table.key, the value and the range.
+_STRUCT: dict[str, Any] = {"frozen": True, "forbid_unknown_fields": True, "kw_only": True}
 
 
 # --------------------------------------------------------------------------------------------
@@ -190,95 +178,89 @@ class SpaceConfig:
         return {"preset": self.preset, "definition": self.space.to_json()}
 
 
-def _parse_constraints(t: Table, key: str) -> list[LinearConstraint]:
+class _ParameterTable(msgspec.Struct, **_STRUCT):
+    name: Annotated[str, Meta(min_length=1)]
+    lower: Annotated[float, Meta(ge=-FINITE, le=FINITE)]
+    upper: Annotated[float, Meta(ge=-FINITE, le=FINITE)]
+    unit: str = ""
+    description: str = ""
+
+
+class _SpaceTable(msgspec.Struct, **_STRUCT):
+    preset: Literal[tuple(PRESETS)] | None = None  # type: ignore[valid-type]
+    bounds: dict[str, Any] | None = None
+    constraints: list[str] = []
+    profile: Literal[tuple(PROFILE_BUILDERS)] | None = None  # type: ignore[valid-type]
+    parameters: Annotated[list[_ParameterTable], Meta(
+        min_length=1, description="one or more [[space.parameters]] tables")] | None = None
+    derived: list[str] | None = None
+
+
+def _parse_texts(texts: Iterable[str], where: str, parse: Any) -> list[Any]:
     out = []
-    for i, text in enumerate(t.strings(key, [])):
+    for i, text in enumerate(texts):
         try:
-            out.append(LinearConstraint.parse(text))
+            out.append(parse(text))
         except ConfigError as err:
-            raise BridgeConfigError(f"{t.name(key)}[{i}] = {text!r}: {err}") from err
+            raise BridgeConfigError(f"{where}[{i}] = {text!r}: {err}") from err
     return out
-
-
-def _parse_derived(t: Table) -> list[DerivedParameter]:
-    out = []
-    for i, text in enumerate(t.strings("derived", [])):
-        try:
-            out.append(DerivedParameter.parse(text))
-        except ConfigError as err:
-            raise BridgeConfigError(f"space.derived[{i}] = {text!r}: {err}") from err
-    return out
-
-
-def _parse_parameter(entry: object, i: int) -> Parameter:
-    where = f"space.parameters[{i}]"
-    p = _table(entry, where, ("name", "lower", "upper", "unit", "description"))
-    name = p.string("name")
-    lower, upper = p.number("lower"), p.number("upper")
-    try:
-        return Parameter(name, lower, upper, p.string("unit", "", non_empty=False),
-                         p.string("description", "", non_empty=False))
-    except ConfigError as err:
-        raise BridgeConfigError(f"{where}: {err}") from err
 
 
 def _parse_space(data: object) -> SpaceConfig:
-    t = _table(data, "space", ALLOWED_KEYS["space"])
-    if t.has("preset") == t.has("parameters"):
+    t = decode(_SpaceTable, data, "space", BridgeConfigError)
+    if (t.preset is None) == (t.parameters is None):
         raise BridgeConfigError(
             "space: give either preset = \"hip_6d\" (or \"hip_ankle_4d\") or an inline definition "
             "([[space.parameters]] tables with profile = ...), "
-            + ("not both" if t.has("preset") else "found neither")
+            + ("not both" if t.preset is not None else "found neither")
         )
-    if t.has("preset"):
-        preset = t.string("preset", choices=PRESETS)
+    constraints = _parse_texts(t.constraints, "space.constraints", LinearConstraint.parse)
+    if t.preset is not None:
         for key in ("profile", "derived"):
-            if t.has(key):
+            if getattr(t, key) is not None:
                 raise BridgeConfigError(
-                    f"space.{key} = {t.data[key]!r:.60}: only for an inline definition; preset "
-                    f"{preset!r} fixes it (use space.bounds and space.constraints to narrow a preset)"
+                    f"space.{key} = {data[key]!r:.60}: only for an inline definition; preset "  # type: ignore[index]
+                    f"{t.preset!r} fixes it (use space.bounds and space.constraints to narrow a preset)"
                 )
-        base = PRESETS[preset]()
+        base = PRESETS[t.preset]()
+        pairs = [(p.name, Annotated[tuple[float, float], Meta(description=(
+            f"[lower, upper] in {p.unit or 'its unit'}"))] | None, None) for p in base.parameters]
+        bounds: Any = decode(msgspec.defstruct("bounds", pairs, **_STRUCT), t.bounds or {}, "space.bounds",
+                             BridgeConfigError)
         params = list(base.parameters)
-        bounds = _table(t.table("bounds", {}), "space.bounds", base.names)
         for i, par in enumerate(params):
-            if not bounds.has(par.name):
+            if getattr(bounds, par.name) is None:
                 continue
-            value = bounds.data[par.name]
-            if (not isinstance(value, list) or len(value) != 2
-                    or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)):
-                raise BridgeConfigError(
-                    f"space.bounds.{par.name} = {value!r}: expected [lower, upper] "
-                    f"in {par.unit or 'its unit'}"
-                )
+            value = t.bounds[par.name]  # type: ignore[index]  # as given (200, not 200.0)
             try:
                 params[i] = Parameter(par.name, value[0], value[1], par.unit, par.description)
             except ConfigError as err:
                 raise BridgeConfigError(f"space.bounds.{par.name} = {value!r}: {err}") from err
-        constraints = [*base.constraints, *_parse_constraints(t, "constraints")]
+        constraints = [*base.constraints, *constraints]
         derived = list(base.derived)
-        name: str = preset
+        name: str = t.preset
     else:
-        preset = None
-        if t.has("bounds"):
+        if t.bounds is not None:
             raise BridgeConfigError(
                 "space.bounds re-bounds a preset's parameters; in an inline definition give lower "
                 "and upper in each [[space.parameters]] table"
             )
-        name = t.string("profile", choices=PROFILE_BUILDERS)
-        entries = t.raw("parameters", MISSING, "a list of [[space.parameters]] tables")
-        if not isinstance(entries, list) or not entries:
-            raise BridgeConfigError(
-                f"space.parameters = {entries!r:.60}: expected one or more [[space.parameters]] tables"
-            )
-        params = [_parse_parameter(e, i) for i, e in enumerate(entries)]
-        constraints = _parse_constraints(t, "constraints")
-        derived = _parse_derived(t)
+        if t.profile is None:
+            raise BridgeConfigError("space.profile is missing: expected one of "
+                                    + ", ".join(repr(p) for p in sorted(PROFILE_BUILDERS)))
+        name = t.profile
+        params = []
+        for i, p in enumerate(t.parameters):  # type: ignore[arg-type]
+            try:
+                params.append(Parameter(p.name, p.lower, p.upper, p.unit, p.description))
+            except ConfigError as err:
+                raise BridgeConfigError(f"space.parameters[{i}]: {err}") from err
+        derived = _parse_texts(t.derived or (), "space.derived", DerivedParameter.parse)
     try:
         space = ParameterSpace(params, constraints, derived, name=name)
     except (ConfigError, InfeasibleError) as err:
         raise BridgeConfigError(f"space: {err}") from err
-    return SpaceConfig(space=space, preset=preset)
+    return SpaceConfig(space=space, preset=t.preset)
 
 
 # --------------------------------------------------------------------------------------------
@@ -298,7 +280,7 @@ _DEFAULT_BUDGET_S = SessionProtocolConfig.budget_s
 _DEFAULT_BUDGET_MIN = None if _DEFAULT_BUDGET_S is None else _DEFAULT_BUDGET_S / 60.0
 
 
-class ProtocolConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+class ProtocolConfig(msgspec.Struct, **_STRUCT):
     """``[protocol]``: the walking protocol and the optimizer (Kim et al. 2019 §IV.A.3, Algorithm 1).
 
     Two bouts: the exploration bout (``n_explore`` settings of ``max_breaths`` breaths each), then
@@ -494,7 +476,7 @@ def _parse_cart(data: object) -> CartConfig:
         raise BridgeConfigError(f"cart = {data!r:.60}: expected a table ([cart])")
     try:
         return CartConfig.from_dict(data, "cart")
-    except DriverConfigError as err:  # the same message: both use hilbo_core.config_model
+    except DriverConfigError as err:  # the same message: drivers.config_model words both
         raise BridgeConfigError(str(err)) from err
 
 
@@ -503,7 +485,7 @@ def _parse_cart(data: object) -> CartConfig:
 # --------------------------------------------------------------------------------------------
 
 
-class _CanTiming(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+class _CanTiming(msgspec.Struct, **_STRUCT):
     heartbeat_period_ms: Annotated[float, Meta(ge=5.0, le=50.0)] = 20.0
     push_timeout_ms: Annotated[float, Meta(ge=10.0, le=5000.0)] = 250.0
     push_retries: Annotated[int, Meta(ge=0, le=10)] = 3
@@ -513,7 +495,7 @@ class _CanTiming(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_onl
 _Interface = Literal[tuple(sorted(can.VALID_INTERFACES))]  # type: ignore[valid-type]
 
 
-class _CanTable(_CanTiming, frozen=True, forbid_unknown_fields=True, kw_only=True):
+class _CanTable(_CanTiming, **_STRUCT):
     """``[can]`` as the TOML gives it: the bus's keys and the timing."""
 
     interface: _Interface
@@ -523,7 +505,7 @@ class _CanTable(_CanTiming, frozen=True, forbid_unknown_fields=True, kw_only=Tru
     options: dict[str, Any] = {}
 
 
-class CanConfig(_CanTiming, frozen=True, forbid_unknown_fields=True, kw_only=True):
+class CanConfig(_CanTiming, **_STRUCT):
     """``[can]``: the exosuit's CAN bus and the timing of the bridge's side of the protocol.
 
     Attributes:
@@ -580,30 +562,32 @@ def _parse_can(data: object) -> CanConfig:
 # --------------------------------------------------------------------------------------------
 
 _LIMIT_DEFAULTS = ProfileLimits()
+# The per-actuator limits' ranges are declared once, in bridge.safety (ACTUATOR_LIMIT_RANGES).
+_LIMIT_TYPES = {k: Annotated[float, Meta(gt=lo, le=hi) if lo_open else Meta(ge=lo, le=hi)]
+                for k, (lo, hi, lo_open) in ACTUATOR_LIMIT_RANGES.items()}
+_ActuatorTable = msgspec.defstruct("_ActuatorTable", [(k, t | None, None) for k, t in _LIMIT_TYPES.items()],
+                                   **_STRUCT)
+_LimitsTable = msgspec.defstruct("_LimitsTable", [
+    *((k, t, getattr(_LIMIT_DEFAULTS, k)) for k, t in _LIMIT_TYPES.items()),
+    ("n_points", Annotated[int, Meta(ge=2, le=768)], _LIMIT_DEFAULTS.n_points),
+    ("max_consecutive_rejections", Annotated[int, Meta(ge=1, le=100)],
+     _LIMIT_DEFAULTS.max_consecutive_rejections),
+    ("actuators", dict[str, Any], {}),
+], **_STRUCT)
 
 
 def _parse_limits(data: object) -> ProfileLimits:
-    t = _table(data, "limits", ALLOWED_KEYS["limits"])
-    base: dict[str, float] = {}
-    for key, (lo, hi, lo_open) in ACTUATOR_LIMIT_RANGES.items():
-        base[key] = t.number(key, getattr(_LIMIT_DEFAULTS, key), lo=lo, hi=hi, lo_open=lo_open)
+    t: Any = decode(_LimitsTable, data, "limits", BridgeConfigError)
+    base = {k: getattr(t, k) for k in ACTUATOR_LIMIT_RANGES}
     base_limits = make_actuator_limits("limits", **base)  # checks the window is not empty
     overrides = {}
-    for name, entry in t.table("actuators", {}).items():
+    for name, entry in t.actuators.items():
         where = f"limits.actuators.{name}"
-        o = _table(entry, where, ACTUATOR_LIMIT_RANGES)
-        values = dict(base_limits.to_json())
-        for key, (lo, hi, lo_open) in ACTUATOR_LIMIT_RANGES.items():
-            if o.has(key):
-                values[key] = o.number(key, lo=lo, hi=hi, lo_open=lo_open)
-        overrides[name] = make_actuator_limits(where, **values)
-    return ProfileLimits(
-        **base,
-        n_points=t.integer("n_points", _LIMIT_DEFAULTS.n_points, lo=2, hi=768),
-        max_consecutive_rejections=t.integer(
-            "max_consecutive_rejections", _LIMIT_DEFAULTS.max_consecutive_rejections, lo=1, hi=100),
-        actuators=overrides,
-    )
+        o = decode(_ActuatorTable, entry, where, BridgeConfigError)
+        given = {k: v for k in ACTUATOR_LIMIT_RANGES if (v := getattr(o, k)) is not None}
+        overrides[name] = make_actuator_limits(where, **{**base_limits.to_json(), **given})
+    return ProfileLimits(**base, n_points=t.n_points, max_consecutive_rejections=t.max_consecutive_rejections,
+                         actuators=overrides)
 
 
 # --------------------------------------------------------------------------------------------
@@ -740,28 +724,52 @@ class PriorConfig:
         return f"{n} prior observation{'' if n == 1 else 's'}: " + "; ".join(parts)
 
 
-def _prior_noise(t: Table) -> dict[str, PriorNoise]:
+class _Noise(msgspec.Struct, **_STRUCT):  # one [prior.inflation.<source>]; absent: the default
+    factor: Annotated[float, Meta(ge=1.0, le=1e6)] | None = None
+    extra_var_w2: Annotated[float, Meta(ge=0.0, le=1e8)] | None = None
+
+
+_Inflation = msgspec.defstruct("_Inflation", [(s.value, _Noise | None, None) for s in PriorSource], **_STRUCT)
+
+
+class _InlinePrior(msgspec.Struct, **_STRUCT):  # one entry of prior.observations
+    params: dict[str, Any]
+    mean_w: Annotated[float, Meta(ge=0.0, le=1e5)]
+    var_w2: Annotated[float, Meta(gt=0.0, le=1e10)] | None = None
+    sd_w: Annotated[float, Meta(gt=0.0, le=1e5)] | None = None
+    source: PriorSource = PriorSource.SHORT_BOUT
+    note: str = ""
+
+
+class _PriorTable(msgspec.Struct, **_STRUCT):
+    observations: Annotated[list[_InlinePrior], Meta(
+        description="a list of inline tables {params = {...}, mean_w = ..., var_w2 = ...}")] = []
+    logs: list[str] = []
+    table: Annotated[str, Meta(min_length=1)] | None = None
+    table_baseline_w: Annotated[float, Meta(gt=0.0, le=1e5)] | None = None
+    inflation: _Inflation = msgspec.field(default_factory=_Inflation)  # type: ignore[valid-type]
+
+
+def _prior_noise(t: _PriorTable) -> dict[str, PriorNoise]:
     noise = {s.value: n for s, n in DEFAULT_PRIOR_NOISE.items()}
-    table = _table(t.table("inflation", {}), "prior.inflation", noise)
-    for source in table.data:
-        where = f"prior.inflation.{source}"
-        o = _table(table.table(source), where, ("factor", "extra_var_w2"))
-        base = noise[source]
-        noise[source] = PriorNoise(
-            factor=o.number("factor", base.factor, lo=1.0, hi=1e6),
-            extra_var_w2=o.number("extra_var_w2", base.extra_var_w2, lo=0.0, hi=1e8),
-        )
+    for source, base in list(noise.items()):
+        if (o := getattr(t.inflation, source)) is not None:
+            noise[source] = PriorNoise(
+                factor=base.factor if o.factor is None else o.factor,
+                extra_var_w2=base.extra_var_w2 if o.extra_var_w2 is None else o.extra_var_w2)
     return noise
 
 
-def _prior_params(space: ParameterSpace, entry: Table, where: str) -> dict[str, float]:
+def _prior_params(space: ParameterSpace, raw: Mapping[str, Any], where: str) -> dict[str, float]:
     known = (*space.names, *(d.name for d in space.derived))
-    params = _table(entry.table("params"), f"{where}.params", known)
-    values = {name: params.number(name) for name in params.data}
+    number = Annotated[float, Meta(ge=-FINITE, le=FINITE)] | None
+    params = msgspec.defstruct("params", [(n, number, None) for n in known], **_STRUCT)
+    given: Any = decode(params, raw, f"{where}.params", BridgeConfigError)
+    values = {n: v for n in known if (v := getattr(given, n)) is not None}
     missing = [n for n in space.names if n not in values]
     if missing:
         raise BridgeConfigError(
-            f"{where}.params = {dict(params.data)!r:.100}: missing parameter(s) {missing}; "
+            f"{where}.params = {dict(raw)!r:.100}: missing parameter(s) {missing}; "
             f"expected every parameter of the space: {', '.join(space.names)}"
         )
     try:
@@ -772,22 +780,18 @@ def _prior_params(space: ParameterSpace, entry: Table, where: str) -> dict[str, 
         ) from err
 
 
-def _parse_inline_prior(space: ParameterSpace, entry: object, i: int,
+def _parse_inline_prior(space: ParameterSpace, e: _InlinePrior, i: int,
                         noise: Mapping[str, PriorNoise]) -> PriorObservation:
     where = f"prior.observations[{i}]"
-    e = _table(entry, where, ("params", "mean_w", "var_w2", "sd_w", "source", "note"))
-    params = _prior_params(space, e, where)
-    mean = e.number("mean_w", lo=0.0, hi=1e5)
-    if e.has("var_w2") == e.has("sd_w"):
+    params = _prior_params(space, e.params, where)
+    if (e.var_w2 is None) == (e.sd_w is None):
         raise BridgeConfigError(
             f"{where}: give the uncertainty as var_w2 (W²) or sd_w (W), "
-            + ("not both" if e.has("var_w2") else "found neither")
+            + ("not both" if e.var_w2 is not None else "found neither")
         )
-    var = e.number("var_w2", lo=0.0, hi=1e10, lo_open=True) if e.has("var_w2") else \
-        e.number("sd_w", lo=0.0, hi=1e5, lo_open=True) ** 2
-    source = e.string("source", PriorSource.SHORT_BOUT.value, choices=[s.value for s in PriorSource])
-    e.string("note", "", non_empty=False)
-    return PriorObservation(params, mean, inflate_variance(var, noise[source]), f"{source}:inline {i}")
+    var = e.var_w2 if e.var_w2 is not None else e.sd_w ** 2  # type: ignore[operator]
+    source = e.source.value
+    return PriorObservation(params, e.mean_w, inflate_variance(var, noise[source]), f"{source}:inline {i}")
 
 
 def _read_prior_log(space: ParameterSpace, path: Path, i: int,
@@ -840,14 +844,10 @@ def _read_prior_table(space: ParameterSpace, path: Path, baseline_w: float | Non
 
 
 def _parse_prior(data: object, space: ParameterSpace) -> PriorConfig:
-    t = _table(data, "prior", ALLOWED_KEYS["prior"])
+    t = decode(_PriorTable, data, "prior", BridgeConfigError)
     noise = _prior_noise(t)
-    entries = t.raw("observations", [], "a list of tables")
-    if not isinstance(entries, list):
-        raise BridgeConfigError(f"prior.observations = {entries!r:.60}: expected a list of inline tables "
-                                "{params = {...}, mean_w = ..., var_w2 = ...}")
-    observations = [_parse_inline_prior(space, e, i, noise) for i, e in enumerate(entries)]
-    logs = tuple(Path(p) for p in t.strings("logs", []))
+    observations = [_parse_inline_prior(space, e, i, noise) for i, e in enumerate(t.observations)]
+    logs = tuple(Path(p) for p in t.logs)
     for i, path in enumerate(logs):
         first = next(j for j, q in enumerate(logs) if q.resolve() == path.resolve())
         if first != i:
@@ -860,9 +860,8 @@ def _parse_prior(data: object, space: ParameterSpace) -> PriorConfig:
         got = _read_prior_log(space, path, i, prev)
         from_logs += got
         counts.append(len(got))
-    table = Path(t.string("table")) if t.has("table") else None
-    baseline = (t.number("table_baseline_w", lo=0.0, hi=1e5, lo_open=True)
-                if t.has("table_baseline_w") else None)
+    table = None if t.table is None else Path(t.table)
+    baseline = t.table_baseline_w
     if baseline is not None and table is None:
         raise BridgeConfigError(f"prior.table_baseline_w = {baseline:g}: only with prior.table (a relative "
                                 "population table)")
@@ -880,7 +879,7 @@ def _parse_prior(data: object, space: ParameterSpace) -> PriorConfig:
 # --------------------------------------------------------------------------------------------
 
 
-class LiveConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+class LiveConfig(msgspec.Struct, **_STRUCT):
     """``[live]``: stream the session's log channels to Foxglove while it runs (bridge/live.py).
 
     Attributes:
@@ -895,7 +894,7 @@ class LiveConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_onl
     port: Annotated[int, Meta(ge=0, le=65535)] = 8765
 
 
-class ValidationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+class ValidationConfig(msgspec.Struct, **_STRUCT):
     """``[validation]``: the validation walk of ``hilbo validate`` (Kim et al. 2019 §IV.A.3: the
     optimised setting against a generic one and walking without assistance, 5 minutes each).
 
@@ -1115,7 +1114,8 @@ def parse_config(text: str, source: str = "<string>") -> HilboConfig:
                 f"{source}: top-level key {key} = {value!r:.60} outside any table; a config has only "
                 f"the tables {', '.join(f'[{t}]' for t in TABLES)} (did you put it above its table header?)"
             )
-    _reject_unknown(data, TABLES, "")
+        if key not in TABLES:
+            raise BridgeConfigError(unknown_key_message("", key, "", TABLES))
     missing = [t for t in _REQUIRED_TABLES if t not in data]
     if missing:
         raise BridgeConfigError(
@@ -1422,12 +1422,12 @@ def add_config_parser(subparsers: Any) -> argparse.ArgumentParser:
 #: The keys each table allows (``[cart]``'s are the cart driver's: drivers/cart/FORMAT.md).
 ALLOWED_KEYS: Mapping[str, tuple[str, ...]] = MappingProxyType({
     "session": SessionConfig.__struct_fields__,
-    "space": ("preset", "bounds", "constraints", "profile", "parameters", "derived"),
+    "space": _SpaceTable.__struct_fields__,
     "protocol": ProtocolConfig.__struct_fields__,
     "can": _CanTable.__struct_fields__,
-    "limits": (*ACTUATOR_LIMIT_RANGES, "n_points", "max_consecutive_rejections", "actuators"),
+    "limits": _LimitsTable.__struct_fields__,
     "watchdog": WatchdogConfig.__struct_fields__,
-    "prior": ("observations", "logs", "table", "table_baseline_w", "inflation"),
+    "prior": _PriorTable.__struct_fields__,
     "live": LiveConfig.__struct_fields__,
     "validation": ValidationConfig.__struct_fields__,
 })

@@ -31,7 +31,7 @@ from typing import Any, TypeVar
 import msgspec
 from msgspec import inspect as mi
 
-from hilbo_core.config_model import range_text, unknown_key_message
+from hilbo_core.config_model import unknown_key_message
 
 __all__ = ["FINITE", "decode", "expected_text", "range_text", "unknown_key_message"]
 
@@ -40,6 +40,13 @@ FINITE = sys.float_info.max
 
 T = TypeVar("T")
 _PATH = re.compile(r"\.([^.\[]+)|\[(\d+|\.\.\.)\]")
+
+
+def range_text(lo: float | None, hi: float | None, lo_open: bool = False) -> str:
+    """``[lo, hi]`` (``(lo, hi]`` if ``lo_open``), open ends (and :data:`FINITE`) as ``-inf`` and ``inf``."""
+    lo_s = "-inf" if lo in (None, -FINITE) else str(lo) if isinstance(lo, int) else f"{lo:g}"
+    hi_s = "inf" if hi in (None, FINITE) else str(hi) if isinstance(hi, int) else f"{hi:g}"
+    return f"{'(' if lo_open else '['}{lo_s}, {hi_s}]"
 
 
 def expected_text(t: mi.Type, pattern: bool = False) -> str:
@@ -106,6 +113,8 @@ def _message(text: str, data: object, cls: type, where: str) -> str:
     value: Any = data
     name = where
     for key, index in _PATH.findall(path.rstrip("`")[1:]):
+        if index and not isinstance(_child(_child(t, index), None), mi.StructType | mi.DictType):
+            break  # a bad item of a list of strings or numbers: the message names the list
         t = _child(t, key or index)
         name = f"{name}.{key}" if key else f"{name}[{index}]"
         value = value.get(key) if key and isinstance(value, dict) else \
