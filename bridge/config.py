@@ -10,11 +10,16 @@
 
 Tables: ``[session]``, ``[space]``, ``[protocol]``, ``[cart]`` (validated by
 :meth:`drivers.cart.CartConfig.from_dict`, see drivers/cart/FORMAT.md), ``[can]``, ``[limits]``
-(:class:`bridge.safety.ProfileLimits`), ``[watchdog]`` and ``[prior]``. Every table is a frozen
-dataclass. The loader refuses unknown tables and keys (a typo must never fall back silently to a
-default; the error names ``table.key``, suggests the closest allowed key and lists them all),
-checks every type and range, and names the key, the value and what is allowed in every error
-(:class:`~bridge.errors.BridgeConfigError`). A TOML syntax error is reported with its line and
+(:class:`bridge.safety.ProfileLimits`), ``[watchdog]``, ``[prior]``, ``[live]`` and
+``[validation]``. Every table is declared as a frozen :class:`msgspec.Struct` (ranges as
+``Annotated[float, Meta(ge=..., le=...)]``, choices as enums) and decoded by
+:func:`drivers.config_model.decode` (:func:`msgspec.convert`, strict); a table whose validated
+form is another type (``[space]`` -> :class:`~hilbo_core.space.ParameterSpace`, ``[limits]``,
+``[prior]``, ``[can]``'s bus) is decoded into a private Struct of its TOML keys first. The
+loader refuses unknown tables and keys (a typo must never fall back silently to a default; the
+error names ``table.key``, suggests the closest allowed key and lists them all), checks every
+type and range (NaN, ``inf`` and ``true`` are not numbers), and names the key, the value and
+what is allowed in every error (:class:`~bridge.errors.BridgeConfigError`). A TOML syntax error is reported with its line and
 column. Paths (``session.out_dir``, ``cart.options.path``, ``prior.logs``, ``prior.table``) are
 relative to the working directory. ``[prior]`` (:class:`PriorConfig`) reads its logs and table
 on load, so a bad prior is refused before the session starts.

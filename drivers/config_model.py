@@ -16,30 +16,50 @@ goes in the Struct's ``__post_init__`` and raises ``ValueError("key = value: exp
 :func:`decode` puts the table's path in front. Each package passes its own exception class (its
 error root's config error): the bridge raises ``BridgeConfigError``, the drivers
 ``DriverConfigError``.
+
+The cart's option dataclasses are built in code as well as from TOML; they declare their fields
+with the same msgspec types and call :func:`check_fields` in ``__post_init__``, which runs each
+declared field through :func:`msgspec.convert`, so both get the same checks and messages.
+Pure but for :func:`os.path.expanduser` on path fields; hilbo_core keeps no msgspec (its import
+contract), so the model lives here, below the bridge.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import difflib
+import enum
 import os
 import re
 import sys
-from collections.abc import Callable
+import typing
+from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Annotated, Any, TypeVar
 
 import msgspec
 from msgspec import inspect as mi
 
-from hilbo_core.config_model import unknown_key_message
-
-__all__ = ["FINITE", "decode", "expected_text", "range_text", "unknown_key_message"]
+__all__ = ["FINITE", "check_fields", "check_value", "decode", "expected_text", "range_text",
+           "unknown_key_message"]
 
 #: The upper bound that refuses ``inf`` in a field with no upper bound of its own (shown as ``inf``).
 FINITE = sys.float_info.max
 
 T = TypeVar("T")
 _PATH = re.compile(r"\.([^.\[]+)|\[(\d+|\.\.\.)\]")
+
+
+def unknown_key_message(where: str, key: str, value_text: str, allowed: Iterable[str]) -> str:
+    """The message for an unknown key (or, with ``where`` empty, an unknown top-level table)."""
+    allowed = sorted(allowed)
+    close = difflib.get_close_matches(key, allowed, n=1, cutoff=0.6)
+    if not where:
+        hint = f" (did you mean [{close[0]}]?)" if close else ""
+        return f"unknown table [{key}]{hint}; allowed tables: {', '.join(allowed)}"
+    hint = f" (did you mean {close[0]!r}?)" if close else ""
+    return (f"unknown key {where}.{key} = {value_text}{hint}; "
+            f"allowed keys in [{where}]: {', '.join(allowed) or '(none)'}")
 
 
 def range_text(lo: float | None, hi: float | None, lo_open: bool = False) -> str:
@@ -104,6 +124,30 @@ def decode(cls: type[T], data: object, where: str, error: Callable[[str], Except
         return msgspec.convert(data, cls, strict=True, dec_hook=dec_hook)
     except msgspec.ValidationError as err:
         raise error(_message(str(err), data, cls, where)) from err
+
+
+def check_value(value: object, tp: Any, name: str, error: Callable[[str], Exception]) -> Any:
+    """``value`` converted to type ``tp`` (``5`` -> ``5.0``, ``"csv"`` -> a member), or ``error``."""
+    return decode(tp, value, name, error)
+
+
+def _declared(tp: Any) -> bool:
+    """Whether a field's type declares a check: a range or pattern (``Annotated``), or an enum."""
+    if typing.get_origin(tp) is Annotated or (isinstance(tp, type) and issubclass(tp, enum.Enum)):
+        return True
+    return any(_declared(a) for a in typing.get_args(tp))
+
+
+def check_fields(obj: Any, error: Callable[[str], Exception]) -> None:
+    """Check (and convert in place) the declared fields of a frozen dataclass instance.
+
+    For a ``__post_init__``: a config built in code gets the checks a TOML table gets (msgspec
+    checks only what it converts). Errors name the bare field (``port = 0: expected ...``).
+    """
+    hints = typing.get_type_hints(type(obj), include_extras=True)
+    for f in dataclasses.fields(obj):
+        if _declared(hints[f.name]):
+            object.__setattr__(obj, f.name, check_value(getattr(obj, f.name), hints[f.name], f.name, error))
 
 
 def _message(text: str, data: object, cls: type, where: str) -> str:
