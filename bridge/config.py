@@ -19,11 +19,11 @@ form is another type (``[space]`` -> :class:`~hilbo_core.space.ParameterSpace`, 
 loader refuses unknown tables and keys (a typo must never fall back silently to a default; the
 error names ``table.key``, suggests the closest allowed key and lists them all), checks every
 type and range (NaN, ``inf`` and ``true`` are not numbers), and names the key, the value and
-what is allowed in every error (:class:`~bridge.errors.BridgeConfigError`). A TOML syntax error is reported with its line and
-column. Paths (``session.out_dir``, ``cart.options.path``, ``prior.logs``, ``prior.table``) are
-relative to the working directory. ``[prior]`` (:class:`PriorConfig`) reads its logs and table
-on load, so a bad prior is refused before the session starts.
-``[live]`` (:class:`LiveConfig`) turns the Foxglove live view on (bridge/live.py).
+what is allowed in every error (:class:`~bridge.errors.BridgeConfigError`). A TOML syntax
+error is reported with its line and column. Paths (``session.out_dir``, ``cart.options.path``,
+``prior.logs``, ``prior.table``) are relative to the working directory. ``[prior]``
+(:class:`PriorConfig`) reads its logs and table on load, so a bad prior is refused before the
+session starts. ``[live]`` (:class:`LiveConfig`) turns the Foxglove live view on (bridge/live.py).
 
 Cross-checks after the tables: the space's force-profile builder must build the centre of the
 space, per-actuator limits must name actuators the builder produces, and the limits must admit
