@@ -10,15 +10,20 @@
 
 Tables: ``[session]``, ``[space]``, ``[protocol]``, ``[cart]`` (validated by
 :meth:`drivers.cart.CartConfig.from_dict`, see drivers/cart/FORMAT.md), ``[can]``, ``[limits]``
-(:class:`bridge.safety.ProfileLimits`), ``[watchdog]`` and ``[prior]``. Every table is a frozen
-dataclass. The loader refuses unknown tables and keys (a typo must never fall back silently to a
-default; the error names ``table.key``, suggests the closest allowed key and lists them all),
-checks every type and range, and names the key, the value and what is allowed in every error
-(:class:`~bridge.errors.BridgeConfigError`). A TOML syntax error is reported with its line and
-column. Paths (``session.out_dir``, ``cart.options.path``, ``prior.logs``, ``prior.table``) are
-relative to the working directory. ``[prior]`` (:class:`PriorConfig`) reads its logs and table
-on load, so a bad prior is refused before the session starts.
-``[live]`` (:class:`LiveConfig`) turns the Foxglove live view on (bridge/live.py).
+(:class:`bridge.safety.ProfileLimits`), ``[watchdog]``, ``[prior]``, ``[live]`` and
+``[validation]``. Every table is declared as a frozen :class:`msgspec.Struct` (ranges as
+``Annotated[float, Meta(ge=..., le=...)]``, choices as enums) and decoded by
+:func:`drivers.config_model.decode` (:func:`msgspec.convert`, strict); a table whose validated
+form is another type (``[space]`` -> :class:`~hilbo_core.space.ParameterSpace`, ``[limits]``,
+``[prior]``, ``[can]``'s bus) is decoded into a private Struct of its TOML keys first. The
+loader refuses unknown tables and keys (a typo must never fall back silently to a default; the
+error names ``table.key``, suggests the closest allowed key and lists them all), checks every
+type and range (NaN, ``inf`` and ``true`` are not numbers), and names the key, the value and
+what is allowed in every error (:class:`~bridge.errors.BridgeConfigError`). A TOML syntax
+error is reported with its line and column. Paths (``session.out_dir``, ``cart.options.path``,
+``prior.logs``, ``prior.table``) are relative to the working directory. ``[prior]``
+(:class:`PriorConfig`) reads its logs and table on load, so a bad prior is refused before the
+session starts. ``[live]`` (:class:`LiveConfig`) turns the Foxglove live view on (bridge/live.py).
 
 Cross-checks after the tables: the space's force-profile builder must build the centre of the
 space, per-actuator limits must name actuators the builder produces, and the limits must admit
@@ -36,7 +41,6 @@ import enum
 import io
 import ipaddress
 import math
-import os
 import re
 import sys
 import tomllib
@@ -45,10 +49,12 @@ from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 from types import MappingProxyType
-from typing import Any, TextIO
+from typing import Annotated, Any, Literal, TextIO
 
 import can
+import msgspec
 import numpy as np
+from msgspec import Meta
 
 from bridge.collector import GcMode
 from bridge.errors import BridgeConfigError
@@ -62,21 +68,11 @@ from bridge.safety import (
 )
 from drivers.cart import CartConfig
 from drivers.cart.pipeline import describe_record
+from drivers.config_model import FINITE, decode, range_text, unknown_key_message
 from drivers.errors import DriverConfigError
 from drivers.exosuit.endpoint import INTERFACE_OPTIONS, CanBusConfig
 from drivers.exosuit.rating import RATED_FORCE_N
 from drivers.files import read_regular_file
-from hilbo_core.config_model import (
-    MISSING,
-    Table,
-    boolean,
-    choice,
-    integer,
-    number,
-    read_fields,
-    reject_unknown,
-    string,
-)
 from hilbo_core.errors import ConfigError, InfeasibleError
 from hilbo_core.gp import KernelKind
 from hilbo_core.optimizer import DEFAULT_ACCEPT_Z, OptimizerConfig, PriorObservation, StoppingKind
@@ -125,23 +121,11 @@ __all__ = [
 TABLES = ("session", "space", "protocol", "cart", "can", "limits", "watchdog", "prior", "live", "validation")
 _REQUIRED_TABLES = ("session", "space", "cart", "can")
 
-_SUBJECT = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
 
-# --------------------------------------------------------------------------------------------
-# Reading tables: unknown keys, types and ranges, with errors that name table.key
-# --------------------------------------------------------------------------------------------
-
-
-# The one configuration model (hilbo_core/config_model.py), raising this package's error.
-
-
-def _table(data: object, where: str, allowed: Iterable[str]) -> Table:
-    return Table(data, where, allowed, BridgeConfigError)
-
-
-def _reject_unknown(data: Mapping[str, Any], allowed: Iterable[str], where: str) -> None:
-    reject_unknown(data, allowed, where, BridgeConfigError)
+# Every table is a msgspec Struct decoded by drivers.config_model.decode: unknown keys refused
+# with a suggestion, types and ranges checked, errors naming table.key, the value and the range.
+_STRUCT: dict[str, Any] = {"frozen": True, "forbid_unknown_fields": True, "kw_only": True}
 
 
 # --------------------------------------------------------------------------------------------
@@ -149,8 +133,7 @@ def _reject_unknown(data: Mapping[str, Any], allowed: Iterable[str], where: str)
 # --------------------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class SessionConfig:
+class SessionConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     """``[session]``: who walks, and where the session's files go.
 
     Attributes:
@@ -163,51 +146,19 @@ class SessionConfig:
             owner only, they hold health data: VO2, heart rate, body mass).
     """
 
-    # subject and file_mode are patterns, out_dir a path: _parse_session reads those.
-    subject: str
-    body_mass_kg: float = number(lo=20.0, hi=250.0)
+    subject: Annotated[str, Meta(min_length=1, pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$", description=(
+        "1-64 letters, digits, '_', '.', '-' (it is used in file names), starting with a letter or digit"))]
+    body_mass_kg: Annotated[float, Meta(ge=20.0, le=250.0)]
     out_dir: Path = Path("sessions")
-    notes: str = string("", non_empty=False)
-    file_mode: str = "0600"
+    notes: str = ""
+    file_mode: Annotated[str, Meta(min_length=1, pattern=r"^0?[0-7]{3}$", description=(
+        'octal permission bits such as "0600" (owner read/write: session files hold health data) '
+        'or "0640"'))] = "0600"
 
     @property
     def file_mode_bits(self) -> int:
         """:attr:`file_mode` as an integer (``0o600``)."""
         return int(self.file_mode, 8)
-
-
-def _parse_session(data: object) -> SessionConfig:
-    t = _table(data, "session", ALLOWED_KEYS["session"])
-    subject = t.string("subject")
-    if not _SUBJECT.match(subject):
-        raise BridgeConfigError(
-            f"session.subject = {subject!r}: expected 1-64 letters, digits, '_', '.', '-' "
-            "(it is used in file names), starting with a letter or digit"
-        )
-    return SessionConfig(
-        subject=subject,
-        out_dir=_out_dir(t),
-        file_mode=_file_mode(t),
-        **read_fields(SessionConfig, t),
-    )
-
-
-def _out_dir(t: Table) -> Path:
-    # "~/hilbo-sessions" means the home folder (as in a shell), never a folder named "~" here.
-    text = t.string("out_dir", "sessions")
-    expanded = os.path.expanduser(text)
-    if expanded.startswith("~"):
-        raise BridgeConfigError(f"{t.name('out_dir')} = {text!r}: the home folder of "
-                                f"{text.split('/', 1)[0]!r} is unknown; give the full path")
-    return Path(expanded)
-
-
-def _file_mode(t: Table) -> str:
-    text = t.string("file_mode", "0600")
-    if not re.fullmatch(r"0?[0-7]{3}", text):
-        raise BridgeConfigError(f"{t.name('file_mode')} = {text!r}: expected octal permission bits such as "
-                                "\"0600\" (owner read/write: session files hold health data) or \"0640\"")
-    return text
 
 
 # --------------------------------------------------------------------------------------------
@@ -232,95 +183,89 @@ class SpaceConfig:
         return {"preset": self.preset, "definition": self.space.to_json()}
 
 
-def _parse_constraints(t: Table, key: str) -> list[LinearConstraint]:
+class _ParameterTable(msgspec.Struct, **_STRUCT):
+    name: Annotated[str, Meta(min_length=1)]
+    lower: Annotated[float, Meta(ge=-FINITE, le=FINITE)]
+    upper: Annotated[float, Meta(ge=-FINITE, le=FINITE)]
+    unit: str = ""
+    description: str = ""
+
+
+class _SpaceTable(msgspec.Struct, **_STRUCT):
+    preset: Literal[tuple(PRESETS)] | None = None  # type: ignore[valid-type]
+    bounds: dict[str, Any] | None = None
+    constraints: list[str] = []
+    profile: Literal[tuple(PROFILE_BUILDERS)] | None = None  # type: ignore[valid-type]
+    parameters: Annotated[list[_ParameterTable], Meta(
+        min_length=1, description="one or more [[space.parameters]] tables")] | None = None
+    derived: list[str] | None = None
+
+
+def _parse_texts(texts: Iterable[str], where: str, parse: Any) -> list[Any]:
     out = []
-    for i, text in enumerate(t.strings(key, [])):
+    for i, text in enumerate(texts):
         try:
-            out.append(LinearConstraint.parse(text))
+            out.append(parse(text))
         except ConfigError as err:
-            raise BridgeConfigError(f"{t.name(key)}[{i}] = {text!r}: {err}") from err
+            raise BridgeConfigError(f"{where}[{i}] = {text!r}: {err}") from err
     return out
-
-
-def _parse_derived(t: Table) -> list[DerivedParameter]:
-    out = []
-    for i, text in enumerate(t.strings("derived", [])):
-        try:
-            out.append(DerivedParameter.parse(text))
-        except ConfigError as err:
-            raise BridgeConfigError(f"space.derived[{i}] = {text!r}: {err}") from err
-    return out
-
-
-def _parse_parameter(entry: object, i: int) -> Parameter:
-    where = f"space.parameters[{i}]"
-    p = _table(entry, where, ("name", "lower", "upper", "unit", "description"))
-    name = p.string("name")
-    lower, upper = p.number("lower"), p.number("upper")
-    try:
-        return Parameter(name, lower, upper, p.string("unit", "", non_empty=False),
-                         p.string("description", "", non_empty=False))
-    except ConfigError as err:
-        raise BridgeConfigError(f"{where}: {err}") from err
 
 
 def _parse_space(data: object) -> SpaceConfig:
-    t = _table(data, "space", ALLOWED_KEYS["space"])
-    if t.has("preset") == t.has("parameters"):
+    t = decode(_SpaceTable, data, "space", BridgeConfigError)
+    if (t.preset is None) == (t.parameters is None):
         raise BridgeConfigError(
             "space: give either preset = \"hip_6d\" (or \"hip_ankle_4d\") or an inline definition "
             "([[space.parameters]] tables with profile = ...), "
-            + ("not both" if t.has("preset") else "found neither")
+            + ("not both" if t.preset is not None else "found neither")
         )
-    if t.has("preset"):
-        preset = t.string("preset", choices=PRESETS)
+    constraints = _parse_texts(t.constraints, "space.constraints", LinearConstraint.parse)
+    if t.preset is not None:
         for key in ("profile", "derived"):
-            if t.has(key):
+            if getattr(t, key) is not None:
                 raise BridgeConfigError(
-                    f"space.{key} = {t.data[key]!r:.60}: only for an inline definition; preset "
-                    f"{preset!r} fixes it (use space.bounds and space.constraints to narrow a preset)"
+                    f"space.{key} = {data[key]!r:.60}: only for an inline definition; preset "  # type: ignore[index]
+                    f"{t.preset!r} fixes it (use space.bounds and space.constraints to narrow a preset)"
                 )
-        base = PRESETS[preset]()
+        base = PRESETS[t.preset]()
+        pairs = [(p.name, Annotated[tuple[float, float], Meta(description=(
+            f"[lower, upper] in {p.unit or 'its unit'}"))] | None, None) for p in base.parameters]
+        bounds: Any = decode(msgspec.defstruct("bounds", pairs, **_STRUCT), t.bounds or {}, "space.bounds",
+                             BridgeConfigError)
         params = list(base.parameters)
-        bounds = _table(t.table("bounds", {}), "space.bounds", base.names)
         for i, par in enumerate(params):
-            if not bounds.has(par.name):
+            if getattr(bounds, par.name) is None:
                 continue
-            value = bounds.data[par.name]
-            if (not isinstance(value, list) or len(value) != 2
-                    or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)):
-                raise BridgeConfigError(
-                    f"space.bounds.{par.name} = {value!r}: expected [lower, upper] "
-                    f"in {par.unit or 'its unit'}"
-                )
+            value = t.bounds[par.name]  # type: ignore[index]  # as given (200, not 200.0)
             try:
                 params[i] = Parameter(par.name, value[0], value[1], par.unit, par.description)
             except ConfigError as err:
                 raise BridgeConfigError(f"space.bounds.{par.name} = {value!r}: {err}") from err
-        constraints = [*base.constraints, *_parse_constraints(t, "constraints")]
+        constraints = [*base.constraints, *constraints]
         derived = list(base.derived)
-        name: str = preset
+        name: str = t.preset
     else:
-        preset = None
-        if t.has("bounds"):
+        if t.bounds is not None:
             raise BridgeConfigError(
                 "space.bounds re-bounds a preset's parameters; in an inline definition give lower "
                 "and upper in each [[space.parameters]] table"
             )
-        name = t.string("profile", choices=PROFILE_BUILDERS)
-        entries = t.raw("parameters", MISSING, "a list of [[space.parameters]] tables")
-        if not isinstance(entries, list) or not entries:
-            raise BridgeConfigError(
-                f"space.parameters = {entries!r:.60}: expected one or more [[space.parameters]] tables"
-            )
-        params = [_parse_parameter(e, i) for i, e in enumerate(entries)]
-        constraints = _parse_constraints(t, "constraints")
-        derived = _parse_derived(t)
+        if t.profile is None:
+            raise BridgeConfigError("space.profile is missing: expected one of "
+                                    + ", ".join(repr(p) for p in sorted(PROFILE_BUILDERS)))
+        name = t.profile
+        params = []
+        for i, p in enumerate(t.parameters):  # type: ignore[arg-type]
+            try:
+                params.append(Parameter(p.name, p.lower, p.upper, p.unit, p.description))
+            except ConfigError as err:
+                raise BridgeConfigError(f"space.parameters[{i}]: {err}") from err
+        derived = _parse_texts(t.derived or (), "space.derived", DerivedParameter.parse)
     try:
         space = ParameterSpace(params, constraints, derived, name=name)
     except (ConfigError, InfeasibleError) as err:
         raise BridgeConfigError(f"space: {err}") from err
-    return SpaceConfig(space=space, preset=preset)
+    return SpaceConfig(space=space, preset=t.preset)
 
 
 # --------------------------------------------------------------------------------------------
@@ -340,8 +285,7 @@ _DEFAULT_BUDGET_S = SessionProtocolConfig.budget_s
 _DEFAULT_BUDGET_MIN = None if _DEFAULT_BUDGET_S is None else _DEFAULT_BUDGET_S / 60.0
 
 
-@dataclass(frozen=True)
-class ProtocolConfig:
+class ProtocolConfig(msgspec.Struct, **_STRUCT):
     """``[protocol]``: the walking protocol and the optimizer (Kim et al. 2019 §IV.A.3, Algorithm 1).
 
     Two bouts: the exploration bout (``n_explore`` settings of ``max_breaths`` breaths each), then
@@ -414,35 +358,40 @@ class ProtocolConfig:
     """
 
     # The defaults are declared once: the protocol's in hilbo_core.protocol, the optimizer's in
-    # hilbo_core.optimizer (a dataclass field's default is its class attribute).
-    # The ranges are declared here (hilbo_core.config_model); window's upper bound is
-    # max_breaths - 1 and the budgets are either-or, so _parse_protocol reads those three.
-    warmup_s: float = number(SessionProtocolConfig.warmup_s, lo=0.0, hi=1800.0)
-    n_explore: int | None = integer(None, lo=1, hi=200, optional=True)
-    max_breaths: int = integer(OptimizerConfig.max_breaths, lo=2, hi=1000)
-    window: int = OptimizerConfig.window
-    budget_min: float | None = _DEFAULT_BUDGET_MIN
-    budget_breaths: int | None = SessionProtocolConfig.budget_breaths
-    session_min: float | None = number(None, lo=0.0, hi=1440.0, lo_open=True, optional=True)
-    stopping: StoppingKind = choice(StoppingKind, OptimizerConfig.stopping)
-    min_decision_s: float = number(OptimizerConfig.min_decision_s, lo=0.0, hi=600.0)
-    a_floor: float = number(OptimizerConfig.a_floor, lo=0.0, hi=10.0)
-    accept_stop: bool = boolean(OptimizerConfig.accept_z is not None)
-    accept_z: float = number(DEFAULT_ACCEPT_Z, lo=0.0, hi=10.0)
-    design: DesignKind | None = choice(DesignKind, OptimizerConfig.design)
-    seed: int = integer(OptimizerConfig.seed, lo=0, hi=2**63 - 1)
-    xi: float = number(OptimizerConfig.xi, lo=-1e6, hi=1e6)
-    kernel: KernelKind = choice(KernelKind, OptimizerConfig.kernel)
-    n_candidates: int = integer(OptimizerConfig.n_candidates, lo=16, hi=1_000_000)
-    n_local: int = integer(OptimizerConfig.n_local, lo=0, hi=100)
-    pause_between_bouts: bool | None = boolean(None, optional=True)
-    protocol: ProtocolKind | None = choice(ProtocolKind, None)
-    confirm_min: float | None = number(None, lo=0.0, hi=120.0, optional=True)
-    explore_rel_sd: float | None = number(None, lo=0.0, hi=0.5, optional=True)
-    short_pause_s: float = number(SessionProtocolConfig.short_pause_s, lo=0.0, hi=600.0)
-    refit: RefitMode = choice(RefitMode, RefitMode.AHEAD)
-    proposal_worker: WorkerKind = choice(WorkerKind, WorkerKind.PROCESS)
-    gc: GcMode = choice(GcMode, GcMode.FREEZE)
+    # hilbo_core.optimizer (a dataclass field's default is its class attribute). window's upper
+    # bound is max_breaths - 1 (__post_init__); the budgets are either-or (_parse_protocol).
+    warmup_s: Annotated[float, Meta(ge=0.0, le=1800.0)] = SessionProtocolConfig.warmup_s
+    n_explore: Annotated[int, Meta(ge=1, le=200)] | None = None
+    max_breaths: Annotated[int, Meta(ge=2, le=1000)] = OptimizerConfig.max_breaths
+    window: Any = OptimizerConfig.window  # an int in [0, max_breaths - 1]: __post_init__
+    budget_min: Annotated[float, Meta(gt=0.0, le=1440.0)] | None = _DEFAULT_BUDGET_MIN
+    budget_breaths: Annotated[int, Meta(ge=1, le=100_000)] | None = SessionProtocolConfig.budget_breaths
+    session_min: Annotated[float, Meta(gt=0.0, le=1440.0)] | None = None
+    stopping: StoppingKind = OptimizerConfig.stopping
+    min_decision_s: Annotated[float, Meta(ge=0.0, le=600.0)] = OptimizerConfig.min_decision_s
+    a_floor: Annotated[float, Meta(ge=0.0, le=10.0)] = OptimizerConfig.a_floor
+    accept_stop: bool = OptimizerConfig.accept_z is not None
+    accept_z: Annotated[float, Meta(ge=0.0, le=10.0)] = DEFAULT_ACCEPT_Z
+    design: DesignKind | None = OptimizerConfig.design
+    seed: Annotated[int, Meta(ge=0, le=2**63 - 1)] = OptimizerConfig.seed
+    xi: Annotated[float, Meta(ge=-1e6, le=1e6)] = OptimizerConfig.xi
+    kernel: KernelKind = OptimizerConfig.kernel
+    n_candidates: Annotated[int, Meta(ge=16, le=1_000_000)] = OptimizerConfig.n_candidates
+    n_local: Annotated[int, Meta(ge=0, le=100)] = OptimizerConfig.n_local
+    pause_between_bouts: bool | None = None
+    protocol: ProtocolKind | None = None
+    confirm_min: Annotated[float, Meta(ge=0.0, le=120.0)] | None = None
+    explore_rel_sd: Annotated[float, Meta(ge=0.0, le=0.5)] | None = None
+    short_pause_s: Annotated[float, Meta(ge=0.0, le=600.0)] = SessionProtocolConfig.short_pause_s
+    refit: RefitMode = RefitMode.AHEAD
+    proposal_worker: WorkerKind = WorkerKind.PROCESS
+    gc: GcMode = GcMode.FREEZE
+
+    def __post_init__(self) -> None:
+        w = self.window
+        if isinstance(w, bool) or not isinstance(w, int) or not 0 <= w < self.max_breaths:
+            raise ValueError(f"window = {w!r}: expected an integer in "
+                             f"{range_text(0, self.max_breaths - 1)}")
 
     @property
     def protocol_kind(self) -> ProtocolKind:
@@ -513,21 +462,9 @@ class ProtocolConfig:
 
 
 def _parse_protocol(data: object) -> ProtocolConfig:
-    t = _table(data, "protocol", ALLOWED_KEYS["protocol"])
-    d = ProtocolConfig  # the defaults
-    declared = read_fields(ProtocolConfig, t, skip=("window", "budget_min", "budget_breaths"))
-    if not (t.has("budget_min") or t.has("budget_breaths")):
-        budget_min: float | None = d.budget_min  # Kim et al. 2019 §IV.A.3: a 40-minute optimisation bout
-        budget_breaths: int | None = d.budget_breaths
-    else:
-        budget_min = t.number("budget_min", lo=0.0, hi=1440.0, lo_open=True) if t.has("budget_min") else None
-        budget_breaths = t.integer("budget_breaths", lo=1, hi=100_000) if t.has("budget_breaths") else None
-    cfg = ProtocolConfig(
-        **declared,
-        window=t.integer("window", d.window, lo=0, hi=declared["max_breaths"] - 1),
-        budget_min=budget_min,
-        budget_breaths=budget_breaths,
-    )
+    if isinstance(data, Mapping) and ("budget_min" in data or "budget_breaths" in data):
+        data = {"budget_min": None, "budget_breaths": None, **data}  # either budget, or both
+    cfg = decode(ProtocolConfig, data, "protocol", BridgeConfigError)
     try:
         cfg.optimizer_config()  # the optimizer's own validation is the final word
     except ConfigError as err:
@@ -544,7 +481,7 @@ def _parse_cart(data: object) -> CartConfig:
         raise BridgeConfigError(f"cart = {data!r:.60}: expected a table ([cart])")
     try:
         return CartConfig.from_dict(data, "cart")
-    except DriverConfigError as err:  # the same message: both use hilbo_core.config_model
+    except DriverConfigError as err:  # the same message: drivers.config_model words both
         raise BridgeConfigError(str(err)) from err
 
 
@@ -553,8 +490,27 @@ def _parse_cart(data: object) -> CartConfig:
 # --------------------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class CanConfig:
+class _CanTiming(msgspec.Struct, **_STRUCT):
+    heartbeat_period_ms: Annotated[float, Meta(ge=5.0, le=50.0)] = 20.0
+    push_timeout_ms: Annotated[float, Meta(ge=10.0, le=5000.0)] = 250.0
+    push_retries: Annotated[int, Meta(ge=0, le=10)] = 3
+    segment_pace_ms: Annotated[float, Meta(ge=0.0, le=50.0)] = 1.0
+
+
+_Interface = Literal[tuple(sorted(can.VALID_INTERFACES))]  # type: ignore[valid-type]
+
+
+class _CanTable(_CanTiming, **_STRUCT):
+    """``[can]`` as the TOML gives it: the bus's keys and the timing."""
+
+    interface: _Interface
+    channel: Annotated[Annotated[str, Meta(min_length=1)] | int, Meta(
+        description="a non-empty string or an integer (e.g. 'vcan0', 'PCAN_USBBUS1', 0)")]
+    bitrate: Annotated[int, Meta(ge=10_000, le=8_000_000)] = 1_000_000
+    options: dict[str, Any] = {}
+
+
+class CanConfig(_CanTiming, **_STRUCT):
     """``[can]``: the exosuit's CAN bus and the timing of the bridge's side of the protocol.
 
     Attributes:
@@ -570,10 +526,6 @@ class CanConfig:
     """
 
     bus: CanBusConfig
-    heartbeat_period_ms: float = number(20.0, lo=5.0, hi=50.0)
-    push_timeout_ms: float = number(250.0, lo=10.0, hi=5000.0)
-    push_retries: int = integer(3, lo=0, hi=10)
-    segment_pace_ms: float = number(1.0, lo=0.0, hi=50.0)
 
     @property
     def heartbeat_period_s(self) -> float:
@@ -596,24 +548,18 @@ class CanConfig:
 
 
 def _parse_can(data: object) -> CanConfig:
-    t = _table(data, "can", ALLOWED_KEYS["can"])
-    interface = t.string("interface", choices=can.VALID_INTERFACES)
-    channel = t.raw("channel", MISSING, "a non-empty string or an integer (e.g. 'vcan0', 'PCAN_USBBUS1', 0)")
-    if isinstance(channel, bool) or not isinstance(channel, str | int) or channel == "":
-        raise BridgeConfigError(
-            f"can.channel = {channel!r}: expected a non-empty string or an integer "
-            "(e.g. 'vcan0', 'PCAN_USBBUS1', 0)"
-        )
-    bitrate = t.integer("bitrate", 1_000_000, lo=10_000, hi=8_000_000)
-    options = t.table("options", {})
-    allowed = INTERFACE_OPTIONS.get(interface)
-    if allowed is not None:
-        _reject_unknown(options, allowed, "can.options")
+    t = decode(_CanTable, data, "can", BridgeConfigError)
+    allowed = INTERFACE_OPTIONS.get(t.interface)
+    unknown = [k for k in t.options if allowed is not None and k not in allowed]
+    if unknown:
+        raise BridgeConfigError(unknown_key_message("can.options", unknown[0],
+                                                    f"{t.options[unknown[0]]!r:.60}", allowed or ()))
     try:
-        bus = CanBusConfig(interface=interface, channel=channel, bitrate=bitrate, options=dict(options))
+        bus = CanBusConfig(interface=t.interface, channel=t.channel, bitrate=t.bitrate, options=t.options)
     except DriverConfigError as err:
         raise BridgeConfigError(str(err)) from err
-    return CanConfig(bus=bus, **read_fields(CanConfig, t))
+    timing = {k: getattr(t, k) for k in _CanTiming.__struct_fields__}
+    return CanConfig(bus=bus, **timing)
 
 
 # --------------------------------------------------------------------------------------------
@@ -621,30 +567,32 @@ def _parse_can(data: object) -> CanConfig:
 # --------------------------------------------------------------------------------------------
 
 _LIMIT_DEFAULTS = ProfileLimits()
+# The per-actuator limits' ranges are declared once, in bridge.safety (ACTUATOR_LIMIT_RANGES).
+_LIMIT_TYPES = {k: Annotated[float, Meta(gt=lo, le=hi) if lo_open else Meta(ge=lo, le=hi)]
+                for k, (lo, hi, lo_open) in ACTUATOR_LIMIT_RANGES.items()}
+_ActuatorTable = msgspec.defstruct("_ActuatorTable", [(k, t | None, None) for k, t in _LIMIT_TYPES.items()],
+                                   **_STRUCT)
+_LimitsTable = msgspec.defstruct("_LimitsTable", [
+    *((k, t, getattr(_LIMIT_DEFAULTS, k)) for k, t in _LIMIT_TYPES.items()),
+    ("n_points", Annotated[int, Meta(ge=2, le=768)], _LIMIT_DEFAULTS.n_points),
+    ("max_consecutive_rejections", Annotated[int, Meta(ge=1, le=100)],
+     _LIMIT_DEFAULTS.max_consecutive_rejections),
+    ("actuators", dict[str, Any], {}),
+], **_STRUCT)
 
 
 def _parse_limits(data: object) -> ProfileLimits:
-    t = _table(data, "limits", ALLOWED_KEYS["limits"])
-    base: dict[str, float] = {}
-    for key, (lo, hi, lo_open) in ACTUATOR_LIMIT_RANGES.items():
-        base[key] = t.number(key, getattr(_LIMIT_DEFAULTS, key), lo=lo, hi=hi, lo_open=lo_open)
+    t: Any = decode(_LimitsTable, data, "limits", BridgeConfigError)
+    base = {k: getattr(t, k) for k in ACTUATOR_LIMIT_RANGES}
     base_limits = make_actuator_limits("limits", **base)  # checks the window is not empty
     overrides = {}
-    for name, entry in t.table("actuators", {}).items():
+    for name, entry in t.actuators.items():
         where = f"limits.actuators.{name}"
-        o = _table(entry, where, ACTUATOR_LIMIT_RANGES)
-        values = dict(base_limits.to_json())
-        for key, (lo, hi, lo_open) in ACTUATOR_LIMIT_RANGES.items():
-            if o.has(key):
-                values[key] = o.number(key, lo=lo, hi=hi, lo_open=lo_open)
-        overrides[name] = make_actuator_limits(where, **values)
-    return ProfileLimits(
-        **base,
-        n_points=t.integer("n_points", _LIMIT_DEFAULTS.n_points, lo=2, hi=768),
-        max_consecutive_rejections=t.integer(
-            "max_consecutive_rejections", _LIMIT_DEFAULTS.max_consecutive_rejections, lo=1, hi=100),
-        actuators=overrides,
-    )
+        o = decode(_ActuatorTable, entry, where, BridgeConfigError)
+        given = {k: v for k in ACTUATOR_LIMIT_RANGES if (v := getattr(o, k)) is not None}
+        overrides[name] = make_actuator_limits(where, **{**base_limits.to_json(), **given})
+    return ProfileLimits(**base, n_points=t.n_points, max_consecutive_rejections=t.max_consecutive_rejections,
+                         actuators=overrides)
 
 
 # --------------------------------------------------------------------------------------------
@@ -659,8 +607,7 @@ class BusErrorPolicy(enum.Enum):
     STOP = "stop"  # assistance-off, end the session (continue later with --resume)
 
 
-@dataclass(frozen=True)
-class WatchdogConfig:
+class WatchdogConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     """``[watchdog]``: when the bridge gives up on a device and commands assistance-off.
 
     Attributes:
@@ -679,20 +626,15 @@ class WatchdogConfig:
             pause that would need one stops the session instead of waiting for nobody.
     """
 
-    device_heartbeat_timeout_ms: float = number(100.0, lo=40.0, hi=1000.0)
-    cart_data_timeout_s: float = number(15.0, lo=2.0, hi=300.0)
-    bus_error: BusErrorPolicy = choice(BusErrorPolicy, BusErrorPolicy.PAUSE)
-    auto_resume_s: float | None = number(None, lo=0.0, hi=3600.0, optional=True)
-    max_auto_resumes: int = integer(10, lo=1, hi=1000)
+    device_heartbeat_timeout_ms: Annotated[float, Meta(ge=40.0, le=1000.0)] = 100.0
+    cart_data_timeout_s: Annotated[float, Meta(ge=2.0, le=300.0)] = 15.0
+    bus_error: BusErrorPolicy = BusErrorPolicy.PAUSE
+    auto_resume_s: Annotated[float, Meta(ge=0.0, le=3600.0)] | None = None
+    max_auto_resumes: Annotated[int, Meta(ge=1, le=1000)] = 10
 
     def to_json(self) -> dict[str, Any]:
         """JSON-able form."""
         return _jsonable(self)
-
-
-def _parse_watchdog(data: object) -> WatchdogConfig:
-    t = _table(data, "watchdog", ALLOWED_KEYS["watchdog"])
-    return WatchdogConfig(**read_fields(WatchdogConfig, t))
 
 
 # --------------------------------------------------------------------------------------------
@@ -787,28 +729,52 @@ class PriorConfig:
         return f"{n} prior observation{'' if n == 1 else 's'}: " + "; ".join(parts)
 
 
-def _prior_noise(t: Table) -> dict[str, PriorNoise]:
+class _Noise(msgspec.Struct, **_STRUCT):  # one [prior.inflation.<source>]; absent: the default
+    factor: Annotated[float, Meta(ge=1.0, le=1e6)] | None = None
+    extra_var_w2: Annotated[float, Meta(ge=0.0, le=1e8)] | None = None
+
+
+_Inflation = msgspec.defstruct("_Inflation", [(s.value, _Noise | None, None) for s in PriorSource], **_STRUCT)
+
+
+class _InlinePrior(msgspec.Struct, **_STRUCT):  # one entry of prior.observations
+    params: dict[str, Any]
+    mean_w: Annotated[float, Meta(ge=0.0, le=1e5)]
+    var_w2: Annotated[float, Meta(gt=0.0, le=1e10)] | None = None
+    sd_w: Annotated[float, Meta(gt=0.0, le=1e5)] | None = None
+    source: PriorSource = PriorSource.SHORT_BOUT
+    note: str = ""
+
+
+class _PriorTable(msgspec.Struct, **_STRUCT):
+    observations: Annotated[list[_InlinePrior], Meta(
+        description="a list of inline tables {params = {...}, mean_w = ..., var_w2 = ...}")] = []
+    logs: list[str] = []
+    table: Annotated[str, Meta(min_length=1)] | None = None
+    table_baseline_w: Annotated[float, Meta(gt=0.0, le=1e5)] | None = None
+    inflation: _Inflation = msgspec.field(default_factory=_Inflation)  # type: ignore[valid-type]
+
+
+def _prior_noise(t: _PriorTable) -> dict[str, PriorNoise]:
     noise = {s.value: n for s, n in DEFAULT_PRIOR_NOISE.items()}
-    table = _table(t.table("inflation", {}), "prior.inflation", noise)
-    for source in table.data:
-        where = f"prior.inflation.{source}"
-        o = _table(table.table(source), where, ("factor", "extra_var_w2"))
-        base = noise[source]
-        noise[source] = PriorNoise(
-            factor=o.number("factor", base.factor, lo=1.0, hi=1e6),
-            extra_var_w2=o.number("extra_var_w2", base.extra_var_w2, lo=0.0, hi=1e8),
-        )
+    for source, base in list(noise.items()):
+        if (o := getattr(t.inflation, source)) is not None:
+            noise[source] = PriorNoise(
+                factor=base.factor if o.factor is None else o.factor,
+                extra_var_w2=base.extra_var_w2 if o.extra_var_w2 is None else o.extra_var_w2)
     return noise
 
 
-def _prior_params(space: ParameterSpace, entry: Table, where: str) -> dict[str, float]:
+def _prior_params(space: ParameterSpace, raw: Mapping[str, Any], where: str) -> dict[str, float]:
     known = (*space.names, *(d.name for d in space.derived))
-    params = _table(entry.table("params"), f"{where}.params", known)
-    values = {name: params.number(name) for name in params.data}
+    number = Annotated[float, Meta(ge=-FINITE, le=FINITE)] | None
+    params = msgspec.defstruct("params", [(n, number, None) for n in known], **_STRUCT)
+    given: Any = decode(params, raw, f"{where}.params", BridgeConfigError)
+    values = {n: v for n in known if (v := getattr(given, n)) is not None}
     missing = [n for n in space.names if n not in values]
     if missing:
         raise BridgeConfigError(
-            f"{where}.params = {dict(params.data)!r:.100}: missing parameter(s) {missing}; "
+            f"{where}.params = {dict(raw)!r:.100}: missing parameter(s) {missing}; "
             f"expected every parameter of the space: {', '.join(space.names)}"
         )
     try:
@@ -819,22 +785,18 @@ def _prior_params(space: ParameterSpace, entry: Table, where: str) -> dict[str, 
         ) from err
 
 
-def _parse_inline_prior(space: ParameterSpace, entry: object, i: int,
+def _parse_inline_prior(space: ParameterSpace, e: _InlinePrior, i: int,
                         noise: Mapping[str, PriorNoise]) -> PriorObservation:
     where = f"prior.observations[{i}]"
-    e = _table(entry, where, ("params", "mean_w", "var_w2", "sd_w", "source", "note"))
-    params = _prior_params(space, e, where)
-    mean = e.number("mean_w", lo=0.0, hi=1e5)
-    if e.has("var_w2") == e.has("sd_w"):
+    params = _prior_params(space, e.params, where)
+    if (e.var_w2 is None) == (e.sd_w is None):
         raise BridgeConfigError(
             f"{where}: give the uncertainty as var_w2 (W²) or sd_w (W), "
-            + ("not both" if e.has("var_w2") else "found neither")
+            + ("not both" if e.var_w2 is not None else "found neither")
         )
-    var = e.number("var_w2", lo=0.0, hi=1e10, lo_open=True) if e.has("var_w2") else \
-        e.number("sd_w", lo=0.0, hi=1e5, lo_open=True) ** 2
-    source = e.string("source", PriorSource.SHORT_BOUT.value, choices=[s.value for s in PriorSource])
-    e.string("note", "", non_empty=False)
-    return PriorObservation(params, mean, inflate_variance(var, noise[source]), f"{source}:inline {i}")
+    var = e.var_w2 if e.var_w2 is not None else e.sd_w ** 2  # type: ignore[operator]
+    source = e.source.value
+    return PriorObservation(params, e.mean_w, inflate_variance(var, noise[source]), f"{source}:inline {i}")
 
 
 def _read_prior_log(space: ParameterSpace, path: Path, i: int,
@@ -887,14 +849,10 @@ def _read_prior_table(space: ParameterSpace, path: Path, baseline_w: float | Non
 
 
 def _parse_prior(data: object, space: ParameterSpace) -> PriorConfig:
-    t = _table(data, "prior", ALLOWED_KEYS["prior"])
+    t = decode(_PriorTable, data, "prior", BridgeConfigError)
     noise = _prior_noise(t)
-    entries = t.raw("observations", [], "a list of tables")
-    if not isinstance(entries, list):
-        raise BridgeConfigError(f"prior.observations = {entries!r:.60}: expected a list of inline tables "
-                                "{params = {...}, mean_w = ..., var_w2 = ...}")
-    observations = [_parse_inline_prior(space, e, i, noise) for i, e in enumerate(entries)]
-    logs = tuple(Path(p) for p in t.strings("logs", []))
+    observations = [_parse_inline_prior(space, e, i, noise) for i, e in enumerate(t.observations)]
+    logs = tuple(Path(p) for p in t.logs)
     for i, path in enumerate(logs):
         first = next(j for j, q in enumerate(logs) if q.resolve() == path.resolve())
         if first != i:
@@ -907,9 +865,8 @@ def _parse_prior(data: object, space: ParameterSpace) -> PriorConfig:
         got = _read_prior_log(space, path, i, prev)
         from_logs += got
         counts.append(len(got))
-    table = Path(t.string("table")) if t.has("table") else None
-    baseline = (t.number("table_baseline_w", lo=0.0, hi=1e5, lo_open=True)
-                if t.has("table_baseline_w") else None)
+    table = None if t.table is None else Path(t.table)
+    baseline = t.table_baseline_w
     if baseline is not None and table is None:
         raise BridgeConfigError(f"prior.table_baseline_w = {baseline:g}: only with prior.table (a relative "
                                 "population table)")
@@ -927,8 +884,7 @@ def _parse_prior(data: object, space: ParameterSpace) -> PriorConfig:
 # --------------------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class LiveConfig:
+class LiveConfig(msgspec.Struct, **_STRUCT):
     """``[live]``: stream the session's log channels to Foxglove while it runs (bridge/live.py).
 
     Attributes:
@@ -938,18 +894,12 @@ class LiveConfig:
         port: TCP port, 0-65535 (8765 is Foxglove's default; 0 picks a free port).
     """
 
-    enabled: bool = boolean(False)
-    host: str = string("127.0.0.1")
-    port: int = integer(8765, lo=0, hi=65535)
+    enabled: bool = False
+    host: Annotated[str, Meta(min_length=1)] = "127.0.0.1"
+    port: Annotated[int, Meta(ge=0, le=65535)] = 8765
 
 
-def _parse_live(data: object) -> LiveConfig:
-    t = _table(data, "live", ALLOWED_KEYS["live"])
-    return LiveConfig(**read_fields(LiveConfig, t))
-
-
-@dataclass(frozen=True)
-class ValidationConfig:
+class ValidationConfig(msgspec.Struct, **_STRUCT):
     """``[validation]``: the validation walk of ``hilbo validate`` (Kim et al. 2019 §IV.A.3: the
     optimised setting against a generic one and walking without assistance, 5 minutes each).
 
@@ -966,11 +916,11 @@ class ValidationConfig:
             default false).
     """
 
-    generic: Mapping[str, float] | None = None
-    condition_min: float = number(5.0, lo=1.0, hi=30.0)
-    breath_interval_s: float = number(3.0, lo=1.0, hi=10.0)
-    seed: int = integer(0, lo=0)
-    zero_force: bool = boolean(False)
+    generic: Mapping[str, float] | None = None  # checked against [space] by _parse_validation
+    condition_min: Annotated[float, Meta(ge=1.0, le=30.0)] = 5.0
+    breath_interval_s: Annotated[float, Meta(ge=1.0, le=10.0)] = 3.0
+    seed: Annotated[int, Meta(ge=0)] = 0
+    zero_force: bool = False
 
     @property
     def condition_breaths(self) -> int:
@@ -979,11 +929,10 @@ class ValidationConfig:
 
 
 def _parse_validation(data: object, space: ParameterSpace) -> ValidationConfig:
-    t = _table(data, "validation", ALLOWED_KEYS["validation"])
-    fields_ = read_fields(ValidationConfig, t, skip=("generic",))
-    generic = None
-    if t.has("generic"):
-        raw = t.raw("generic", None, "a table of parameter = value")
+    given = dict(data) if isinstance(data, Mapping) else data
+    raw = given.pop("generic", None) if isinstance(given, dict) else None
+    cfg = decode(ValidationConfig, given, "validation", BridgeConfigError)
+    if raw is not None:
         if not isinstance(raw, Mapping):
             raise BridgeConfigError(f"validation.generic = {raw!r:.60}: expected a table such as "
                                     f"{{ {', '.join(f'{n} = ...' for n in space.names)} }}")
@@ -1003,8 +952,8 @@ def _parse_validation(data: object, space: ParameterSpace) -> ValidationConfig:
             space.check(values)
         except InfeasibleError as err:
             raise BridgeConfigError(f"validation.generic is not a feasible setting: {err}") from err
-        generic = MappingProxyType(values)
-    return ValidationConfig(generic=generic, **fields_)
+        cfg = msgspec.structs.replace(cfg, generic=MappingProxyType(values))
+    return cfg
 
 
 # --------------------------------------------------------------------------------------------
@@ -1052,9 +1001,7 @@ class HilboConfig:
             "watchdog": self.watchdog.to_json(),
             "prior": _jsonable(self.prior),
             "live": _jsonable(self.live),
-            "validation": {**_jsonable(dataclasses.replace(self.validation, generic=None)),
-                           "generic": None if self.validation.generic is None
-                           else dict(self.validation.generic)},
+            "validation": _jsonable(self.validation),
             "toml": self.text,
         }
 
@@ -1063,6 +1010,8 @@ def _jsonable(obj: Any) -> Any:
     """Dataclasses, enums, paths and mappings as plain JSON values (non-finite floats as text)."""
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
         return {f.name: _jsonable(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, msgspec.Struct):
+        return {name: _jsonable(getattr(obj, name)) for name in obj.__struct_fields__}
     if isinstance(obj, enum.Enum):
         return obj.value
     if isinstance(obj, Path):
@@ -1174,14 +1123,15 @@ def parse_config(text: str, source: str = "<string>") -> HilboConfig:
                 f"{source}: top-level key {key} = {value!r:.60} outside any table; a config has only "
                 f"the tables {', '.join(f'[{t}]' for t in TABLES)} (did you put it above its table header?)"
             )
-    _reject_unknown(data, TABLES, "")
+        if key not in TABLES:
+            raise BridgeConfigError(unknown_key_message("", key, "", TABLES))
     missing = [t for t in _REQUIRED_TABLES if t not in data]
     if missing:
         raise BridgeConfigError(
             f"{source}: missing table(s) {', '.join(f'[{t}]' for t in missing)}; "
             "`hilbo config example` prints a complete config"
         )
-    session = _parse_session(data["session"])
+    session = decode(SessionConfig, data["session"], "session", BridgeConfigError)
     space = _parse_space(data["space"])
     cfg = HilboConfig(
         session=session,
@@ -1190,9 +1140,9 @@ def parse_config(text: str, source: str = "<string>") -> HilboConfig:
         cart=_parse_cart(data["cart"]),
         can=_parse_can(data["can"]),
         limits=_parse_limits(data.get("limits", {})),
-        watchdog=_parse_watchdog(data.get("watchdog", {})),
+        watchdog=decode(WatchdogConfig, data.get("watchdog", {}), "watchdog", BridgeConfigError),
         prior=_parse_prior(data.get("prior", {}), space.space),
-        live=_parse_live(data.get("live", {})),
+        live=decode(LiveConfig, data.get("live", {}), "live", BridgeConfigError),
         validation=_parse_validation(data.get("validation", {}), space.space),
         source=source,
         text=text,
@@ -1480,14 +1430,13 @@ def add_config_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 #: The keys each table allows (``[cart]``'s are the cart driver's: drivers/cart/FORMAT.md).
 ALLOWED_KEYS: Mapping[str, tuple[str, ...]] = MappingProxyType({
-    "session": ("subject", "body_mass_kg", "out_dir", "notes", "file_mode"),
-    "space": ("preset", "bounds", "constraints", "profile", "parameters", "derived"),
-    "protocol": tuple(f.name for f in dataclasses.fields(ProtocolConfig)),
-    "can": ("interface", "channel", "bitrate", "options", "heartbeat_period_ms", "push_timeout_ms",
-            "push_retries", "segment_pace_ms"),
-    "limits": (*ACTUATOR_LIMIT_RANGES, "n_points", "max_consecutive_rejections", "actuators"),
-    "watchdog": tuple(f.name for f in dataclasses.fields(WatchdogConfig)),
-    "prior": ("observations", "logs", "table", "table_baseline_w", "inflation"),
-    "live": tuple(f.name for f in dataclasses.fields(LiveConfig)),
-    "validation": tuple(f.name for f in dataclasses.fields(ValidationConfig)),
+    "session": SessionConfig.__struct_fields__,
+    "space": _SpaceTable.__struct_fields__,
+    "protocol": ProtocolConfig.__struct_fields__,
+    "can": _CanTable.__struct_fields__,
+    "limits": _LimitsTable.__struct_fields__,
+    "watchdog": WatchdogConfig.__struct_fields__,
+    "prior": _PriorTable.__struct_fields__,
+    "live": LiveConfig.__struct_fields__,
+    "validation": ValidationConfig.__struct_fields__,
 })

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import msgspec
 from rich.console import Console
 
 from bridge.config import HilboConfig
@@ -181,7 +182,7 @@ async def run_session(
     """
     if auto_resume_s is not None and auto_resume_s != cfg.watchdog.auto_resume_s:
         # The log records the config the session ran with: --auto-resume overrides the file's.
-        watchdog = dataclasses.replace(cfg.watchdog, auto_resume_s=auto_resume_s)
+        watchdog = msgspec.structs.replace(cfg.watchdog, auto_resume_s=auto_resume_s)
         cfg = dataclasses.replace(cfg, watchdog=watchdog)
     space = cfg.space.space
     previous: str | None = None

@@ -11,6 +11,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import msgspec
+
 from bridge.cli.session_end import EXIT_INTERRUPTED, RUN_EXIT_STATUS, ended_text, run_exit_status, seconds
 
 # The GP's matrices are small (tens to a few hundred rows): multi-threaded BLAS only adds
@@ -118,7 +120,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     else:
         check_out_dir(cfg.session.out_dir)
     if args.live:
-        cfg = dataclasses.replace(cfg, live=dataclasses.replace(cfg.live, enabled=True))
+        cfg = dataclasses.replace(cfg, live=msgspec.structs.replace(cfg.live, enabled=True))
     if cfg.live.enabled:
         console.print(f"hilbo run: live view on ws://{cfg.live.host}:{cfg.live.port} "
                       "(Foxglove: Open connection)")

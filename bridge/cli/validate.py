@@ -6,6 +6,8 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+import msgspec
+
 __all__ = ["add_validate_parser"]
 
 
@@ -29,7 +31,7 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     check_out_dir(args.out or cfg.session.out_dir, "--out" if args.out else "[session] out_dir")
     if args.live:
-        cfg = dataclasses.replace(cfg, live=dataclasses.replace(cfg.live, enabled=True))
+        cfg = dataclasses.replace(cfg, live=msgspec.structs.replace(cfg.live, enabled=True))
     resume = Path(args.resume) if args.resume else None
     plan = (ValidationPlan.resumed(cfg, resume) if resume is not None
             else ValidationPlan.new(cfg, Path(args.source)))

@@ -56,6 +56,8 @@ from collections.abc import AsyncIterator, Callable, Sequence
 from pathlib import Path
 from typing import IO, Any
 
+import msgspec
+
 from bridge.config import parse_config
 from bridge.errors import BridgeConfigError, DeviceProcessError
 from bridge.run import RunResult, run_session, write_json_atomic
@@ -577,7 +579,7 @@ async def run_process_sim(cfg: VirtualSimConfig, out: Path, *, bus: str = "auto"
                         source="<hilbo sim --processes>")
     async with device_processes(cfg, bus=kind, log_dir=out / "processes", speed=speed) as devices:
         hcfg = dataclasses.replace(hcfg, cart=devices.cart,
-                                   can=dataclasses.replace(hcfg.can, bus=devices.can))
+                                   can=msgspec.structs.replace(hcfg.can, bus=devices.can))
         result = await _run_supervised(hcfg, devices, log_path=log_path, operator_view=operator_view,
                                        n_actuators=len(SUIT_JOINTS[cfg.preset]), on_session=on_session)
     # The rebuilt wearer has not walked: the session's end is the last evaluation's end (session

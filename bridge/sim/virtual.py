@@ -27,6 +27,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import msgspec
+
 from bridge.collector import GcMode
 from bridge.config import HilboConfig, LiveConfig, parse_config
 from bridge.run import RunResult, run_session, write_json_atomic
@@ -215,7 +217,7 @@ async def run_virtual_sim(cfg: VirtualSimConfig, out: Path, *, operator_view: bo
         hcfg = dataclasses.replace(
             hcfg,
             cart=cart.client_config(),
-            can=dataclasses.replace(hcfg.can, bus=CanBusConfig("virtual", channel)),
+            can=msgspec.structs.replace(hcfg.can, bus=CanBusConfig("virtual", channel)),
             live=live or hcfg.live,
         )
         async with VirtualExosuit(CanBusConfig("virtual", channel), clock,

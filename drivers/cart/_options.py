@@ -1,9 +1,11 @@
 """Checks shared by the cart's config dataclasses (keys, types, ranges) with naming errors.
 
 The config comes from TOML, so values arrive as ``str``, ``int``, ``float``, ``bool``, lists and
-tables. The checks are the one configuration model's (:mod:`hilbo_core.config_model`, which the
-bridge's config uses too), raising :class:`drivers.errors.DriverConfigError`: every error names
-the key, the value and what was expected.
+tables. The dataclasses declare their fields' ranges and choices as msgspec types
+(``Annotated[int, msgspec.Meta(ge=1)]``, enums); the checks are the one configuration model's
+(:mod:`drivers.config_model`, which the bridge's config uses too), raising
+:class:`drivers.errors.DriverConfigError`: every error names the key, the value and what was
+expected.
 """
 
 from __future__ import annotations
@@ -11,19 +13,19 @@ from __future__ import annotations
 import re
 from collections.abc import Iterable, Mapping
 from enum import Enum
-from typing import Any, TypeVar
+from typing import Annotated, Any, TypeVar
 
+from msgspec import Meta
+
+from drivers.config_model import FINITE, check_fields, check_value, unknown_key_message
 from drivers.errors import DriverConfigError
-from hilbo_core.config_model import FieldSpec, check_fields, check_integer, check_number, reject_unknown
 
 __all__ = [
     "check_declared",
     "check_keys",
     "check_mapping",
     "enum_value",
-    "int_value",
     "number",
-    "optional_number",
     "text",
     "within",
 ]
@@ -41,19 +43,22 @@ def check_mapping(data: object, where: str) -> Mapping[str, Any]:
 def check_keys(data: Mapping[str, Any], allowed: Iterable[str], where: str) -> None:
     """Reject keys of ``data`` that are not in ``allowed``, naming the first unknown key.
 
-    The message is :func:`hilbo_core.config_model.unknown_key_message`'s (full key path, the
+    The message is :func:`drivers.config_model.unknown_key_message`'s (full key path, the
     closest allowed key, the allowed keys), the same as every other config table's.
     """
-    reject_unknown(data, allowed, where, DriverConfigError)
+    allowed = tuple(allowed)
+    for key, value in data.items():
+        if key not in allowed:
+            raise DriverConfigError(unknown_key_message(where, key, f"{value!r:.60}", allowed))
 
 
 def check_declared(obj: Any) -> None:
-    """Check a config dataclass's declared fields (:func:`hilbo_core.config_model.check_fields`).
+    """Check a config dataclass's declared fields (:func:`drivers.config_model.check_fields`).
 
     For a ``__post_init__``: errors name the bare field (``from_dict`` puts the table's path in
     front, :func:`within`); numbers become floats, enum values members.
     """
-    check_fields(obj, "", DriverConfigError)
+    check_fields(obj, DriverConfigError)
 
 
 def within(where: str, err: DriverConfigError) -> DriverConfigError:
@@ -70,42 +75,19 @@ def within(where: str, err: DriverConfigError) -> DriverConfigError:
 _UNKNOWN = re.compile(r"^unknown key (?P<key>(?P<table>[\w.\[\]]+)\.[^ ]+) = ")
 
 
-def number(
-    value: object,
-    name: str,
-    *,
-    lo: float | None = None,
-    hi: float | None = None,
-    lo_open: bool = False,
-) -> float:
+def number(value: object, name: str, *, lo: float | None = None, hi: float | None = None,
+           lo_open: bool = False) -> float:
     """Return ``value`` as a finite float within ``[lo, hi]`` (``(lo, hi]`` if ``lo_open``)."""
-    return check_number(value, name, lo=lo, hi=hi, lo_open=lo_open, error=DriverConfigError)
+    low = {"gt": lo} if lo_open else {"ge": -FINITE if lo is None else lo}
+    return check_value(value, Annotated[float, Meta(**low, le=FINITE if hi is None else hi)], name,
+                       DriverConfigError)
 
 
-def optional_number(
-    value: object,
-    name: str,
-    *,
-    lo: float | None = None,
-    hi: float | None = None,
-    lo_open: bool = False,
-) -> float | None:
-    """Like :func:`number` but ``None`` passes through (an option that is switched off)."""
-    if value is None:
-        return None
-    return number(value, name, lo=lo, hi=hi, lo_open=lo_open)
-
-
-def int_value(value: object, name: str, *, lo: int | None = None, hi: int | None = None) -> int:
-    """Return ``value`` if it is an int (not a bool) within ``[lo, hi]``."""
-    return check_integer(value, name, lo=lo, hi=hi, error=DriverConfigError)
-
-
-def text(value: object, name: str, *, non_empty: bool = True) -> str:
-    """Return ``value`` if it is a string (non-empty unless told otherwise)."""
-    return FieldSpec("string", non_empty=non_empty).check(value, name, DriverConfigError)
+def text(value: object, name: str) -> str:
+    """Return ``value`` if it is a non-empty string."""
+    return check_value(value, Annotated[str, Meta(min_length=1)], name, DriverConfigError)
 
 
 def enum_value(value: object, enum_cls: type[E], name: str) -> E:
     """Return the member of ``enum_cls`` whose value is ``value`` (members pass through)."""
-    return FieldSpec("choice", enum_cls=enum_cls).check(value, name, DriverConfigError)
+    return check_value(value, enum_cls, name, DriverConfigError)

@@ -21,7 +21,9 @@ import re
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from enum import StrEnum
-from typing import Any
+from typing import Annotated, Any
+
+from msgspec import Meta
 
 from drivers.cart._numbers import parse_decimal, shorten
 from drivers.cart._options import check_declared, check_keys, check_mapping, text, within
@@ -29,7 +31,6 @@ from drivers.cart.errors import EncodeError
 from drivers.cart.line import ParsedBreath
 from drivers.cart.reasons import RejectReason
 from drivers.errors import DecodeError, DriverConfigError
-from hilbo_core.config_model import choice, integer, string
 from hilbo_core.types import BreathRecord
 
 __all__ = [
@@ -101,23 +102,23 @@ class CsvMapping:
             this many lines (a wrong mapping must fail loudly, not yield nothing forever).
     """
 
-    time_column: str = string()
-    vo2_column: str = string()
-    vco2_column: str = string()
-    ve_column: str | None = string(None, optional=True)
-    rer_column: str | None = string(None, optional=True)
-    hr_column: str | None = string(None, optional=True)
-    time_format: TimeFormat = choice(TimeFormat, TimeFormat.SECONDS)
-    vo2_unit: GasUnit = choice(GasUnit, GasUnit.ML_MIN)
-    vco2_unit: GasUnit = choice(GasUnit, GasUnit.ML_MIN)
+    time_column: Annotated[str, Meta(min_length=1)]
+    vo2_column: Annotated[str, Meta(min_length=1)]
+    vco2_column: Annotated[str, Meta(min_length=1)]
+    ve_column: Annotated[str, Meta(min_length=1)] | None = None
+    rer_column: Annotated[str, Meta(min_length=1)] | None = None
+    hr_column: Annotated[str, Meta(min_length=1)] | None = None
+    time_format: TimeFormat = TimeFormat.SECONDS
+    vo2_unit: GasUnit = GasUnit.ML_MIN
+    vco2_unit: GasUnit = GasUnit.ML_MIN
     delimiter: str = ","
     decimal: str = "."
-    header_row: int | None = integer(None, lo=0, optional=True)
-    skip_rows: int = integer(0, lo=0)
+    header_row: Annotated[int, Meta(ge=0)] | None = None
+    skip_rows: Annotated[int, Meta(ge=0)] = 0
     columns: tuple[str, ...] | None = None
     missing: tuple[str, ...] = ("", "-", "--", "NA", "N/A")
     encoding: str = "utf-8"
-    max_preamble_lines: int = integer(200, lo=1)
+    max_preamble_lines: Annotated[int, Meta(ge=1)] = 200
 
     def __post_init__(self) -> None:
         check_declared(self)

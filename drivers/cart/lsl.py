@@ -19,7 +19,9 @@ import asyncio
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Annotated, Any
+
+from msgspec import Meta
 
 from drivers.cart._options import check_declared, check_keys, check_mapping, text
 from drivers.cart.line import encode_line
@@ -27,7 +29,6 @@ from drivers.cart.transport import CartTransport, TransportHooks
 from drivers.cart.validate import SEQ_MODULUS
 from drivers.cart.vendors._table import FIELDS, REQUIRED_FIELDS, normalize_name
 from drivers.errors import DriverConfigError
-from hilbo_core.config_model import integer, number
 from hilbo_core.types import BreathRecord
 
 __all__ = ["DEFAULT_LABELS", "LslOptions", "LslTransport"]
@@ -61,10 +62,10 @@ class LslOptions:
 
     stream_name: str | None = None
     stream_type: str | None = None
-    resolve_timeout_s: float = number(5.0, lo=0.0, hi=600.0, lo_open=True)
+    resolve_timeout_s: Annotated[float, Meta(gt=0.0, le=600.0)] = 5.0
     channels: Mapping[str, str] = field(default_factory=dict)
-    poll_interval_s: float = number(0.02, lo=0.0, hi=1.0, lo_open=True)
-    max_line_bytes: int = integer(256, lo=64)
+    poll_interval_s: Annotated[float, Meta(gt=0.0, le=1.0)] = 0.02
+    max_line_bytes: Annotated[int, Meta(ge=64)] = 256
 
     def __post_init__(self) -> None:
         if self.stream_name is None and self.stream_type is None:

@@ -12,13 +12,16 @@ from __future__ import annotations
 import asyncio
 import logging
 from dataclasses import dataclass, field
+from typing import Annotated
+
+from msgspec import Meta
 
 from drivers.cart._options import check_declared
 from drivers.cart.framing import DEFAULT_MAX_LINE_BYTES
 from drivers.cart.reasons import RejectReason
 from drivers.cart.transport import Backoff, CartTransport, TransportHooks
+from drivers.config_model import FINITE
 from drivers.errors import DriverConfigError
-from hilbo_core.config_model import integer, number, string
 
 __all__ = ["TcpOptions", "TcpTransport", "UdpOptions", "UdpTransport"]
 
@@ -40,11 +43,11 @@ class TcpOptions:
         backoff: Reconnection policy.
     """
 
-    host: str = string()
-    port: int = integer(lo=1, hi=65535)
-    connect_timeout_s: float = number(5.0, lo=0.0, lo_open=True)
-    idle_timeout_s: float | None = number(None, lo=0.0, lo_open=True, optional=True)
-    max_line_bytes: int = integer(DEFAULT_MAX_LINE_BYTES, lo=16)
+    host: Annotated[str, Meta(min_length=1)]
+    port: Annotated[int, Meta(ge=1, le=65535)]
+    connect_timeout_s: Annotated[float, Meta(gt=0.0, le=FINITE)] = 5.0
+    idle_timeout_s: Annotated[float, Meta(gt=0.0, le=FINITE)] | None = None
+    max_line_bytes: Annotated[int, Meta(ge=16)] = DEFAULT_MAX_LINE_BYTES
     backoff: Backoff = field(default_factory=Backoff)
 
     def __post_init__(self) -> None:
@@ -109,10 +112,10 @@ class UdpOptions:
         max_line_bytes: Longest line kept.
     """
 
-    port: int = integer(lo=0, hi=65535)
-    host: str = string("127.0.0.1")
-    queue_size: int = integer(1024, lo=1)
-    max_line_bytes: int = integer(DEFAULT_MAX_LINE_BYTES, lo=16)
+    port: Annotated[int, Meta(ge=0, le=65535)]
+    host: Annotated[str, Meta(min_length=1)] = "127.0.0.1"
+    queue_size: Annotated[int, Meta(ge=1)] = 1024
+    max_line_bytes: Annotated[int, Meta(ge=16)] = DEFAULT_MAX_LINE_BYTES
 
     def __post_init__(self) -> None:
         check_declared(self)

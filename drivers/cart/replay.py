@@ -22,14 +22,15 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from os import PathLike, fspath
-from typing import BinaryIO
+from typing import Annotated, BinaryIO
+
+from msgspec import Meta
 
 from drivers.cart._options import check_declared, number, text
 from drivers.cart.framing import DEFAULT_MAX_LINE_BYTES
 from drivers.cart.transport import CartTransport, TransportHooks
 from drivers.errors import DriverConfigError
 from drivers.files import MAX_CART_FILE_BYTES, open_regular_file
-from hilbo_core.config_model import integer
 
 __all__ = ["ReplayOptions", "ReplayTransport"]
 
@@ -49,7 +50,7 @@ class ReplayOptions:
 
     path: str
     speed: float = 1.0
-    max_line_bytes: int = integer(DEFAULT_MAX_LINE_BYTES, lo=16)
+    max_line_bytes: Annotated[int, Meta(ge=16)] = DEFAULT_MAX_LINE_BYTES
 
     def __post_init__(self) -> None:
         # path (a str or a PathLike) and speed (a number or "max") are not one type: checked here.

@@ -16,14 +16,16 @@ from __future__ import annotations
 import asyncio
 import logging
 from dataclasses import dataclass, field
+from typing import Annotated
 
 import serial
+from msgspec import Meta
 
 from drivers.cart._options import check_declared
 from drivers.cart.framing import DEFAULT_MAX_LINE_BYTES
 from drivers.cart.transport import Backoff, CartTransport, TransportHooks
+from drivers.config_model import FINITE
 from drivers.errors import DriverConfigError
-from hilbo_core.config_model import integer, number, string
 
 __all__ = ["SerialOptions", "SerialTransport"]
 
@@ -57,14 +59,14 @@ class SerialOptions:
         backoff: Reconnection policy after an unplug.
     """
 
-    port: str = string()
-    baudrate: int = integer(9600, lo=50, hi=20_000_000)
-    bytesize: int = integer(8, lo=5, hi=8)
+    port: Annotated[str, Meta(min_length=1)]
+    baudrate: Annotated[int, Meta(ge=50, le=20_000_000)] = 9600
+    bytesize: Annotated[int, Meta(ge=5, le=8)] = 8
     parity: str = "N"
     stopbits: float = 1
-    read_timeout_s: float = number(0.1, lo=0.0, lo_open=True, hi=10.0)
-    idle_timeout_s: float | None = number(None, lo=0.0, lo_open=True, optional=True)
-    max_line_bytes: int = integer(DEFAULT_MAX_LINE_BYTES, lo=16)
+    read_timeout_s: Annotated[float, Meta(gt=0.0, le=10.0)] = 0.1
+    idle_timeout_s: Annotated[float, Meta(gt=0.0, le=FINITE)] | None = None
+    max_line_bytes: Annotated[int, Meta(ge=16)] = DEFAULT_MAX_LINE_BYTES
     backoff: Backoff = field(default_factory=Backoff)
 
     def __post_init__(self) -> None:

@@ -23,7 +23,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from enum import StrEnum
 from types import TracebackType
-from typing import Any, Self
+from typing import Annotated, Any, Self
+
+from msgspec import Meta
 
 from drivers.cart._options import check_declared, check_keys, check_mapping, enum_value, within
 from drivers.cart.csvmap import CsvBreathParser, CsvMapping
@@ -41,7 +43,6 @@ from drivers.cart.transport import CartTransport, TransportHooks
 from drivers.cart.validate import BreathValidator, PhysioLimits
 from drivers.cart.vendors import TableParser, VendorSpec, vendor_spec
 from drivers.errors import DriverConfigError
-from hilbo_core.config_model import choice, integer
 from hilbo_core.types import BreathRecord
 
 __all__ = ["BreathStream", "CartConfig", "CartFormat"]
@@ -108,10 +109,10 @@ class CartConfig:
 
     transport: str
     options: Any
-    format: CartFormat = choice(CartFormat, CartFormat.HILBO_LINE)
+    format: CartFormat = CartFormat.HILBO_LINE
     csv: CsvMapping | None = None
     limits: PhysioLimits = field(default_factory=PhysioLimits)
-    max_leading_rejects: int = integer(DEFAULT_MAX_LEADING_REJECTS, lo=1, hi=100_000)
+    max_leading_rejects: Annotated[int, Meta(ge=1, le=100_000)] = DEFAULT_MAX_LEADING_REJECTS
 
     def __post_init__(self) -> None:
         spec = transport_spec(self.transport)

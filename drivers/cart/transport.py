@@ -24,13 +24,14 @@ from collections import Counter, deque
 from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import MISSING, dataclass, fields
 from types import TracebackType
-from typing import Any, ClassVar, Self
+from typing import Annotated, Any, ClassVar, Self
+
+from msgspec import Meta
 
 from drivers.cart._options import check_declared, check_keys, check_mapping, number, within
 from drivers.cart.framing import DEFAULT_MAX_LINE_BYTES, LineFramer
+from drivers.config_model import FINITE
 from drivers.errors import DriverConfigError, TransportError
-from hilbo_core.config_model import integer
-from hilbo_core.config_model import number as number_field
 
 __all__ = ["Backoff", "CartTransport", "Clock", "Sleep", "TransportHooks", "options_from_dict"]
 
@@ -58,10 +59,10 @@ class Backoff:
             attempts without data; None retries forever (a cart cable can be replugged).
     """
 
-    initial_s: float = number_field(0.5, lo=0.0, lo_open=True)
-    factor: float = number_field(2.0, lo=1.0)
+    initial_s: Annotated[float, Meta(gt=0.0, le=FINITE)] = 0.5
+    factor: Annotated[float, Meta(ge=1.0, le=FINITE)] = 2.0
     max_s: float = 10.0
-    max_attempts: int | None = integer(None, lo=1, optional=True)
+    max_attempts: Annotated[int, Meta(ge=1)] | None = None
 
     def __post_init__(self) -> None:
         check_declared(self)

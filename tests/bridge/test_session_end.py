@@ -16,6 +16,7 @@ import uuid
 from pathlib import Path
 from typing import Any
 
+import msgspec
 import numpy as np
 import pytest
 
@@ -55,7 +56,7 @@ def replay_config(tmp: Path, recording: Path) -> tuple[HilboConfig, str]:
         cfg,
         cart=CartConfig.from_dict({"transport": "replay", "format": "hilbo-line",
                                    "options": {"path": str(recording), "speed": "max"}}),
-        can=dataclasses.replace(cfg.can, bus=CanBusConfig("virtual", channel)))
+        can=msgspec.structs.replace(cfg.can, bus=CanBusConfig("virtual", channel)))
     return cfg, channel
 
 

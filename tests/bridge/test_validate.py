@@ -11,6 +11,7 @@ import uuid
 from pathlib import Path
 from typing import Any
 
+import msgspec
 import numpy as np
 import pytest
 from supervision_harness import run_session as harness_session
@@ -105,7 +106,7 @@ def run_validation(tmp_path: Path, sim: VirtualSimConfig, cfg: Any, plan: Valida
         async with VirtualCart(wearer, clock, link=CartLink(kind=LinkKind.TCP)) as cart:
             bus = CanBusConfig("virtual", channel)
             run_cfg = dataclasses.replace(cfg, cart=cart.client_config(),
-                                          can=dataclasses.replace(cfg.can, bus=bus))
+                                          can=msgspec.structs.replace(cfg.can, bus=bus))
             async with VirtualExosuit(bus, clock, joints=SUIT_JOINTS[sim.preset],
                                       seed=1, on_applied=cart.on_profile_applied):
                 result = await run_session(run_cfg, log_path=tmp_path / f"{name}.mcap", auto_resume_s=0.0,

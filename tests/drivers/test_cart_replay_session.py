@@ -10,6 +10,7 @@ import dataclasses
 import uuid
 from pathlib import Path
 
+import msgspec
 import pytest
 from cart_exports import EXPORTS, needs_exports
 
@@ -38,7 +39,7 @@ def test_session_replays_the_export_to_its_end(tmp_path: Path, name: str, fmt: s
         cfg,
         cart=CartConfig.from_dict({"transport": "replay", "format": fmt,
                                    "options": {"path": str(EXPORTS / name), "speed": "max"}}),
-        can=dataclasses.replace(cfg.can, bus=CanBusConfig("virtual", channel)),
+        can=msgspec.structs.replace(cfg.can, bus=CanBusConfig("virtual", channel)),
     )
 
     async def run() -> dict[str, object]:

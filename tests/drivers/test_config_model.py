@@ -1,24 +1,16 @@
-"""The one configuration model: declared fields, the table loader and its messages."""
+"""The one configuration model: msgspec Structs, decode() and its messages (key, value, range)."""
 
 from __future__ import annotations
 
 import enum
 from dataclasses import dataclass
+from typing import Annotated
 
+import msgspec
 import pytest
+from msgspec import Meta
 
-from hilbo_core.config_model import (
-    Table,
-    boolean,
-    check_fields,
-    choice,
-    integer,
-    number,
-    read_fields,
-    string,
-    unknown_key_message,
-)
-from hilbo_core.errors import ConfigError
+from drivers.config_model import FINITE, check_fields, decode, unknown_key_message
 
 
 class Colour(enum.Enum):
@@ -26,24 +18,30 @@ class Colour(enum.Enum):
     GREEN = "green"
 
 
-@dataclass(frozen=True)
-class Demo:
-    rate_hz: float = number(10.0, lo=0.0, hi=100.0, lo_open=True)
-    count: int = integer(3, lo=1, hi=9)
-    colour: Colour = choice(Colour, Colour.RED)
-    enabled: bool = boolean(False)
-    label: str = string("x")
-    timeout_s: float | None = number(None, lo=0.0, optional=True)
+class Demo(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    rate_hz: Annotated[float, Meta(gt=0.0, le=100.0)] = 10.0
+    count: Annotated[int, Meta(ge=1, le=9)] = 3
+    colour: Colour = Colour.RED
+    enabled: bool = False
+    label: Annotated[str, Meta(min_length=1)] = "x"
+    timeout_s: Annotated[float, Meta(ge=0.0, le=FINITE)] | None = None
+    names: list[str] = []
+
+    def __post_init__(self) -> None:
+        if self.timeout_s is not None and self.timeout_s > self.rate_hz:
+            raise ValueError(f"timeout_s = {self.timeout_s:g}: expected at most rate_hz = {self.rate_hz:g}")
 
 
-@dataclass(frozen=True)
-class Required:
-    name: str = string()
+class Required(msgspec.Struct, forbid_unknown_fields=True):
+    name: Annotated[str, Meta(min_length=1)]
+
+
+class ConfigError(ValueError):
+    pass
 
 
 def _read(data: object, where: str = "demo") -> Demo:
-    fields = [f for f in Demo.__dataclass_fields__]
-    return Demo(**read_fields(Demo, Table(data, where, fields)))
+    return decode(Demo, data, where, ConfigError)
 
 
 def test_defaults_and_conversion() -> None:
@@ -56,7 +54,7 @@ def test_defaults_and_conversion() -> None:
 def test_unknown_key_names_the_path_and_suggests() -> None:
     with pytest.raises(ConfigError, match=(
             r"^unknown key demo\.cuont = 4 \(did you mean 'count'\?\); "
-            r"allowed keys in \[demo\]: colour, count, enabled, label, rate_hz, timeout_s$")):
+            r"allowed keys in \[demo\]: colour, count, enabled, label, names, rate_hz, timeout_s$")):
         _read({"cuont": 4})
     with pytest.raises(ConfigError) as info:
         _read({"zzz": 1})
@@ -73,10 +71,12 @@ def test_unknown_table_message() -> None:
     ({"rate_hz": True}, r"^demo\.rate_hz = True: expected a finite number"),
     ({"rate_hz": 0.0}, r"^demo\.rate_hz = 0\.0: expected a finite number in \(0, 100\]$"),
     ({"rate_hz": float("nan")}, r"^demo\.rate_hz = nan: expected a finite number"),
+    ({"timeout_s": float("inf")}, r"^demo\.timeout_s = inf: expected a finite number in \[0, inf\]$"),
     ({"count": 10}, r"^demo\.count = 10: expected an integer in \[1, 9\]$"),
     ({"count": 2.0}, r"^demo\.count = 2\.0: expected an integer in \[1, 9\]$"),
     ({"enabled": 1}, r"^demo\.enabled = 1: expected true or false$"),
     ({"label": ""}, r"^demo\.label = '': expected a non-empty string$"),
+    ({"names": ["a", 5]}, r"^demo\.names = \['a', 5\]: expected a list of strings$"),
 ])
 def test_wrong_type_or_range_names_key_value_and_expected(data: dict[str, object], match: str) -> None:
     with pytest.raises(ConfigError, match=match):
@@ -98,22 +98,24 @@ def test_nested_table_path_in_messages() -> None:
         _read(3, "a.b")
 
 
-def test_required_field_and_the_error_class() -> None:
-    class OwnError(ValueError):
-        pass
+def test_a_check_between_fields_is_named_under_the_table() -> None:
+    with pytest.raises(ConfigError, match=r"^demo\.timeout_s = 20: expected at most rate_hz = 10$"):
+        _read({"timeout_s": 20})
 
-    with pytest.raises(OwnError, match=r"^req\.name is missing: expected a non-empty string$"):
-        read_fields(Required, Table({}, "req", ["name"], OwnError))
+
+def test_required_field_and_the_error_class() -> None:
+    with pytest.raises(ConfigError, match=r"^req\.name is missing: expected a non-empty string$"):
+        decode(Required, {}, "req", ConfigError)
 
 
 def test_check_fields_for_post_init() -> None:
     @dataclass(frozen=True)
     class Built:
-        count: int = integer(3, lo=1)
-        colour: Colour = choice(Colour, Colour.RED)
+        count: Annotated[int, Meta(ge=1)] = 3
+        colour: Colour = Colour.RED
 
         def __post_init__(self) -> None:
-            check_fields(self)
+            check_fields(self, ConfigError)
 
     assert Built(colour="green").colour is Colour.GREEN  # type: ignore[arg-type]
     with pytest.raises(ConfigError, match=r"^count = 0: expected an integer in \[1, inf\]$"):
