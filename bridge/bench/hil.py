@@ -153,7 +153,7 @@ class HilProtocol:
         minutes: Session length on the breath clock, warm-ups included.
         warmup_s: Each of the two unassisted warm-ups (s).
         n_explore: BO exploration points (bout 1); None (default): each method's protocol's
-            (``sound``: the fast protocol's 3; the seed's rules and the seed-003 methods: 6,
+            (``sound``: the fast protocol's 3; the seed's rules and the Antonova 2016 methods: 6,
             :attr:`explore_points`).
         max_breaths: BO's N.
         window: Algorithm 2's W.
