@@ -1,7 +1,7 @@
 """A fault the resume policy ends is a short pause: the same setting again at once, no warm-up.
 
 The policy resumes once the device has been healthy for ``auto_resume_s`` (10 s in the lab's
-headless runs; 16 s pauses on average beside CPU burners, docs/results.md), so such a pause
+headless runs; 16 s pauses on average on a busy PC, docs/results.md), so such a pause
 lasts the detection and that wait. The default ``short_pause_s`` (30 s, hilbo_core/protocol.py)
 must hold it, or every glitch of a busy PC costs the bout's 3-minute warm-up; a threshold of
 15 s (the earlier default) did not. Here the policy waits 20 s, between the two. Deterministic
