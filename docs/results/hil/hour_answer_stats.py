@@ -3,11 +3,12 @@ minutes 20/30/40/60, the share of subjects below CMA-ES with a two-sided sign te
 out), the first proposal's minute, the reported estimate's z, sessions above 50 % at 60 min, by
 landscape family of the realistic wearer.
 
-Usage: python docs/results/hil/hour_answer_stats.py RUN/sessions.jsonl [REFERENCE_METHOD]
+Usage: python docs/results/hil/hour_answer_stats.py RUN/sessions.jsonl[.gz] [REFERENCE_METHOD]
 """
 
 from __future__ import annotations
 
+import gzip
 import json
 import statistics
 import sys
@@ -35,7 +36,9 @@ def regret_pct_at(session: dict, minute: float) -> float:
 
 
 def main(path: str, reference: str = "cmaes") -> None:
-    rows = [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
+    raw = Path(path).read_bytes()
+    text = (gzip.decompress(raw) if path.endswith(".gz") else raw).decode()
+    rows = [json.loads(line) for line in text.splitlines() if line.strip()]
     by = defaultdict(dict)
     for r in rows:
         by[r["method"]][(r["space"], r["seed"])] = r
