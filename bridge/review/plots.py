@@ -329,7 +329,9 @@ def _force_tracking(session: Session, path: Path) -> str | None:
         ax.set_xlim(0, 100)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
-    fig.suptitle(f"{session.label}: desired vs measured force, recommended setting "
+    own = session.recommended is not None and session.recommended.index == fb.index
+    what = "recommended setting" if own else "the measured setting nearest the recommendation"
+    fig.suptitle(f"{session.label}: desired vs measured force, {what} "
                  f"(evaluation {fb.index + 1}, profile version {fb.version})", fontsize=10)
     fig.subplots_adjust(left=0.06, right=0.98, top=0.86, bottom=0.11, wspace=0.2)
     _save(fig, path, session.file_mode)

@@ -60,8 +60,9 @@ _CAPTIONS = {
     "thresholds": "The threshold schedule the session used over breath index (black: {threshold}), the "
                   "standardised exploration traces Algorithm 2 takes its envelope of (grey), and "
                   "z = (μ − μ*)/σ of the optimisation evaluations (orange; crosses: stopped early).",
-    "force_tracking": "Desired vs measured force over the gait cycle while the recommended setting was "
-                      "measured (controller feedback samples).",
+    "force_tracking": "Desired vs measured force over the gait cycle while the recommended setting (or, if "
+                      "it was never applied, the measured setting nearest to it) was measured (controller "
+                      "feedback samples).",
 }
 _TITLES = {"timeline": "Metabolic power and estimate", "best_so_far": "Best so far",
            "parameters": "Parameters", "thresholds": "Threshold schedule",

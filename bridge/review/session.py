@@ -890,11 +890,21 @@ def load_session(paths: Sequence[str | os.PathLike[str]]) -> Session:
     thresholds = _thresholds(scans, traces, evaluations, config, snapshot, z_traces, notes)
     recommended = _recommend(contents, snapshot, evaluations, notes)
     feedback = None
-    if recommended is not None and recommended.index is not None and recommended.index in obs_pos:
-        fi, pos = obs_pos[recommended.index]
-        feedback = _feedback(scans[fi], recommended.index, pos, notes)
-    elif recommended is not None:
-        notes.append("no force feedback plot: the recommended setting's evaluation is not on /observations")
+    if recommended is not None:
+        shown = recommended.index if recommended.index in obs_pos else None
+        if shown is None:
+            # The recommendation over the whole feasible set may be a setting never applied (the
+            # GP's minimum moved after the last one was measured): the tracking of the measured
+            # setting nearest to it, said as such, is what the wearer's suit actually did there.
+            shown = _nearest_evaluation(evaluations, recommended.params, bounds, set(obs_pos))
+            if shown is not None:
+                notes.append(f"force tracking: the recommended setting was not measured itself; the plot "
+                             f"shows evaluation {shown + 1}, the measured setting nearest to it")
+        if shown is None:
+            notes.append("no force feedback plot: no evaluation on /observations to show")
+        else:
+            fi, pos = obs_pos[shown]
+            feedback = _feedback(scans[fi], shown, pos, notes)
     opt_config = snapshot.state.get("config") if snapshot is not None else None
     return Session(
         files=tuple(files), session_id=first.session_id, config=config, param_names=names,
@@ -1044,6 +1054,23 @@ def _recommend(contents: Sequence[LogContents], snapshot: rec.OptimizerState | N
         method = "the lowest estimated mean (no optimizer state holds every evaluation)"
     index = next((e.index for e in evaluations if _same_params(e.params, params)), None)
     return Recommendation(dict(params), float(mean), float(var), index, method)
+
+
+def _nearest_evaluation(evaluations: Sequence[EvaluationRow], params: Mapping[str, float],
+                        bounds: Mapping[str, tuple[float, float]], logged: set[int]) -> int | None:
+    """The index of the logged evaluation whose setting is nearest ``params`` (each parameter
+    scaled by its range, the unit cube the optimizer searches), or None."""
+    best: tuple[float, int] | None = None
+    for e in evaluations:
+        if e.index not in logged or set(e.params) != set(params):
+            continue
+        d = 0.0
+        for k, v in params.items():
+            lo, hi = bounds.get(k, (0.0, 1.0))
+            d += ((e.params[k] - v) / ((hi - lo) or 1.0)) ** 2
+        if best is None or d < best[0]:
+            best = (d, e.index)
+    return None if best is None else best[1]
 
 
 def _same_params(a: Mapping[str, float], b: Mapping[str, float]) -> bool:
