@@ -16,7 +16,8 @@
       standardised exploration traces X it is the envelope of (Kim et al. 2019 Algorithm 2) and the
       z of the optimisation evaluations (skipped when exploration did not complete);
     * ``force_tracking.png``: desired vs measured force over the gait cycle while the
-      recommended setting was measured (Kim et al. 2019 Fig. 4; skipped without ``/force_feedback``);
+      recommended setting was measured, or the measured setting nearest to a recommendation
+      never applied (Kim et al. 2019 Fig. 4; skipped without ``/force_feedback``);
     * ``report.md`` and ``report.html`` (self-contained, images inlined): configuration,
       recommended setting, evaluations, events and faults, rejected records/frames by reason;
     * ``evaluations.csv`` (one row per evaluation) and ``breaths.csv`` (one row per breath).
