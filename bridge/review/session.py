@@ -892,20 +892,29 @@ def load_session(paths: Sequence[str | os.PathLike[str]]) -> Session:
     recommended = _recommend(contents, snapshot, evaluations, notes)
     feedback = None
     if recommended is not None:
-        shown = recommended.index if recommended.index in obs_pos else None
-        if shown is None:
-            # The recommendation over the whole feasible set may be a setting never applied (the
-            # GP's minimum moved after the last one was measured): the tracking of the measured
-            # setting nearest to it, said as such, is what the wearer's suit actually did there.
+        # Every logged evaluation of the recommended setting (a confirmation measures it several
+        # times), latest first, until one has force feedback; a recommendation over the whole
+        # feasible set may be a setting never applied (the GP's minimum moved after the last
+        # one): then the measured setting nearest to it, said as such.
+        own = [e.index for e in reversed(evaluations)
+               if e.index in obs_pos and _same_params(e.params, recommended.params)]
+        tried: list[str] = []
+        for index in own:
+            fi, pos = obs_pos[index]
+            feedback = _feedback(scans[fi], index, pos, tried)
+            if feedback is not None:
+                break
+        if feedback is None and not own:
             shown = _nearest_evaluation(evaluations, recommended.params, bounds, set(obs_pos))
             if shown is not None:
                 notes.append(f"force tracking: the recommended setting was not measured itself; the plot "
                              f"shows evaluation {shown + 1}, the measured setting nearest to it")
-        if shown is None:
-            notes.append("no force feedback plot: no evaluation on /observations to show")
+                fi, pos = obs_pos[shown]
+                feedback = _feedback(scans[fi], shown, pos, tried)
+        if feedback is None:
+            notes.extend(tried[-1:] or ["no force feedback plot: no evaluation on /observations to show"])
         else:
-            fi, pos = obs_pos[shown]
-            feedback = _feedback(scans[fi], shown, pos, notes)
+            notes.extend(n for n in tried if n.startswith("force tracking:"))
     opt_config = snapshot.state.get("config") if snapshot is not None else None
     return Session(
         files=tuple(files), session_id=first.session_id, config=config, param_names=names,
