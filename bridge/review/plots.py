@@ -329,12 +329,7 @@ def _force_tracking(session: Session, path: Path) -> str | None:
         ax.set_xlim(0, 100)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
-    row = next((e for e in session.evaluations if e.index == fb.index), None)
-    rec = session.recommended
-    own = rec is not None and row is not None and all(
-        math.isclose(row.params.get(k, math.nan), v, rel_tol=1e-9, abs_tol=1e-9)
-        for k, v in rec.params.items())
-    what = "recommended setting" if own else "the measured setting nearest the recommendation"
+    what = "the measured setting nearest the recommendation" if fb.nearest else "recommended setting"
     fig.suptitle(f"{session.label}: desired vs measured force, {what} "
                  f"(evaluation {fb.index + 1}, profile version {fb.version})", fontsize=10)
     fig.subplots_adjust(left=0.06, right=0.98, top=0.86, bottom=0.11, wspace=0.2)

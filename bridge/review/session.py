@@ -310,12 +310,15 @@ class FeedbackData:
         samples: ``{actuator: (gait_phase_pct, desired_n, measured_n)}`` arrays of the samples
             with a known gait phase whose desired force is the table sent (N).
         tables: ``{actuator: (joint, gait_pct, force_n)}``: the transmitted table per actuator.
+        nearest: The recommended setting was never applied; this is the measured setting nearest
+            to it.
     """
 
     index: int
     version: int
     samples: Mapping[int, tuple[np.ndarray, np.ndarray, np.ndarray]]
     tables: Mapping[int, tuple[str, np.ndarray, np.ndarray]]
+    nearest: bool = False
 
     @property
     def n_samples(self) -> int:
@@ -911,6 +914,8 @@ def load_session(paths: Sequence[str | os.PathLike[str]]) -> Session:
                              f"shows evaluation {shown + 1}, the measured setting nearest to it")
                 fi, pos = obs_pos[shown]
                 feedback = _feedback(scans[fi], shown, pos, tried)
+                if feedback is not None:
+                    feedback = dataclasses.replace(feedback, nearest=True)
         if feedback is None:
             notes.extend(tried[-1:] or ["no force feedback plot: no evaluation on /observations to show"])
         else:
