@@ -17,11 +17,13 @@ consecutive attempts have brought no data.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import math
 from abc import ABC, abstractmethod
 from collections import Counter, deque
 from collections.abc import Awaitable, Callable, Mapping
+from contextlib import AbstractContextManager
 from dataclasses import MISSING, dataclass, fields
 from types import TracebackType
 from typing import Annotated, Any, ClassVar, Self
@@ -94,10 +96,15 @@ class TransportHooks:
     Attributes:
         sleep: Used for reconnection backoff and replay pacing.
         clock: Used for replay pacing; None means the running loop's ``time``.
+        waiting: Wraps each wait for the link's bytes, and nothing else. A reader on a
+            simulated clock passes its participant's ``idle``: time may move while the
+            transport waits for the cart, never while it recovers from a drop (closing,
+            backing off on ``sleep``, reopening the link in a thread).
     """
 
     sleep: Sleep = asyncio.sleep
     clock: Clock | None = None
+    waiting: Callable[[], AbstractContextManager[object]] = contextlib.nullcontext
 
 
 def options_from_dict(cls: type[Any], data: Mapping[str, Any], where: str) -> Any:
@@ -282,13 +289,17 @@ class CartTransport(ABC):
         return self._lines.popleft()
 
     async def _read_with_watchdog(self) -> bytes | None:
-        if self._idle_timeout_s is None:
-            return await self._read_chunk()
+        with self._hooks.waiting():
+            if self._idle_timeout_s is None:
+                return await self._read_chunk()
+            return await self._read_with_idle_timeout(self._idle_timeout_s)
+
+    async def _read_with_idle_timeout(self, timeout_s: float) -> bytes | None:
         try:
-            async with asyncio.timeout(self._idle_timeout_s):
+            async with asyncio.timeout(timeout_s):
                 return await self._read_chunk()
         except TimeoutError as err:
-            raise TimeoutError(f"no data for {self._idle_timeout_s:g} s (idle_timeout_s)") from err
+            raise TimeoutError(f"no data for {timeout_s:g} s (idle_timeout_s)") from err
 
     async def _recover(self, cause: OSError) -> None:
         """Reopen the link after ``cause`` with backoff, or raise TransportError."""

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import pytest
@@ -198,3 +200,36 @@ def test_options_from_dict() -> None:
         options_from_dict(DemoOptions, {"host": "h", "port": 1, "backoff": {"cap": 3}}, "cart.options")
     with pytest.raises(DriverConfigError, match=r"cart.options = \[1\]: expected a table"):
         options_from_dict(DemoOptions, [1], "cart.options")  # type: ignore[arg-type]
+
+
+async def test_the_waiting_hook_wraps_reads_only_never_the_recovery() -> None:
+    """A simulated clock may run on while the link is read, not while it is reopened."""
+    time = FakeTime()
+    log: list[str] = []
+
+    @contextlib.contextmanager
+    def waiting() -> Iterator[None]:
+        log.append("wait")
+        try:
+            yield
+        finally:
+            log.append("done")
+
+    t = Scripted([[b"a\n"], [b"b\n", None]], Backoff(initial_s=0.5), time)
+    real_sleep, real_open = time.sleep, t._open_link
+
+    async def sleep(delay_s: float) -> None:
+        log.append("backoff")
+        await real_sleep(delay_s)
+
+    async def open_link() -> None:
+        log.append("open")
+        await real_open()
+
+    t._hooks = TransportHooks(sleep=sleep, clock=time.clock, waiting=waiting)
+    t._open_link = open_link  # type: ignore[method-assign]
+    async with t:
+        assert await collect(t) == [b"a", b"b"]
+    # open, read a, read (drop), backoff, reopen, read b, read (end)
+    assert log == ["open", "wait", "done", "wait", "done", "backoff", "open",
+                   "wait", "done", "wait", "done"]

@@ -1,8 +1,12 @@
 """Test harness: a virtual cart on a VirtualClock read back by the drivers' BreathStream.
 
-The reader is a clock participant that is idle while it waits for a line and sleeps its
-reconnection backoff on simulated time, so the session runs at ``max`` speed with the same
-order of events as at speed 1.
+The reader is a clock participant that is idle only while its transport waits for bytes
+(``TransportHooks.waiting``) and sleeps its reconnection backoff on simulated time, so the
+session runs at ``max`` speed with the same order of events as at speed 1. Two things cross a
+thread, which the clock cannot see (virtual_hw/clock.py): pyserial reads and opens the pty in an
+executor thread. Reopening happens while the reader is busy, so time waits for it; and at each
+``disconnect`` the harness holds time until the reader has seen the drop. Without both, a
+descheduled thread lets the cart run on, even to the session's end, before the reader notices.
 """
 
 from __future__ import annotations
@@ -15,7 +19,7 @@ from dataclasses import dataclass, field
 from drivers.cart import Backoff, BreathStream, TransportHooks, UdpOptions, UdpTransport
 from hilbo_core.presets import hip_6d
 from hilbo_core.types import BreathRecord
-from virtual_hw.cart import CartLink, EmittedBreath, LinkKind, VirtualCart
+from virtual_hw.cart import CartFault, CartLink, EmittedBreath, LinkKind, VirtualCart
 from virtual_hw.clock import VirtualClock
 from virtual_hw.faults import FaultSpec
 from virtual_hw.wearer import SimulatedWearer, WearerConfig
@@ -27,6 +31,7 @@ QUIET = WearerConfig(noise_frac=(0.0, 0.0))
 """A wearer without breath-to-breath noise: every breath's watts is the model's m(t)."""
 
 _WALL_TIMEOUT_S = 10.0
+_DROP_POLL_WALL_S = 0.001
 
 
 @dataclass
@@ -79,9 +84,11 @@ async def run_session(
     """
     clock = VirtualClock()
     wearer = wearer if wearer is not None else SimulatedWearer(SPACE, seed)
+    reader = clock.participant("reader")
+    hooks = TransportHooks(sleep=reader.sleep, clock=clock.now, waiting=reader.idle)
     udp: UdpTransport | None = None
     if kind is LinkKind.UDP:
-        udp = UdpTransport(UdpOptions(port=0))
+        udp = UdpTransport(UdpOptions(port=0), hooks)
         await udp.open()
         link = CartLink(kind, port=udp.local_address[1])
     else:
@@ -89,8 +96,6 @@ async def run_session(
     cart = VirtualCart(wearer, clock, link=link, fmt=fmt, faults=faults, end_s=end_s,
                        wait_for_client=True)
     async with cart:
-        reader = clock.participant("reader")
-        hooks = TransportHooks(sleep=reader.sleep, clock=clock.now)
         if udp is not None:
             stream = BreathStream(udp, cart.client_config().make_parser())
         else:
@@ -103,13 +108,23 @@ async def run_session(
             with reader:
                 async with stream:
                     while True:
-                        with reader.idle():
-                            record = await anext(stream)
+                        record = await anext(stream)
                         session.records.append(record)
                         session.received_s.append(clock.now())
                         progress.set()
 
+        async def hold_until_each_drop_is_seen() -> None:
+            starts = sorted(s.start_s for s in cart.faults.specs
+                            if s.kind == CartFault.DISCONNECT and s.start_s < end_s)
+            with clock.participant("drop-watch") as me:
+                for seen, t0 in enumerate(starts, start=1):
+                    await me.sleep_until(t0)  # woken busy at the cart's link-down tick
+                    while stream.transport.drops < seen and not tasks[0].done():
+                        await asyncio.sleep(_DROP_POLL_WALL_S)
+
         tasks = [asyncio.create_task(read(), name="reader")]
+        if udp is None:
+            tasks.append(asyncio.create_task(hold_until_each_drop_is_seen(), name="drop-watch"))
         if during is not None:
             tasks.append(asyncio.create_task(during(cart, clock), name="during"))
         try:

@@ -1,0 +1,59 @@
+"""The serial reader's threads, descheduled: the harness keeps the order of events of speed 1.
+
+pyserial reads and opens the pty in executor threads, which the VirtualClock cannot see. On a
+busy PC such a thread can be late by hundreds of ms, while the cart at ``max`` speed simulates
+minutes in that time. These tests make the threads late on purpose (a wall delay in the thread,
+the fault being injected) and check that the reader still sees the drop when it happens and
+reconnects before the session ends.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+import pytest
+from vcart_harness import run_session
+
+from drivers.cart import serial_port
+from virtual_hw.cart import LinkKind
+
+_LATE_S = 0.3  # a descheduled thread on a loaded 2-core PC (seen: stalls of 100-225 ms)
+
+
+def _late(fn: Callable[..., Any], *, on_error_only: bool) -> Callable[..., Any]:
+    def slow(*args: Any, **kwargs: Any) -> Any:
+        try:
+            result = fn(*args, **kwargs)
+        except OSError:
+            time.sleep(_LATE_S)
+            raise
+        if not on_error_only:
+            time.sleep(_LATE_S)
+        return result
+
+    return slow
+
+
+async def test_a_drop_seen_late_by_the_read_thread_still_happens_at_the_disconnect(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(serial_port, "_read_available",
+                        _late(serial_port._read_available, on_error_only=True))
+    session = await run_session(LinkKind.SERIAL, faults=["disconnect@60+10"], end_s=150.0, seed=7)
+    assert session.stream.transport.drops == 1 and session.stream.reconnects == 1
+    # The link came back at 70 s: every breath from a few backoff seconds after it arrived.
+    assert min(r.t_s for r in session.records if r.t_s > 60.0) < 75.0
+    assert session.stream.validator.missing_seq == session.undelivered_seqs()
+
+
+async def test_a_slow_reopen_still_reconnects_before_the_session_ends(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(serial_port.SerialTransport, "_open_blocking",
+                        _late(serial_port.SerialTransport._open_blocking, on_error_only=False))
+    session = await run_session(LinkKind.SERIAL, faults=["disconnect@60+10"], end_s=150.0, seed=7)
+    assert session.stream.transport.drops == 1 and session.stream.reconnects == 1
+    assert min(r.t_s for r in session.records if r.t_s > 60.0) < 75.0
+    assert session.stream.validator.missing_seq == session.undelivered_seqs()
