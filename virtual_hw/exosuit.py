@@ -1361,7 +1361,8 @@ class AppliedProfileListener:
     the device does, :func:`split_table`); when no actuator assists any more, it calls
     ``on_applied((), t_s)``. ``t_s`` is the listener's simulated clock, moved back to the gait
     boundary the device's reported gait phase implies (never before the previous status frame, so
-    it errs late by at most one status period).
+    it errs late by at most one status period, plus however late this process handles the frame
+    on a busy PC).
 
     The endpoint must be the listener's own node (the virtual cart's process has one): a CAN
     node does not receive the frames it sends itself, so an endpoint that also pushes the

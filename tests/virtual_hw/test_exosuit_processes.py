@@ -182,7 +182,10 @@ async def test_push_is_acked_and_applied_bit_for_bit_and_a_corrupted_one_never_i
     # ...at about the gait boundary where the device switched (it backdates by the gait phase)
     ((version, t_switched),) = applied
     assert version == 41
-    assert abs(t_heard - t_switched) < 0.3
+    # Late by at most a status period plus this process's scheduling delay, which inside
+    # user-mode Linux beside a CPU burner reached 0.23 s of wall time (0.46 s at SPEED 2);
+    # without the backdating it would be late by up to a whole stride.
+    assert -0.05 < t_heard - t_switched < 0.8
     assert (stats["acks"], stats["nack_bad_crc"], stats["switches"]) == (1, 1, 2)
 
 
