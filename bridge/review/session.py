@@ -398,7 +398,7 @@ class Session:
     def threshold_floor(self) -> float | None:
         """The floor the sound stopping rule put under Algorithm 2's thresholds (σ), or None
         when the session's rule used the raw thresholds."""
-        if str(self.optimizer_config.get("stopping", "sound")) != "sound":
+        if str(self.optimizer_config.get("stopping", "sound")) not in ("sound", "sound-floor"):
             return None
         floor = _f(self.optimizer_config.get("a_floor"))
         return 1.0 if floor is None else floor
