@@ -113,3 +113,48 @@ def test_the_early_decision_bound_of_the_boundary() -> None:
     one_look = 1.0 - norm.cdf(1.0)
     assert one_look < sequential <= 2.0 * one_look
     assert constant > 2.0 * one_look + 0.1
+
+
+# ---------------------------------------------------------------- in the optimizer
+def _session_steps(**kw) -> list:
+    """A short session on a quadratic landscape with breath noise, a breath every 3 s: every
+    optimisation-phase (t_s, BreathStep) that carries a decision."""
+    from hilbo_core.metabolic import GaussianProductEstimator
+    from hilbo_core.optimizer import HILOptimizer
+    from hilbo_core.presets import hip_6d
+
+    space = hip_6d()
+    opt_u = np.array([0.2, 0.5, 0.7, 0.6, 0.5, 0.5])
+    opt = HILOptimizer(space, n_explore=4, max_breaths=40, window=1, budget_breaths=300, seed=3,
+                       n_candidates=256,
+                       estimator_factory=lambda: GaussianProductEstimator(400.0, 100.0**2, 40.0**2), **kw)
+    rng = np.random.default_rng(4)
+    steps = []
+    while not opt.done:
+        params = opt.ask()
+        true = 300.0 + 400.0 * float(np.sum((space.to_unit(space.from_dict(params)) - opt_u) ** 2))
+        t = 0.0
+        while True:
+            t += 3.0
+            step = opt.observe_breath(t, true + rng.normal(0.0, 40.0))
+            if step.decision is not None:
+                steps.append((t, step))
+            if step.stop:
+                break
+    return steps
+
+
+def test_the_default_session_decides_from_30_s_on_the_sequential_boundary() -> None:
+    steps = _session_steps()  # the defaults: 30 s, boundary 60 s, 1 σ / 2 σ
+    early = [(t, s) for t, s in steps if s.stop and s.evaluation.reason in ("threshold", "decided")]
+    assert early, "no early decision on a landscape with clearly bad settings"
+    assert min(t for t, _ in early) < 60.0  # the old fixed clock would not have decided yet
+    for t, s in early:
+        assert t >= 30.0
+        factor = math.sqrt(max(1.0, 60.0 / t))
+        if s.evaluation.reason == "threshold":
+            assert s.decision.z > s.decision.threshold >= 1.0 * factor - 1e-12
+        else:
+            assert s.decision.z < -2.0 * factor
+    floor = _session_steps(stopping="sound-floor")
+    assert all(t >= 60.0 for t, s in floor if s.stop and s.evaluation.reason in ("threshold", "decided"))
