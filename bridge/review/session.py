@@ -404,6 +404,15 @@ class Session:
         return 1.0 if floor is None else floor
 
     @property
+    def boundary_s(self) -> float | None:
+        """Seconds in a setting before which the sound rule's thresholds were higher than the
+        floored schedule (its sequential boundary, ``stopping = "sound"`` from log format 5), or
+        None (the fixed-clock rules, and every log before format 5)."""
+        if str(self.optimizer_config.get("stopping", "sound")) != "sound":
+            return None
+        return _f(self.optimizer_config.get("boundary_s"))
+
+    @property
     def n_early_stops(self) -> int:
         """Evaluations stopped early."""
         return sum(e.stopped_early for e in self.evaluations)
