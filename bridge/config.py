@@ -75,7 +75,13 @@ from drivers.exosuit.rating import RATED_FORCE_N
 from drivers.files import read_regular_file
 from hilbo_core.errors import ConfigError, InfeasibleError
 from hilbo_core.gp import KernelKind
-from hilbo_core.optimizer import DEFAULT_ACCEPT_Z, OptimizerConfig, PriorObservation, StoppingKind
+from hilbo_core.optimizer import (
+    DEFAULT_ACCEPT_Z,
+    FLOOR_ACCEPT_Z,
+    OptimizerConfig,
+    PriorObservation,
+    StoppingKind,
+)
 from hilbo_core.presets import PRESETS
 from hilbo_core.priors import (
     DEFAULT_PRIOR_NOISE,
@@ -308,15 +314,22 @@ class ProtocolConfig(msgspec.Struct, **_STRUCT):
             has"), or None (default: the session ends with the optimisation budget).
             With it, the session ends at the first breath past ``session_min`` or when the
             budget is spent, whichever comes first.
-        stopping: ``sound`` (default: the σ-scaled rule with a time and a threshold floor and
-            the GP-posterior incumbent), ``adaptive`` (Algorithm 2 + Kim et al. 2019's
-            σ-scaled rule) or ``fixed`` (always N breaths).
-        min_decision_s: The sound rule's seconds in a setting before any stop decision, 0–600.
+        stopping: ``sound`` (default: the σ-scaled rule with a threshold floor, sequential
+            reject and accept boundaries that are strict early and relax until ``boundary_s``,
+            and the GP-posterior incumbent), ``sound-floor`` (the same on a fixed clock: no
+            decision before 60 s, then constant thresholds; the earlier default), ``adaptive``
+            (Algorithm 2 + Kim et al. 2019's σ-scaled rule) or ``fixed`` (always N breaths).
+        min_decision_s: The sound rule's seconds in a setting before any stop decision, 0–600;
+            absent: the rule's (``sound`` 30, ``sound-floor`` 60).
+        boundary_s: ``sound``'s seconds in a setting at which its boundaries reach their late
+            levels ``a_floor`` and ``accept_z`` (before it they are sqrt(boundary_s / t) times
+            higher), 1–600 (default 60).
         a_floor: The sound rule's threshold floor in σ, 0–10.
         accept_stop: The sound rule's accept stop: end a setting already ``accept_z`` σ better
             than the incumbent (default on; off: every candidate that is not rejected walks N
             breaths).
-        accept_z: Its margin in σ, 0–10 (default 3).
+        accept_z: Its margin in σ, 0–10; absent: the rule's (``sound`` 2, reached at
+            ``boundary_s``; ``sound-floor`` 3).
         design: The exploration bout's settings: ``sobol`` (the centre, then scrambled Sobol
             points) or ``maximin`` (the centre, then points at the boundary); absent:
             ``sobol`` with the sound rule, ``maximin`` with Kim et al. 2019's rules
@@ -368,10 +381,11 @@ class ProtocolConfig(msgspec.Struct, **_STRUCT):
     budget_breaths: Annotated[int, Meta(ge=1, le=100_000)] | None = SessionProtocolConfig.budget_breaths
     session_min: Annotated[float, Meta(gt=0.0, le=1440.0)] | None = None
     stopping: StoppingKind = OptimizerConfig.stopping
-    min_decision_s: Annotated[float, Meta(ge=0.0, le=600.0)] = OptimizerConfig.min_decision_s
+    min_decision_s: Annotated[float, Meta(ge=0.0, le=600.0)] | None = None
+    boundary_s: Annotated[float, Meta(ge=1.0, le=600.0)] = OptimizerConfig.boundary_s
     a_floor: Annotated[float, Meta(ge=0.0, le=10.0)] = OptimizerConfig.a_floor
     accept_stop: bool = OptimizerConfig.accept_z is not None
-    accept_z: Annotated[float, Meta(ge=0.0, le=10.0)] = DEFAULT_ACCEPT_Z
+    accept_z: Annotated[float, Meta(ge=0.0, le=10.0)] | None = None
     design: DesignKind | None = OptimizerConfig.design
     seed: Annotated[int, Meta(ge=0, le=2**63 - 1)] = OptimizerConfig.seed
     xi: Annotated[float, Meta(ge=-1e6, le=1e6)] = OptimizerConfig.xi
@@ -399,7 +413,7 @@ class ProtocolConfig(msgspec.Struct, **_STRUCT):
         with the seed's rules (so ``adaptive`` and ``fixed`` stay the methods they were)."""
         if self.protocol is not None:
             return self.protocol
-        return ProtocolKind.FAST if self.stopping is StoppingKind.SOUND else ProtocolKind.SEED
+        return ProtocolKind.FAST if self.stopping.is_sound else ProtocolKind.SEED
 
     @property
     def explore_points(self) -> int:
@@ -414,6 +428,16 @@ class ProtocolConfig(msgspec.Struct, **_STRUCT):
         if self.pause_between_bouts is not None:
             return self.pause_between_bouts
         return bool(protocol_preset(self.protocol_kind)[0]["pause_between_bouts"])
+
+    @property
+    def accept_margin_z(self) -> float | None:
+        """The accept stop's margin in σ: ``accept_z``, else the rule's; None with
+        ``accept_stop`` off."""
+        if not self.accept_stop:
+            return None
+        if self.accept_z is not None:
+            return self.accept_z
+        return FLOOR_ACCEPT_Z if self.stopping is StoppingKind.SOUND_FLOOR else DEFAULT_ACCEPT_Z
 
     @property
     def budget_s(self) -> float | None:
@@ -450,8 +474,8 @@ class ProtocolConfig(msgspec.Struct, **_STRUCT):
             **named, max_breaths=self.max_breaths, window=self.window,
             budget_s=self.budget_s if with_budget else None,
             budget_breaths=self.budget_breaths if with_budget else None, stopping=self.stopping,
-            min_decision_s=self.min_decision_s, a_floor=self.a_floor,
-            accept_z=self.accept_z if self.accept_stop else None, design=self.design,
+            min_decision_s=self.min_decision_s, boundary_s=self.boundary_s, a_floor=self.a_floor,
+            accept_z=self.accept_margin_z, design=self.design,
             seed=self.seed, xi=self.xi, kernel=self.kernel, n_candidates=self.n_candidates,
             n_local=self.n_local, refit_lag=1 if self.refit is RefitMode.AHEAD else 0,
         )
@@ -1256,10 +1280,15 @@ def _expected_end_text(pr: ProtocolConfig) -> str:
 
 def _sound_text(pr: ProtocolConfig) -> str:
     """The sound rule's constants for the summary ("" for Kim et al. 2019's rules)."""
-    if pr.stopping is not StoppingKind.SOUND:
+    if not pr.stopping.is_sound:
         return ""
-    accept = f"accept at {pr.accept_z:g} σ" if pr.accept_stop else "no accept stop"
-    return f"; no decision before {pr.min_decision_s:g} s, reject above {pr.a_floor:g} σ at least, {accept}"
+    opt = pr.optimizer_config(with_budget=False)
+    z = pr.accept_margin_z
+    accept = "no accept stop" if z is None else f"accept at {z:g} σ"
+    if pr.stopping is StoppingKind.SOUND:
+        return (f"; no decision before {opt.min_decision_s:g} s, sequential boundaries until "
+                f"{opt.boundary_s:g} s, then reject above {opt.a_floor:g} σ at least, {accept}")
+    return f"; no decision before {opt.min_decision_s:g} s, reject above {opt.a_floor:g} σ at least, {accept}"
 
 
 def summarize(cfg: HilboConfig) -> str:

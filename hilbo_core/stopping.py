@@ -6,9 +6,11 @@ After every measurement i of a setting x_t the optimizer compares the estimate
 after the N-th measurement. :func:`threshold_schedule` computes the schedule A from the
 exploration traces (Algorithm 2); :class:`SigmaScaledRule` applies it (Algorithm 1, lines 13–20);
 :class:`FixedIntervalRule` never stops early (the fixed-interval baseline). :class:`SoundRule`
-(the optimizer's default) is the σ-scaled rule made safe: no decision before
+(the optimizer's rule) is the σ-scaled rule made safe: no decision before
 ``min_decision_s`` in the setting, and a threshold floored at ``a_floor`` ≥ 0, so a candidate that
-looks at least as good as the incumbent is never stopped.
+looks at least as good as the incumbent is never stopped; with ``boundary_s`` (the optimizer's
+default) its reject and accept boundaries are sequential ones, strict early and relaxing to their
+late levels as the evidence grows (O'Brien–Fleming-shaped), instead of a fixed clock.
 
 Indices are 0-based: ``A[i]`` belongs to the (i+1)-th measurement, and ``i == N−1`` is the last.
 """
@@ -286,54 +288,87 @@ class FixedIntervalRule:
 
 
 class SoundRule:
-    """The σ-scaled rule with a time floor and a threshold floor.
+    """The σ-scaled rule with a time floor, a threshold floor and, optionally, a sequential boundary.
 
     After measurement i at ``t_s`` seconds into the setting, with ``μ = mean − best_mean`` and
     ``σ² = var + best_var``: no decision while ``t_s < min_decision_s``; after that, stop with
-    THRESHOLD if ``μ > max(A_i, a_floor)·σ``; MAX_MEASUREMENTS at ``i == N−1``. Why the floors:
+    THRESHOLD if ``μ > max(A_i, a_floor·s(t))·σ``; MAX_MEASUREMENTS at ``i == N−1``. Without
+    ``boundary_s`` the scale is ``s(t) = 1`` (a fixed clock: the floor rule); with it,
+    ``s(t) = sqrt(max(1, boundary_s / t))`` (the sequential boundary, below). Why the floors:
 
     * **Time.** The first breaths of a setting are dominated by the previous setting: with the
-      first-order response of τ (median 42 s between people, 30–60 s; Selinger & Donelan 2014)
-      the previous level still makes up e^{−t/τ} of the signal, 49 % at 30 s and 24 %
-      at 60 s. On held-out real transitions (24 people) the first-order fit's error was 28.9 % (30 s)
-      vs 11.9 % (60 s). The default 60 s ≈ 1.5·τ_median is where the estimate's error first
-      comes close to the breath-noise floor; it also makes "≤ 5 % of evaluations end within
-      30 s" hold by construction (only budget ends can).
+      first-order response of τ (the estimator's prior: median 25 s, 95 % in 11–55 s, Poole &
+      Jones 2012, Compr Physiol 2:933; ≈ 42 s for the whole metabolic response to a walking
+      step, Selinger & Donelan 2014, J Appl Physiol 117:1406) the previous level still makes up
+      e^{−t/τ} of the signal: 30 % at 30 s for τ = 25 s, 49 % for τ = 42 s. Before ~30 s the
+      breaths say more about where the body came from than where it is going, so no σ can make
+      a decision there trustworthy: ``min_decision_s`` is a hard floor (60 s for the floor rule,
+      ≈ 1.5 τ at 42 s; 30 s with the sequential boundary, which guards 30–60 s itself). It also
+      makes "≤ 5 % of evaluations end within 30 s" hold by construction (only budget ends can).
     * **Threshold.** Algorithm 2's A_i can be negative (its median at breath 1 was measured
       at −0.29), which stops candidates that look *better* than the incumbent. With a floor
-      ``a_floor ≥ 0`` a stop always needs ``μ > 0`` (and by a margin of ``a_floor``·σ).
+      ``a_floor ≥ 0`` a stop always needs ``μ > 0`` (and by a margin of ``a_floor``·s(t)·σ), so a
+      candidate whose estimate is at or below the incumbent's is never rejected.
+    * **Sequential boundary** (``boundary_s``). The rule tests after every breath; the error of
+      a repeated test accumulates, so early looks need a stricter bound than late ones. The
+      group-sequential answer is a boundary that is constant on the score scale ``z·sqrt(I)``
+      (I: the information so far, as a fraction of the information at which the late level
+      applies): O'Brien & Fleming 1979 (Biometrics 35:549), the shape of Lan & DeMets 1983's
+      (Biometrika 70:659) O'Brien–Fleming-type α-spending; Jennison & Turnbull 2000
+      (*Group Sequential Methods*, ch. 2 and 7). With information growing like the time in
+      the setting, the boundary on z is ``level·sqrt(boundary_s / t)`` until ``boundary_s`` and
+      the late ``level`` after it: 1.41·level at 30 s, 1.15·level at 45 s. For a Brownian score
+      the reflection principle bounds the chance of ever crossing such a boundary before
+      ``boundary_s`` by twice the chance of crossing the late level at one look (2·(1 − Φ(level))
+      at zero true difference), where a constant bound looked at every breath has no such
+      bound. The margin in watts, ``level·s(t)·σ_t``, is wide early twice over: σ_t itself
+      still carries the estimator's transition and model-error terms. After ``boundary_s`` the
+      σ is dominated by terms that persist from breath to breath (the incumbent's error, the
+      steady state's drift), so the late looks are strongly correlated and the constant late
+      level is what the floor rule already used. So a rejection before the old 60 s clock
+      needs a candidate decisively worse, and the decision time follows the evidence.
 
-    Optionally (``accept_z``: off here, 3 σ in :class:`~hilbo_core.optimizer.OptimizerConfig`)
-    the rule also ends an evaluation whose comparison is already decided the other way: after
-    ``min_decision_s``, stop with DECIDED if
-    ``μ < −accept_z·σ`` — the candidate is better than the incumbent by ``accept_z`` standard
-    deviations, so more breaths would rarely change that it beats the incumbent. It is not a
-    rejection: its estimate goes to the GP like any other (with its wider variance).
+    Optionally (``accept_z``; with the sequential boundary it is scaled by ``s(t)`` too) the rule
+    also ends an evaluation whose comparison is already decided the other way: after
+    ``min_decision_s``, stop with DECIDED if ``μ < −accept_z·s(t)·σ`` — the candidate is better
+    than the incumbent by ``accept_z`` standard deviations, so more breaths would rarely change
+    that it beats the incumbent. It is not a rejection: its estimate goes to the GP like any
+    other (with its wider variance).
 
     Args:
         thresholds: A, shape (N,), finite (Algorithm 2's schedule, or a constant).
-        min_decision_s: No threshold decision before this many seconds in the setting (≥ 0).
-        a_floor: Lower bound of every threshold, in σ (finite, ≥ 0).
-        accept_z: Accept-stop margin in σ (finite, ≥ 0), or None (default) for no accept stop.
+        min_decision_s: No decision before this many seconds in the setting (≥ 0).
+        a_floor: Lower bound of every threshold, in σ (finite, ≥ 0): the reject boundary's late
+            level.
+        accept_z: Accept-stop margin in σ (finite, ≥ 0): the accept boundary's late level; or
+            None (default) for no accept stop.
+        boundary_s: Seconds in the setting at which the sequential boundaries reach their late
+            levels (finite, > 0), or None (default) for the floor rule's fixed clock.
 
     Raises:
         ConfigError: Bad thresholds, a negative or non-finite ``min_decision_s``, ``a_floor`` or
-            ``accept_z``.
+            ``accept_z``, or a ``boundary_s`` that is not a finite number > 0.
     """
 
     def __init__(self, thresholds: npt.ArrayLike, *, min_decision_s: float = 60.0,
-                 a_floor: float = 1.0, accept_z: float | None = None) -> None:
+                 a_floor: float = 1.0, accept_z: float | None = None,
+                 boundary_s: float | None = None) -> None:
         base = SigmaScaledRule(thresholds)  # validates the schedule
-        checks = [("min_decision_s", min_decision_s), ("a_floor", a_floor)]
+        checks: list[tuple[str, object, bool]] = [("min_decision_s", min_decision_s, False),
+                                                  ("a_floor", a_floor, False)]
         if accept_z is not None:
-            checks.append(("accept_z", accept_z))
-        for name, value in checks:
+            checks.append(("accept_z", accept_z, False))
+        if boundary_s is not None:
+            checks.append(("boundary_s", boundary_s, True))
+        for name, value, positive in checks:
             if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating) \
-                    or not (math.isfinite(value) and value >= 0.0):
-                raise ConfigError(f"{name}={value!r}; expected a finite number >= 0")
+                    or not (math.isfinite(value) and (value > 0.0 if positive else value >= 0.0)):
+                raise ConfigError(f"{name}={value!r}; expected a finite number {'>' if positive else '>='} 0")
         a = np.maximum(base.thresholds, float(a_floor))
         a.flags.writeable = False
+        self._raw = base.thresholds
         self._thresholds = a
+        self._boundary_s = None if boundary_s is None else float(boundary_s)
         self._min_decision_s = float(min_decision_s)
         self._a_floor = float(a_floor)
         self._accept_z = None if accept_z is None else float(accept_z)
@@ -363,6 +398,18 @@ class SoundRule:
         """The accept-stop margin in σ, or None (no accept stop)."""
         return self._accept_z
 
+    @property
+    def boundary_s(self) -> float | None:
+        """Seconds at which the sequential boundaries reach their late levels, or None."""
+        return self._boundary_s
+
+    def scale(self, t_s: float) -> float:
+        """The boundaries' factor ``s(t) = sqrt(max(1, boundary_s / t))`` at ``t_s`` (1 without
+        ``boundary_s``; +inf at t = 0 with it: no look at time 0 can decide)."""
+        if self._boundary_s is None or t_s >= self._boundary_s:
+            return 1.0
+        return math.inf if t_s <= 0.0 else math.sqrt(self._boundary_s / t_s)
+
     def decide(
         self, i: int, mean: float, var: float, best_mean: float, best_var: float,
         t_s: float | None = None,
@@ -385,13 +432,18 @@ class SoundRule:
         if t_s is None or isinstance(t_s, bool) or not math.isfinite(float(t_s)) or float(t_s) < 0.0:
             raise ConfigError(f"t_s={t_s!r}; the sound rule needs the finite time >= 0 s of the "
                               "measurement since the setting began")
-        a_i = float(self._thresholds[idx])
+        t = float(t_s)
+        k = self.scale(t)
+        # The reject threshold: Algorithm 2's A_i, at least the floor scaled by the boundary
+        # (infinite at t = 0 with a boundary, where 0·inf would be undefined).
+        a_i = math.inf if math.isinf(k) else max(float(self._raw[idx]), self._a_floor * k)
         z = mu / sigma
         if idx == self.n_max - 1:
             return StopDecision(True, StopReason.MAX_MEASUREMENTS, idx, z, a_i)
-        if float(t_s) >= self._min_decision_s and mu > a_i * sigma:
+        if t < self._min_decision_s or math.isinf(k):
+            return StopDecision(False, StopReason.CONTINUE, idx, z, a_i)
+        if mu > a_i * sigma:
             return StopDecision(True, StopReason.THRESHOLD, idx, z, a_i)
-        if float(t_s) >= self._min_decision_s and self._accept_z is not None \
-                and mu < -self._accept_z * sigma:
+        if self._accept_z is not None and mu < -self._accept_z * k * sigma:
             return StopDecision(True, StopReason.DECIDED, idx, z, a_i)
         return StopDecision(False, StopReason.CONTINUE, idx, z, a_i)

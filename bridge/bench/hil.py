@@ -138,6 +138,8 @@ _BO_VARIANTS: dict[str, tuple[str, str, tuple[tuple[str, Any], ...], tuple[tuple
     "sound-explore-sd": ("sound", "fast", (("n_explore", 6), ("explore_rel_sd", 0.04)),
                          (("n_explore", 6),)),
     "sound-nei": ("sound", "fast", (("n_explore", 6), ("ei_best", "posterior")), (("n_explore", 6),)),
+    # the default before the sequential boundaries: no decision before a fixed 60 s, accept at 3 σ
+    "sound-floor": ("sound-floor", "fast", (("accept_z", 3.0),), ()),
 }
 ABLATION_METHODS: tuple[str, ...] = tuple(m for m in _BO_VARIANTS if m.startswith("sound-"))
 """The default's ablations (``--methods sound-seed,...``)."""

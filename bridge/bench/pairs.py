@@ -23,7 +23,10 @@ Rules (replayed by :class:`bridge.bench.tune_sound.SoundReplay`, on Algorithm 2'
 built from up to 6 *other* bouts of the same person, standing in for a session's exploration):
 
 * ``sound`` — :class:`~hilbo_core.stopping.SoundRule` with the optimizer's defaults
-  (``min_decision_s``, ``a_floor``; ``--min-decision-s`` and ``--a-floor`` change them);
+  (``min_decision_s``, ``boundary_s``, ``a_floor``, ``accept_z``; ``--min-decision-s``,
+  ``--boundary-s``, ``--a-floor`` and ``--accept-z`` change them);
+* ``sound-floor`` — the same rule on the fixed clock (the earlier default: no decision before
+  60 s, then ``a_floor`` and an accept stop at 3 σ, no sequential boundary);
 * ``adaptive`` — Kim et al. 2019's rule (their Algorithm 1/2: the same schedule, no floors);
 * ``fixed`` — N breaths every time. Its row also gives the share of truly better candidates
   whose N-breath estimate is above the incumbent's: the measurement's own error, which no rule
@@ -58,7 +61,7 @@ from bridge.bench.traces import BreathTrace, exploration_groups, threshold_sched
 from bridge.bench.tune_sound import SoundReplay
 from hilbo_core.errors import ConfigError, EstimatorError, MeasurementError
 from hilbo_core.metabolic import MetabolicUKF
-from hilbo_core.optimizer import OptimizerConfig
+from hilbo_core.optimizer import FLOOR_ACCEPT_Z, FLOOR_MIN_DECISION_S, OptimizerConfig
 
 __all__ = ["DEFAULT_DIFF_PCT", "GRID_A_FLOOR", "GRID_MIN_DECISION_S", "PairsConfig", "PersonTraces",
            "add_pairs_bench_parser", "measurement_error", "pair_mask", "pair_stats", "person_traces",
@@ -86,6 +89,8 @@ class PairsConfig:
     Attributes:
         n_max: N, breaths of a full evaluation.
         min_decision_s: The sound rule's time floor (s).
+        boundary_s: The sound rule's sequential boundary reaches its late levels here (s), or
+            None for the fixed clock.
         a_floor: The sound rule's threshold floor (σ).
         accept_z: The sound rule's accept-stop margin (σ), or None for none.
         window: Algorithm 2's window W.
@@ -97,7 +102,8 @@ class PairsConfig:
     """
 
     n_max: int = _DEFAULTS.max_breaths
-    min_decision_s: float = _DEFAULTS.min_decision_s
+    min_decision_s: float = float(_DEFAULTS.min_decision_s or 0.0)
+    boundary_s: float | None = _DEFAULTS.boundary_s
     a_floor: float = _DEFAULTS.a_floor
     accept_z: float | None = _DEFAULTS.accept_z
     window: int = 2
@@ -120,6 +126,10 @@ class PairsConfig:
                 continue
             if isinstance(v, bool) or not isinstance(v, int | float) or not (math.isfinite(v) and v >= 0):
                 raise ConfigError(f"{name}={v!r}; expected a finite number >= 0")
+        b = self.boundary_s
+        if b is not None and (isinstance(b, bool) or not isinstance(b, int | float)
+                              or not (math.isfinite(b) and b > 0)):
+            raise ConfigError(f"boundary_s={b!r}; expected a finite number of seconds > 0 or None")
         for name in ("window", "n_explore"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < (0 if name == "window" else 1):
@@ -259,11 +269,11 @@ def _replays(people: Sequence[PersonTraces], config: PairsConfig) -> list[SoundR
 
 
 def _pooled(replays: Sequence[SoundReplay], n_max: int, min_decision_s: float, a_floor: float,
-            accept_z: float | None) -> dict[str, Any]:
+            accept_z: float | None, boundary_s: float | None = None) -> dict[str, Any]:
     """One rule's counts summed over the replays, and the rates of them."""
     c = dict.fromkeys(_COUNTS, 0)
     for replay in replays:
-        st = replay.stats(min_decision_s, a_floor, accept_z=accept_z)
+        st = replay.stats(min_decision_s, a_floor, accept_z=accept_z, boundary_s=boundary_s)
         for key in _COUNTS:
             c[key] += int(st[key])
     n, nb = c["n_pairs"], c["n_better"]
@@ -285,19 +295,26 @@ def _targets(st: dict[str, Any]) -> dict[str, bool]:
 
 
 def pair_stats(people: Sequence[PersonTraces], config: PairsConfig) -> dict[str, dict[str, Any]]:
-    """Pooled stop statistics of ``sound``, ``adaptive`` and ``fixed`` over every person's pairs.
+    """Pooled stop statistics of ``sound``, ``sound-floor``, ``adaptive`` and ``fixed`` over every
+    person's pairs.
 
-    ``fixed`` runs N breaths against every incumbent (no stop); its ``pct_better_above_at_n`` is
-    the measurement's own error. Only ``sound`` carries the ``targets``.
+    ``sound`` has the configuration's constants; ``sound-floor`` is the earlier default (60 s,
+    ``a_floor``, accept at 3 σ, no sequential boundary). ``fixed`` runs N breaths against every
+    incumbent (no stop); its ``pct_better_above_at_n`` is the measurement's own error. The two
+    sound rules carry the ``targets``.
 
     Raises:
         ConfigError: No person has two full-length scored bouts.
     """
     replays = _replays(people, config)
-    out = {"sound": _pooled(replays, config.n_max, config.min_decision_s, config.a_floor, config.accept_z),
+    out = {"sound": _pooled(replays, config.n_max, config.min_decision_s, config.a_floor, config.accept_z,
+                            config.boundary_s),
+           "sound-floor": _pooled(replays, config.n_max, FLOOR_MIN_DECISION_S, config.a_floor,
+                                  FLOOR_ACCEPT_Z),
            "adaptive": _pooled(replays, config.n_max, 0.0, -math.inf, None),
            "fixed": _pooled(replays, config.n_max, math.inf, math.inf, None)}
-    out["sound"]["targets"] = _targets(out["sound"])
+    for rule in ("sound", "sound-floor"):
+        out[rule]["targets"] = _targets(out[rule])
     return out
 
 
@@ -305,13 +322,14 @@ def sound_grid(people: Sequence[PersonTraces], config: PairsConfig) -> list[dict
     """The sound rule's statistics over :data:`GRID_MIN_DECISION_S` × :data:`GRID_A_FLOOR`.
 
     The trade-off the constants make on these data (breaths against wrong rejections), with the
-    configuration's accept stop; each entry says whether it meets the three targets.
+    configuration's accept stop and sequential boundary; each entry says whether it meets the
+    three targets.
     """
     replays = _replays(people, config)
     out = []
     for m in GRID_MIN_DECISION_S:
         for a in GRID_A_FLOOR:
-            st = _pooled(replays, config.n_max, m, a, config.accept_z)
+            st = _pooled(replays, config.n_max, m, a, config.accept_z, config.boundary_s)
             out.append({"min_decision_s": m, "a_floor": a, "mean_breaths": st["mean_breaths"],
                         "pct_rejected_better": st["pct_rejected_better"],
                         "pct_ended_30s": st["pct_ended_30s"], "meets_targets": all(_targets(st).values())})
@@ -359,13 +377,14 @@ def _fmt_accept(z: float | None) -> str:
     return "none" if z is None else f"{z:g}"
 
 
-def _accept_z(text: str) -> float | None:
+def _number_or_none(option: str, text: str, expected: str) -> float | None:
+    """A command-line number, or None for ``none``; ConfigError naming ``option`` otherwise."""
     if text.strip().lower() == "none":
         return None
     try:
         return float(text)
     except ValueError as err:
-        raise ConfigError(f"--accept-z {text!r}; expected a number of σ >= 0 or none") from err
+        raise ConfigError(f"{option} {text!r}; expected {expected} or none") from err
 
 
 def _diff_pct(text: str) -> tuple[float, float]:
@@ -385,10 +404,11 @@ def _cmd_pairs(args: argparse.Namespace) -> int:
     replays = args.replay or []
     transitions = args.transitions or []
     with options():  # the command line's values (exit status 2); the files' are 1
-        accept = _accept_z(args.accept_z)
+        accept = _number_or_none("--accept-z", args.accept_z, "a number of σ >= 0")
+        boundary = _number_or_none("--boundary-s", args.boundary_s, "seconds > 0")
         lo, hi = _diff_pct(args.diff_pct)
         cfg = PairsConfig(n_max=args.n_max, min_decision_s=args.min_decision_s, a_floor=args.a_floor,
-                          accept_z=accept, min_diff_pct=lo, max_diff_pct=hi)
+                          accept_z=accept, boundary_s=boundary, min_diff_pct=lo, max_diff_pct=hi)
         if len(replays) != len(transitions):
             raise ConfigError(f"{len(replays)} --replay and {len(transitions)} --transitions: give one "
                               "--transitions t1,t2,... after each --replay FILE")
@@ -428,12 +448,14 @@ def _cmd_pairs(args: argparse.Namespace) -> int:
 
     who = "1 person" if n_people == 1 else f"{n_people} people"
     console.print(f"hilbo bench pairs: {who}, N = {cfg.n_max}, sound rule "
-                  f"{cfg.min_decision_s:g} s / {cfg.a_floor:g} σ / accept {_fmt_accept(cfg.accept_z)}, "
+                  f"{cfg.min_decision_s:g} s / boundary {_fmt_accept(cfg.boundary_s)} s / "
+                  f"{cfg.a_floor:g} σ / accept {_fmt_accept(cfg.accept_z)}, "
                   f"pairs with true costs {cfg.min_diff_pct:g}-{cfg.max_diff_pct:g} % apart")
     doc = run_pairs_bench(people, cfg, progress)
     doc["command"] = (f"hilbo bench pairs {source} --n-max {cfg.n_max} "
                       f"--diff-pct {cfg.min_diff_pct:g},{cfg.max_diff_pct:g} "
-                      f"--min-decision-s {cfg.min_decision_s:g} --a-floor {cfg.a_floor:g} "
+                      f"--min-decision-s {cfg.min_decision_s:g} --boundary-s {_fmt_accept(cfg.boundary_s)} "
+                      f"--a-floor {cfg.a_floor:g} "
                       f"--accept-z {_fmt_accept(cfg.accept_z)} --out {args.out}")
     doc["machine"] = machine_info()
     out = Path(args.out)
@@ -468,9 +490,10 @@ def _cmd_pairs(args: argparse.Namespace) -> int:
         console.print(f"how hard these pairs are to rank: after {cfg.n_max} breaths the seed UKF puts "
                       f"{err['pct_above_seed_ukf']:.1f} % of truly better candidates above their incumbent, "
                       f"the transition estimator {err['pct_above_transition']:.1f} %")
-    met = doc["rules"]["sound"]["targets"]
-    console.print("targets (sound): " + ", ".join(
-        f"{k} {'met' if v else 'NOT met'}" for k, v in met.items()))
+    for rule in ("sound", "sound-floor"):
+        met = doc["rules"][rule]["targets"]
+        console.print(f"targets ({rule}): " + ", ".join(
+            f"{k} {'met' if v else 'NOT met'}" for k, v in met.items()))
     console.print(str(out / "pairs.json"))
     return 0
 
@@ -511,6 +534,9 @@ def add_pairs_bench_parser(bench_subparsers: Any) -> argparse.ArgumentParser:
                    help=f"N, breaths of a full evaluation ({_DEFAULTS.max_breaths})")
     p.add_argument("--min-decision-s", type=float, default=_DEFAULTS.min_decision_s,
                    help=f"the sound rule's time floor in s ({_DEFAULTS.min_decision_s:g})")
+    p.add_argument("--boundary-s", default=_fmt_accept(_DEFAULTS.boundary_s), metavar="S",
+                   help="the sound rule's sequential boundary reaches its late levels at S s in a setting, "
+                        f"or none for the fixed clock ({_fmt_accept(_DEFAULTS.boundary_s)})")
     p.add_argument("--a-floor", type=float, default=_DEFAULTS.a_floor,
                    help=f"the sound rule's threshold floor in σ ({_DEFAULTS.a_floor:g})")
     p.add_argument("--accept-z", default=_fmt_accept(_DEFAULTS.accept_z), metavar="Z",

@@ -129,32 +129,41 @@ class SoundReplay:
         if self.pairs.shape != (n, n):
             raise ConfigError(f"pairs has shape {self.pairs.shape}; expected ({n}, {n})")
 
-    def outcomes(self, j: int, min_decision_s: float, a_floor: float, accept_z: float | None = None
-                 ) -> tuple[np.ndarray, np.ndarray]:
+    def outcomes(self, j: int, min_decision_s: float, a_floor: float, accept_z: float | None = None,
+                 boundary_s: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Trajectory j against every incumbent k: (breaths used, N if never stopped; whether
         the stop was a rejection by the threshold), both shape (n,).
 
         With ``accept_z`` the rule also ends an evaluation the other way once μ < −accept_z·σ
-        (:class:`~hilbo_core.stopping.SoundRule`'s DECIDED stop; not a rejection).
+        (:class:`~hilbo_core.stopping.SoundRule`'s DECIDED stop; not a rejection). With
+        ``boundary_s`` both margins are scaled by SoundRule's sequential factor
+        sqrt(max(1, boundary_s / t)).
         """
-        a = np.maximum(self.schedules[j], a_floor)[None, :-1]
+        t = self.times[j][None, :-1]
+        late = t >= min_decision_s
+        scale = np.ones_like(t)
+        if boundary_s is not None:
+            with np.errstate(divide="ignore"):
+                scale = np.sqrt(np.maximum(1.0, boundary_s / t))
+            late &= np.isfinite(scale)
+        floor = a_floor * scale if math.isfinite(a_floor) else np.full_like(t, a_floor)
+        a = np.maximum(self.schedules[j][None, :-1], floor)
         mu = self.means[j][None, :-1] - self.means[:, -1][:, None]
         sigma = np.sqrt(self.vars[j][None, :-1] + self.vars[:, -1][:, None])
-        late = self.times[j][None, :-1] >= min_decision_s
         reject = (mu > a * sigma) & late
-        hit = (reject | ((mu < -accept_z * sigma) & late)) if accept_z is not None else reject
+        hit = (reject | ((mu < -accept_z * scale * sigma) & late)) if accept_z is not None else reject
         stopped = hit.any(axis=1)
         first = np.where(stopped, hit.argmax(axis=1) + 1, self.N)
         rejected = stopped & reject[np.arange(self.n), np.where(stopped, first - 1, 0)]
         return first, rejected
 
-    def steps(self, j: int, min_decision_s: float, a_floor: float, accept_z: float | None = None
-              ) -> np.ndarray:
+    def steps(self, j: int, min_decision_s: float, a_floor: float, accept_z: float | None = None,
+              boundary_s: float | None = None) -> np.ndarray:
         """Breaths trajectory j uses against every incumbent k (N if never stopped), shape (n,)."""
-        return self.outcomes(j, min_decision_s, a_floor, accept_z)[0]
+        return self.outcomes(j, min_decision_s, a_floor, accept_z, boundary_s)[0]
 
     def stats(self, min_decision_s: float, a_floor: float, js: Sequence[int] | None = None,
-              accept_z: float | None = None) -> dict[str, float]:
+              accept_z: float | None = None, boundary_s: float | None = None) -> dict[str, float]:
         """Pooled replay statistics over the pairs (j, k ≠ j, ``pairs[j, k]``) for j in ``js``
         (default all).
 
@@ -168,7 +177,7 @@ class SoundReplay:
         used, end30, rej, nbetter, above = [], [], 0, 0, 0
         final = self.means[:, -1]
         for j in (range(self.n) if js is None else js):
-            steps, rejected = self.outcomes(j, min_decision_s, a_floor, accept_z)
+            steps, rejected = self.outcomes(j, min_decision_s, a_floor, accept_z, boundary_s)
             keep = self.pairs[j].copy()
             keep[j] = False
             s = steps[keep]

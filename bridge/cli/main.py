@@ -215,8 +215,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="simulated wearer: realistic (default; breath noise and outliers as in "
                           "real data, tau 30-60 s, slow adaptation, two landscape families) or "
                           "legacy (the earlier one)")
-    sim.add_argument("--stopping", default="sound", choices=["sound", "adaptive", "fixed"],
-                     help="stopping rule in the optimisation phase: sound (default), adaptive "
+    sim.add_argument("--stopping", default="sound", choices=["sound", "sound-floor", "adaptive", "fixed"],
+                     help="stopping rule in the optimisation phase: sound (default), sound-floor (it "
+                          "on a fixed 60 s clock, the earlier default), adaptive "
                           "(Kim et al. 2019's Algorithm 1/2 with the σ-scaled rule) or fixed (N breaths)")
     sim.add_argument("--engine", default="bridge", choices=["bridge", "core"],
                      help="bridge (default): the whole system over real transports; core: the "

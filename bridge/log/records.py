@@ -57,7 +57,7 @@ __all__ = [
     "json_schema",
 ]
 
-FORMAT_VERSION = 4
+FORMAT_VERSION = 5
 """Version of the log format (channels, their records and schemas).
 
 Stored in ``/config`` and the ``hilbo.session`` metadata. Bump it whenever the writer's output
@@ -76,9 +76,13 @@ otherwise, and a golden file of the new version goes to ``tests/data/logs/v<N>/`
   ``confirm_from``, ``confirm_requested``), the config ``explore_rel_sd`` and ``ei_best``, and loses
   ``remeasure_best_s``; the recommendation may be ``"global"``; evaluations may end with reason
   ``"precise"``; ``/events`` has ``confirmation``. Older states read without a confirmation.
+* 5: the optimizer config gains the sound rule's sequential boundary ``boundary_s`` (s) and the
+  stopping rule may be ``"sound-floor"`` (the fixed-clock rule that ``"sound"`` was up to 4).
+  Older states read with ``boundary_s`` 60 s, which leaves their rule as it was: their
+  ``min_decision_s`` (60 s) is at or past the boundary, where its factor is 1.
 """
 
-READABLE_VERSIONS = frozenset({1, 2, 3, 4})
+READABLE_VERSIONS = frozenset({1, 2, 3, 4, 5})
 """Format versions the readers open."""
 
 METADATA_NAME = "hilbo.session"

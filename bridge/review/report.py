@@ -286,6 +286,9 @@ def _caption(name: str, session: Session) -> str:
     threshold = ("Algorithm 2's A as is" if floor is None
                  else f"max(A_i, {floor:g}), Algorithm 2's A floored by the sound rule; dashed: A "
                       "before the floor")
+    if floor is not None and session.boundary_s is not None:
+        threshold += (f" (the late level: before {session.boundary_s:g} s in a setting the floor was "
+                      f"{floor:g}·sqrt({session.boundary_s:g} s / t), the sequential boundary)")
     return _CAPTIONS[name].format(estimator=session.estimator_label, threshold=threshold)
 
 

@@ -398,10 +398,19 @@ class Session:
     def threshold_floor(self) -> float | None:
         """The floor the sound stopping rule put under Algorithm 2's thresholds (σ), or None
         when the session's rule used the raw thresholds."""
-        if str(self.optimizer_config.get("stopping", "sound")) != "sound":
+        if str(self.optimizer_config.get("stopping", "sound")) not in ("sound", "sound-floor"):
             return None
         floor = _f(self.optimizer_config.get("a_floor"))
         return 1.0 if floor is None else floor
+
+    @property
+    def boundary_s(self) -> float | None:
+        """Seconds in a setting before which the sound rule's thresholds were higher than the
+        floored schedule (its sequential boundary, ``stopping = "sound"`` from log format 5), or
+        None (the fixed-clock rules, and every log before format 5)."""
+        if str(self.optimizer_config.get("stopping", "sound")) != "sound":
+            return None
+        return _f(self.optimizer_config.get("boundary_s"))
 
     @property
     def n_early_stops(self) -> int:

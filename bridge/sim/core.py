@@ -45,8 +45,8 @@ class SimConfig:
         max_breaths: N, the maximum breaths per evaluation.
         window: Algorithm 2's window W.
         warmup_s: Warm-up at the start of each bout, without assistance (seed: 3 min).
-        stopping: ``"sound"`` (the default rule), ``"adaptive"`` (Kim et al. 2019's Algorithm 1/2) or
-            ``"fixed"``.
+        stopping: ``"sound"`` (the default rule), ``"sound-floor"`` (it on a fixed 60 s clock, the
+            earlier default), ``"adaptive"`` (Kim et al. 2019's Algorithm 1/2) or ``"fixed"``.
         refit: ``"at_proposal"`` (GP hyperparameters refitted in every proposal) or ``"ahead"``
             (as the bridge does by default: fitted on the completed evaluations while the next
             setting is measured, ``refit_lag`` 1).
@@ -104,7 +104,7 @@ class SimConfig:
         """``protocol``, else ``fast`` with the sound rule and ``seed`` with the seed's rules."""
         if self.protocol is not None:
             return ProtocolKind(self.protocol)
-        return ProtocolKind.FAST if self.stopping == "sound" else ProtocolKind.SEED
+        return ProtocolKind.FAST if self.stopping in ("sound", "sound-floor") else ProtocolKind.SEED
 
     @property
     def explore_points(self) -> int:

@@ -61,7 +61,8 @@ class VirtualSimConfig:
         seed: The subject (wearer) and the optimizer's seed.
         speed: Real-time factor (None = :data:`MAX_SPEED`).
         preset: Parameter space.
-        stopping: ``sound`` (the default rule), ``adaptive`` (Kim et al. 2019's Algorithm 1/2) or ``fixed``.
+        stopping: ``sound`` (the default rule), ``sound-floor`` (it on a fixed 60 s clock, the earlier
+            default), ``adaptive`` (Kim et al. 2019's Algorithm 1/2) or ``fixed``.
         n_explore, max_breaths, window, warmup_s: The protocol; ``n_explore`` None: the walking
             protocol's (the sound rule walks the fast protocol: 3; the seed's rules Kim et al.
             2019's: 6, with a pause and a second warm-up between the bouts).
@@ -105,8 +106,8 @@ class VirtualSimConfig:
     def budget_min(self) -> float:
         """The optimisation bout's budget: what the minutes leave after the warm-ups and the
         exploration bout (which takes about n_explore·N breaths of ~3 s)."""
-        named_proto, named_opt = protocol_preset(ProtocolKind.FAST if self.stopping == "sound"
-                                                 else ProtocolKind.SEED)
+        sound = self.stopping in ("sound", "sound-floor")
+        named_proto, named_opt = protocol_preset(ProtocolKind.FAST if sound else ProtocolKind.SEED)
         n_explore = self.n_explore if self.n_explore is not None else named_opt["n_explore"]
         explore_s = n_explore * self.max_breaths * _MEAN_BREATH_S
         warm_ups = 2 if named_proto["pause_between_bouts"] or named_proto["warmup_without_pause"] else 1

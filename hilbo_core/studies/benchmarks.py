@@ -78,8 +78,8 @@ _NOISE_STREAM = 0x5EED
 MEASUREMENT_INTERVAL_S = DEFAULT_BREATH_INTERVAL_S
 """Seconds between two measurements of the study: each measurement stands for one breath (the
 seed's N = 45 measurements per evaluation are its 45 breaths), at a walking adult's mean breath
-interval. The estimators of the study ignore time; the sound rule's time floor
-(``min_decision_s``, 60 s) reads it, so here it means 20 measurements."""
+interval. The estimators of the study ignore time; the sound rule's times (``min_decision_s``
+30 s, ``boundary_s`` 60 s) read it, so here they mean 10 and 20 measurements."""
 
 
 # --------------------------------------------------------------------------------------------

@@ -181,15 +181,16 @@ def test_run_on_the_realistic_wearer_reports_every_rule() -> None:
     doc = run_pairs_bench(realistic_people(2, 2, bouts=4, bout_s=170.0), PairsConfig(**ALL_PAIRS))
     assert doc["people"] == 2 and doc["people_with_pairs"] == 2
     assert doc["full_length_bouts"] == 6
-    for rule in ("sound", "adaptive", "fixed"):
+    for rule in ("sound", "sound-floor", "adaptive", "fixed"):
         assert doc["rules"][rule]["n_pairs"] == 12
     assert doc["rules"]["fixed"]["mean_breaths"] == 45.0
-    assert doc["rules"]["sound"]["pct_ended_30s"] == 0.0  # the 60 s time floor
-    # The trade-off grid: every (time floor, threshold floor) pair; the defaults' entry is the
-    # sound row, and a higher floor never rejects more.
+    for rule in ("sound", "sound-floor"):  # the 30 s and 60 s time floors
+        assert doc["rules"][rule]["pct_ended_30s"] == 0.0
+    # The trade-off grid: every (time floor, threshold floor) pair with the sequential boundary;
+    # the defaults' entry is the sound row, and a higher floor never rejects more.
     grid = {(g["min_decision_s"], g["a_floor"]): g for g in doc["grid"]}
     assert len(grid) == len(GRID_MIN_DECISION_S) * len(GRID_A_FLOOR)
-    assert grid[(60.0, 1.0)]["mean_breaths"] == doc["rules"]["sound"]["mean_breaths"]
+    assert grid[(30.0, 1.0)]["mean_breaths"] == doc["rules"]["sound"]["mean_breaths"]
     for m in GRID_MIN_DECISION_S:
         rej = [grid[(m, a)]["pct_rejected_better"] for a in GRID_A_FLOOR]
         assert rej == sorted(rej, reverse=True)

@@ -165,11 +165,17 @@ def test_the_session_protocol_and_its_expected_end_in_the_summary():
     assert "expected end about 45 min of walking after the first breath" in summarize(cfg)
 
 
-def test_the_sound_rules_accept_stop_is_on_at_3_sigma_and_can_be_turned_off():
+def test_the_sound_rules_accept_stop_is_on_at_the_rules_margin_and_can_be_turned_off():
     sound = GOLDEN.replace('stopping = "fixed"', 'stopping = "sound"')
-    assert parse_config(sound).protocol.optimizer_config().accept_z == 3.0
+    opt = parse_config(sound).protocol.optimizer_config()
+    assert (opt.accept_z, opt.min_decision_s, opt.boundary_s) == (2.0, 30.0, 60.0)
     text = summarize(parse_config(sound))
-    assert "no decision before 60 s, reject above 1 σ at least, accept at 3 σ" in text
+    assert "no decision before 30 s, sequential boundaries until 60 s, then reject above 1 σ at least, " \
+        "accept at 2 σ" in text
+    floor = parse_config(GOLDEN.replace('stopping = "fixed"', 'stopping = "sound-floor"'))
+    floor_opt = floor.protocol.optimizer_config()
+    assert (floor_opt.accept_z, floor_opt.min_decision_s) == (3.0, 60.0)
+    assert "no decision before 60 s, reject above 1 σ at least, accept at 3 σ" in summarize(floor)
     off = parse_config(sound.replace("budget_breaths = 500", "budget_breaths = 500\naccept_stop = false"))
     assert off.protocol.optimizer_config().accept_z is None
     assert "no accept stop" in summarize(off)
@@ -177,6 +183,8 @@ def test_the_sound_rules_accept_stop_is_on_at_3_sigma_and_can_be_turned_off():
     assert two.protocol.optimizer_config().accept_z == 2.5
     with pytest.raises(BridgeConfigError, match="accept_z"):
         parse_config(GOLDEN.replace("budget_breaths = 500", "budget_breaths = 500\naccept_z = -1"))
+    with pytest.raises(BridgeConfigError, match="boundary_s"):
+        parse_config(GOLDEN.replace("budget_breaths = 500", "budget_breaths = 500\nboundary_s = 0"))
 
 
 def test_both_budgets_can_be_given():

@@ -76,7 +76,11 @@ def test_the_threshold_plot_draws_the_threshold_the_session_used(paused: Outcome
     raw = next(ln for ln in ax.get_lines() if ln.get_label().startswith("Algorithm 2's A (before"))
     np.testing.assert_allclose(used.get_ydata(), np.maximum(s.thresholds.thresholds, 1.0))
     np.testing.assert_allclose(raw.get_ydata(), s.thresholds.thresholds)
-    assert "max(A_i, 1)" in (result.out_dir / "report.md").read_text()
+    report = (result.out_dir / "report.md").read_text()
+    assert "max(A_i, 1)" in report
+    # The default rule's sequential boundary: the floor is the late level, higher before 60 s.
+    assert s.boundary_s == 60.0
+    assert "before 60 s in a setting the floor was 1·sqrt(60 s / t)" in report
 
 
 def test_best_so_far_and_the_recommendation_are_told_apart(paused: Outcome, tmp_path: Path,

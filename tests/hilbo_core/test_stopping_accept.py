@@ -29,15 +29,19 @@ def test_accept_stop_when_better_by_accept_z_sigma_after_min_decision_s() -> Non
     assert RULE.decide(2, 450.0, 300.0, 400.0, 100.0, t_s=90.0).reason is StopReason.THRESHOLD
 
 
-def test_accept_is_off_in_the_rule_and_on_at_3_sigma_in_the_optimizer() -> None:
+def test_accept_is_off_in_the_rule_and_on_at_2_sigma_in_the_optimizer() -> None:
     rule = SoundRule([0.0] * 5, min_decision_s=0.0, a_floor=0.5)
     assert rule.accept_z is None
     d = rule.decide(1, 100.0, 1.0, 400.0, 1.0, t_s=100.0)
     assert (d.stop, d.reason) == (False, StopReason.CONTINUE)
-    assert OptimizerConfig().accept_z == 3.0
+    assert OptimizerConfig().accept_z == 2.0
     assert OptimizerConfig(accept_z=None).accept_z is None
     opt = HILOptimizer(hip_6d(), n_explore=2, max_breaths=5, budget_breaths=20)
-    assert opt._rule().accept_z == 3.0  # the optimizer's sound rule gets the default
+    rule = opt._rule()  # the optimizer's sound rule gets the defaults, with the sequential boundary
+    assert (rule.accept_z, rule.min_decision_s, rule.boundary_s) == (2.0, 30.0, 60.0)
+    floor = HILOptimizer(hip_6d(), n_explore=2, max_breaths=5, budget_breaths=20,
+                         stopping="sound-floor")._rule()
+    assert (floor.min_decision_s, floor.boundary_s) == (60.0, None)
 
 
 @pytest.mark.parametrize("value", [-0.1, math.nan, math.inf, True])

@@ -112,7 +112,9 @@ def test_time_is_required() -> None:
 def test_sound_is_the_default_with_the_global_posterior_recommendation() -> None:
     cfg = OptimizerConfig()
     assert cfg.stopping is StoppingKind.SOUND and cfg.recommend is RecommendKind.GLOBAL
-    assert cfg.min_decision_s == 60.0 and cfg.a_floor == 1.0
+    assert (cfg.min_decision_s, cfg.boundary_s, cfg.a_floor, cfg.accept_z) == (30.0, 60.0, 1.0, 2.0)
+    floor = OptimizerConfig(stopping="sound-floor")
+    assert floor.min_decision_s == 60.0 and floor.recommend is RecommendKind.GLOBAL
     assert OptimizerConfig(stopping="adaptive").recommend is RecommendKind.SEED
     assert OptimizerConfig.from_json(cfg.to_json()) == cfg
 
@@ -121,6 +123,7 @@ def test_sound_is_the_default_with_the_global_posterior_recommendation() -> None
     ({"a_floor": -1.0}, "a_floor"), ({"min_decision_s": math.inf}, "min_decision_s"),
     ({"recommend": "lowest"}, "recommend"), ({"explore_rel_sd": 0.0}, "explore_rel_sd"),
     ({"recommend_beta": -1.0}, "recommend_beta"), ({"gp_prior_stopping": 1}, "gp_prior_stopping"),
+    ({"boundary_s": 0.0}, "boundary_s"), ({"boundary_s": math.nan}, "boundary_s"),
 ])
 def test_bad_optimizer_options(kw, match) -> None:
     with pytest.raises(ConfigError, match=match):
