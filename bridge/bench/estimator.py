@@ -16,6 +16,8 @@ Estimators:
 
 * ``transition`` — :class:`~hilbo_core.estimation.TransitionEstimator`, the optimizer's default;
   like in the optimizer it starts each setting from the level it ended the previous one at;
+  ``--transition-config KEY=VALUE,...`` sets fields of its
+  :class:`~hilbo_core.estimation.TransitionConfig` (e.g. ``timing_sd_s=10``);
 * ``seed_ukf`` — :class:`~hilbo_core.metabolic.MetabolicUKF` (Kim et al. 2019 §II.C);
 * ``first_order_42`` — the lab's fit: least squares of y = c + (y0 − c)·e^{−t/42 s} in (c, y0),
   sd from the residual variance;
@@ -42,6 +44,7 @@ Data:
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import itertools
 import math
 import time
@@ -56,7 +59,7 @@ from bridge.bench.common import machine_info, markdown_table, round_sig, write_j
 from bridge.sim.devices import WearerKind, make_wearer
 from hilbo_core import brockway_watts
 from hilbo_core.errors import ConfigError, EstimatorError, MeasurementError
-from hilbo_core.estimation import StartState, TransitionEstimator
+from hilbo_core.estimation import StartState, TransitionConfig, TransitionEstimator
 from hilbo_core.metabolic import MetabolicUKF
 from hilbo_core.presets import hip_6d
 
@@ -69,6 +72,7 @@ __all__ = [
     "chained_estimators",
     "comparison_table",
     "evaluate",
+    "parse_transition_config",
     "parse_transitions",
     "realistic_people",
     "replay_people",
@@ -374,14 +378,16 @@ def read_events(path: str | Path) -> tuple[list[float], list[str]]:
         raise ConfigError(f"--events {path}: a t_s that is not a number: {err}") from err
 
 
-def bout_table(people: Sequence[list[Bout]]) -> tuple[list[dict[str, Any]], str]:
+def bout_table(people: Sequence[list[Bout]], config: TransitionConfig | None = None,
+               ) -> tuple[list[dict[str, Any]], str]:
     """Which bouts are scored and their truth: (JSON rows, Markdown table).
 
-    Also the default estimator's breaths flagged as implausible for the level at each bout's end.
+    Also the transition estimator's (``config``) breaths flagged as implausible for the level at
+    each bout's end.
     """
     rows: list[dict[str, Any]] = []
     for i, person in enumerate(people):
-        for k, (bout, est) in enumerate(chained_estimators(person)):
+        for k, (bout, est) in enumerate(chained_estimators(person, config)):
             for t, w in zip(bout.t_s, bout.watts, strict=True):
                 try:
                     est.update(float(t), float(w))
@@ -446,20 +452,52 @@ def _ls_full(t: np.ndarray, y: np.ndarray) -> tuple[float, float]:
     return float(c), math.sqrt(max(float(cov[0, 0]), 0.0))
 
 
-def chained_estimators(person: Sequence[Bout]) -> Iterator[tuple[Bout, TransitionEstimator]]:
-    """For each non-empty bout of a person, a :class:`TransitionEstimator` started where the
-    previous bout left the body, as the optimizer chains them; the caller feeds it the bout's
-    breaths before asking for the next one. Every bout (scored or not) moves the chain on."""
+def chained_estimators(person: Sequence[Bout], config: TransitionConfig | None = None,
+                       ) -> Iterator[tuple[Bout, TransitionEstimator]]:
+    """For each non-empty bout of a person, a :class:`TransitionEstimator` (``config``, the
+    default when None) started where the previous bout left the body, as the optimizer chains
+    them; the caller feeds it the bout's breaths before asking for the next one. Every bout
+    (scored or not) moves the chain on."""
     handover: StartState | None = None
     for bout in person:
         if bout.t_s.size == 0:
             continue
-        est = TransitionEstimator()
+        est = TransitionEstimator(config)
         if handover is not None:
             est.start_from_state(handover)
         yield bout, est
         if est.n_updates:
             handover = est.handover()
+
+
+def parse_transition_config(text: str | None) -> TransitionConfig | None:
+    """``--transition-config KEY=VALUE,...``: a :class:`TransitionConfig` (None for none given).
+
+    Values are numbers (``delays_s`` takes ``0;10;20``: delays separated by semicolons).
+
+    Raises:
+        ConfigError: Not KEY=VALUE pairs, an unknown field, or a value the config refuses.
+    """
+    if text is None or not text.strip():
+        return None
+    types = {f.name: f.type for f in dataclasses.fields(TransitionConfig)}
+    known = set(types)
+    kwargs: dict[str, Any] = {}
+    for item in (x.strip() for x in text.split(",") if x.strip()):
+        key, sep, value = item.partition("=")
+        key = key.strip()
+        if not sep or key not in known:
+            raise ConfigError(f"--transition-config {item!r}: expected KEY=VALUE with KEY one of "
+                              f"{sorted(known)}")
+        try:
+            if key == "delays_s":
+                kwargs[key] = tuple(float(v) for v in value.split(";") if v.strip())
+            else:
+                num = float(value)
+                kwargs[key] = int(num) if num.is_integer() and types[key] in ("int", int) else num
+        except ValueError as err:
+            raise ConfigError(f"--transition-config {item!r}: {value!r} is not a number") from err
+    return TransitionConfig(**kwargs)
 
 
 def parse_transitions(text: str) -> list[float]:
@@ -496,15 +534,17 @@ def _at_horizons(est: Any, bout: Bout, horizons: Sequence[float]) -> list[tuple[
 
 def evaluate(people: Iterable[list[Bout]], estimators: Sequence[str] = ESTIMATORS,
              horizons: Sequence[float] = HORIZONS_S,
-             progress: Callable[[int], None] | None = None) -> list[dict[str, Any]]:
+             progress: Callable[[int], None] | None = None,
+             config: TransitionConfig | None = None) -> list[dict[str, Any]]:
     """One row per scored transition, estimator and reached horizon.
 
     Row: ``estimator``, ``horizon_s``, ``step`` ("small"/"large"), ``truth``, ``mean``, ``sd``.
-    A horizon counts only when the bout lasts at least that long.
+    A horizon counts only when the bout lasts at least that long. ``config`` configures the
+    ``transition`` estimator (None: its defaults).
     """
     rows: list[dict[str, Any]] = []
     for i, person in enumerate(people):
-        for bout, est in chained_estimators(person):
+        for bout, est in chained_estimators(person, config):
             trans = _at_horizons(est, bout, horizons)
             if not bout.evaluate:
                 continue
@@ -611,10 +651,14 @@ def comparison_table(summary: Sequence[dict[str, Any]]) -> str:
 
 # ------------------------------------------------------------------------------ command
 def run_estimator_bench(people: Sequence[list[Bout]], estimators: Sequence[str] = ESTIMATORS,
-                        progress: Callable[[int], None] | None = None) -> dict[str, Any]:
-    """Evaluate and summarise; the JSON document without command and machine."""
+                        progress: Callable[[int], None] | None = None,
+                        config: TransitionConfig | None = None) -> dict[str, Any]:
+    """Evaluate and summarise; the JSON document without command and machine.
+
+    ``config`` configures the ``transition`` estimator (None: its defaults).
+    """
     t0 = time.perf_counter()
-    rows = evaluate(people, estimators, HORIZONS_S, progress)
+    rows = evaluate(people, estimators, HORIZONS_S, progress, config)
     summary = summarize(rows, estimators, HORIZONS_S, pooled=_POOLED)
     return {"benchmark": "estimator", "transitions": sum(b.evaluate for p in people for b in p),
             "horizons_s": list(HORIZONS_S), "estimators": list(estimators), "summary": summary,
@@ -649,6 +693,7 @@ def _cmd_estimator(args: argparse.Namespace) -> int:
         if args.transitions is not None:
             trans = parse_transitions(args.transitions)
         score = [x for x in args.score.split(",") if x] if args.score is not None else None
+        config = parse_transition_config(args.transition_config)
     if args.replay is not None:
         cols = args.csv_columns.split(",") if args.csv_columns else None
         labels = None
@@ -672,13 +717,15 @@ def _cmd_estimator(args: argparse.Namespace) -> int:
 
     console.print(f"hilbo bench estimator: {sum(b.evaluate for p in people for b in p)} transitions, "
                   f"estimators {','.join(estimators)}")
-    doc = run_estimator_bench(people, estimators, progress)
-    doc["command"] = f"hilbo bench estimator {source} --estimators {','.join(estimators)} --out {args.out}"
+    doc = run_estimator_bench(people, estimators, progress, config)
+    tc = f" --transition-config {args.transition_config}" if args.transition_config else ""
+    doc["command"] = (f"hilbo bench estimator {source} --estimators {','.join(estimators)}{tc} "
+                      f"--out {args.out}")
     doc["machine"] = machine_info()
     out = Path(args.out)
     if args.replay is not None:
         # Which bouts are scored, and the truth of each with its own uncertainty.
-        doc["bouts"], bouts_md = bout_table(people)
+        doc["bouts"], bouts_md = bout_table(people, config)
         out.mkdir(parents=True, exist_ok=True)
         (out / "estimator_bouts.md").write_text(bouts_md)
         console.print(bouts_md)
@@ -725,6 +772,9 @@ def add_estimator_bench_parser(bench_subparsers: Any) -> argparse.ArgumentParser
                    help="with --replay: the file is a CSV with these header names (s, ml/min)")
     p.add_argument("--estimators", default=None,
                    help=f"comma-separated, from {','.join(ESTIMATORS)} (default all)")
+    p.add_argument("--transition-config", default=None, metavar="KEY=VALUE,...",
+                   help="settings of the transition estimator, fields of TransitionConfig (e.g. "
+                        "timing_sd_s=10,transition_error_rel=0.15; default: its defaults)")
     p.add_argument("--out", default="runs/bench/estimator", help="output directory")
     p.add_argument("--no-progress", action="store_true", help="no progress lines")
     p.set_defaults(func=_cmd_estimator)

@@ -14,6 +14,7 @@ from bridge.bench.estimator import (
     ESTIMATORS,
     HORIZONS_S,
     evaluate,
+    parse_transition_config,
     realistic_people,
     replay_people,
     summarize,
@@ -201,8 +202,28 @@ def test_cli_synthetic_and_replay(tmp_path: Path, capsys: pytest.CaptureFixture[
     (["--n", "0"], "--n 0"),
     (["--wearer", "nobody"], "--wearer 'nobody'"),
     (["--estimators", "kalman"], "kalman"),
+    (["--transition-config", "timing=10"], "timing=10"),
+    (["--transition-config", "timing_sd_s=ten"], "'ten' is not a number"),
+    (["--transition-config", "timing_sd_s=-1"], "timing_sd_s=-1"),
 ])
 def test_cli_bad_input_exits_2(argv: list[str], message: str, tmp_path: Path,
                                capsys: pytest.CaptureFixture[str]) -> None:
     assert bench_main(["estimator", *argv, "--out", str(tmp_path)]) == 2
     assert message in capsys.readouterr().err
+
+
+def test_transition_config_option_sets_the_estimator_it_names(tmp_path: Path) -> None:
+    # The option's fields reach the estimator: integers stay integers, delays are ';'-separated,
+    # and a non-default config gives different estimates from the default on the same bouts.
+    cfg = parse_transition_config("timing_sd_s=10, n_tau=17, delays_s=0;10")
+    assert cfg is not None and cfg.timing_sd_s == 10.0 and cfg.n_tau == 17 and cfg.delays_s == (0.0, 10.0)
+    assert parse_transition_config(None) is None and parse_transition_config(" ") is None
+    people = synthetic_people(2, 4, bout_s=120.0)
+    base = evaluate(people, ("transition",), (60.0,))
+    other = evaluate(people, ("transition",), (60.0,), config=parse_transition_config("timing_sd_s=20"))
+    assert [r["truth"] for r in base] == [r["truth"] for r in other]
+    assert any(abs(a["mean"] - b["mean"]) > 1e-6 * a["mean"] for a, b in zip(base, other, strict=True))
+    out = tmp_path / "tc"
+    assert bench_main(["estimator", "--n", "1", "--seed", "3", "--estimators", "transition",
+                       "--transition-config", "timing_sd_s=10", "--out", str(out)]) == 0
+    assert "--transition-config timing_sd_s=10" in json.loads((out / "estimator.json").read_text())["command"]

@@ -80,10 +80,17 @@ def test_a_fast_real_change_is_not_flagged() -> None:
 
 
 
-def test_a_delayed_step_is_fitted_better_with_the_delay_option() -> None:
-    # A down-step that starts 15 s late (phase I of an off-transition): by 60 s the delays
-    # (0, 10, 20) s miss the steady state by ≈ 14 % on average, the plain exponential by ≈ 22 %.
-    errs: dict[bool, list[float]] = {False: [], True: []}
+def test_a_delayed_step_is_fitted_better_with_the_timing_term_or_the_delay_option() -> None:
+    # A down-step that starts 15 s late (phase I of an off-transition): by 60 s the plain
+    # exponential (the default) misses the steady state by ≈ 22 % on average; with the timing
+    # term, which lets the steep part of the curve weigh less, by ≈ 11 %; with the delays
+    # (0, 10, 20) s by ≈ 14 %.
+    configs = {
+        "plain": TransitionConfig(),
+        "timing": TransitionConfig(timing_sd_s=10.0, transition_error_rel=0.15),
+        "delays": TransitionConfig(delays_s=(0.0, 10.0, 20.0)),
+    }
+    errs: dict[str, list[float]] = {name: [] for name in configs}
     for seed in range(20):
         rng = np.random.default_rng(seed)
         breaths, t = [], float(rng.uniform(0.5, 3.0))
@@ -91,13 +98,31 @@ def test_a_delayed_step_is_fitted_better_with_the_delay_option() -> None:
             m = 1000.0 if t < 15.0 else 350.0 + 650.0 * math.exp(-(t - 15.0) / 30.0)
             breaths.append((t, m * (1.0 + 0.08 * rng.normal())))
             t += float(rng.uniform(2.0, 3.5))
-        for delays in (False, True):
-            est = TransitionEstimator(TransitionConfig(delays_s=(0.0, 10.0, 20.0)) if delays else None)
+        for name, config in configs.items():
+            est = TransitionEstimator(config)
             est.start_from(1000.0, 100.0)
             for ti, w in breaths:
                 est.update(ti, w)
-            errs[delays].append(abs(est.mean - 350.0) / 350.0)
-    assert np.mean(errs[True]) < 0.8 * np.mean(errs[False])
+            errs[name].append(abs(est.mean - 350.0) / 350.0)
+    plain = float(np.mean(errs["plain"]))
+    assert np.mean(errs["timing"]) < 0.6 * plain
+    assert np.mean(errs["delays"]) < 0.8 * plain
+
+
+def test_the_timing_term_leaves_a_plateau_alone() -> None:
+    # On a flat steady state the fitted slope is ≈ 0, so the timing term changes nothing: the
+    # estimate and its variance are those without it (to 0.5 %).
+    rng = np.random.default_rng(5)
+    breaths = [(float(t), 400.0 * (1.0 + 0.1 * rng.normal())) for t in np.arange(2.0, 120.0, 2.5)]
+    out = []
+    for config in (TransitionConfig(timing_sd_s=10.0), TransitionConfig()):
+        est = TransitionEstimator(config)
+        est.start_from(400.0, 100.0)
+        for t, w in breaths:
+            est.update(t, w)
+        out.append((est.mean, est.var))
+    assert out[0][0] == pytest.approx(out[1][0], rel=0.005)
+    assert out[0][1] == pytest.approx(out[1][1], rel=0.005)
 
 
 @pytest.mark.parametrize("delays", [(), (0.0, -1.0), (0.0, 200.0), [0.0, 10.0], (True,)])
