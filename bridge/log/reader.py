@@ -82,8 +82,10 @@ MAX_LOG_BYTES = 2 << 30
 _RECORD_HEADER = struct.Struct("<BQ")
 _KNOWN_OPCODES = frozenset(int(op) for op in Opcode)
 # A record header candidate when resynchronising after damage: a known opcode and a length below
-# 2**40 (its top 3 bytes zero); the full checks follow in _plausible_at.
-_RESYNC = re.compile(rb"[\x01-\x10].{5}\x00\x00\x00", re.DOTALL)
+# 2**40 (its top 3 bytes zero); the full checks follow in _resync. A lookahead, so that
+# candidates may overlap: a false one in the damaged bytes can start up to 8 bytes before the
+# real next header, and a consuming pattern would then step over it.
+_RESYNC = re.compile(rb"(?=[\x01-\x10].{5}\x00\x00\x00)", re.DOTALL)
 _INDEX_OPCODES = frozenset({
     Opcode.MESSAGE_INDEX, Opcode.CHUNK_INDEX, Opcode.ATTACHMENT_INDEX, Opcode.METADATA_INDEX,
     Opcode.STATISTICS, Opcode.SUMMARY_OFFSET, Opcode.DATA_END,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import struct
 from pathlib import Path
 
 import pytest
@@ -206,3 +207,23 @@ def test_another_programs_mcap_is_refused_unless_asked(tmp_path: Path) -> None:
     assert c.channels["/thing"].schema_name == "pkg/Thing" and c.channels["/thing"].message_count == 1
     report = recover(path, tmp_path / "other2.mcap")  # recover works on any MCAP
     assert report.messages == 1 and report.per_topic == {"/thing": 1}
+
+
+def test_damage_found_when_its_last_bytes_look_like_a_record_header(log_file, tmp_path: Path) -> None:
+    """Resynchronising after damage finds the next record even when a false header candidate in
+    the damaged bytes overlaps it (an opcode byte 3 bytes before it, whose length field would
+    end in the real header's zero length bytes)."""
+    path, sizes = log_file
+    data = bytearray(path.read_bytes()[: sizes[6]])
+    chunk = sizes[5]
+    (length,) = struct.unpack_from("<Q", data, chunk + 1)
+    after = chunk + 9 + length  # the chunk's first message index
+    assert data[after] == 0x07 and after < sizes[6]
+    data[chunk + 60] ^= 0xFF
+    data[after - 3] = 0x05  # a known opcode; bytes after+3..after+5 are zero
+    bad = tmp_path / "overlap.mcap"
+    bad.write_bytes(bytes(data))
+    c = read_log(bad)
+    assert len(c.topic(Topic.BREATHS)) == 5
+    [damage] = c.damage
+    assert (damage.start, damage.end) == (chunk, after)
