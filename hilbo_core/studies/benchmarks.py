@@ -54,6 +54,7 @@ __all__ = [
     "MEASUREMENT_INTERVAL_S",
     "METHODS",
     "NOISE_LEVELS",
+    "SOUND_STUDY_FLOOR_S",
     "NoiseEstimate",
     "NoiseModel",
     "StoppingMethod",
@@ -78,8 +79,16 @@ _NOISE_STREAM = 0x5EED
 MEASUREMENT_INTERVAL_S = DEFAULT_BREATH_INTERVAL_S
 """Seconds between two measurements of the study: each measurement stands for one breath (the
 seed's N = 45 measurements per evaluation are its 45 breaths), at a walking adult's mean breath
-interval. The estimators of the study ignore time; the sound rule's time floor
-(``min_decision_s``, 60 s) reads it, so here it means 20 measurements."""
+interval. The estimators of the study ignore time; only a sound rule with a time floor reads it
+(``sound-60s``: the lab's 60 s floor is 20 measurements here)."""
+
+SOUND_STUDY_FLOOR_S = 0.0
+"""The sound rule's time floor (``min_decision_s``) in this study: none. The lab's 60 s is
+1.5 × the median τ of the first-order transition from the previous setting's level
+(:class:`~hilbo_core.stopping.SoundRule`): it waits until that level has faded from the
+breaths. Kim et al. 2019 §III.2's measurements have no transition (every z is f(x) + ε from the
+first one, and the estimate is unbiased after one), so the same rationale gives no floor; the
+threshold floor, the GP-posterior incumbent and the accept stop are the lab's."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -338,8 +347,11 @@ METHODS: Mapping[str, StoppingMethod] = MappingProxyType({
                             MappingProxyType({"stopping": "fixed"})),
     "adaptive": StoppingMethod("adaptive", "BO with Algorithm 2 thresholds and the σ-scaled offset rule",
                                MappingProxyType({"stopping": "adaptive"})),
-    "sound": StoppingMethod("sound", "BO with hilbo's default rule (sound: time and threshold floors, "
-                            "GP-posterior incumbent, accept stop)", MappingProxyType({"stopping": "sound"})),
+    "sound": StoppingMethod("sound", "BO with hilbo's default rule (sound: threshold floor, GP-posterior "
+                            "incumbent, accept stop; no time floor, the study has no transition)",
+                            MappingProxyType({"stopping": "sound", "min_decision_s": SOUND_STUDY_FLOOR_S})),
+    "sound-60s": StoppingMethod("sound-60s", "the sound rule with the lab's 60 s time floor read as 20 "
+                                "breath-long measurements", MappingProxyType({"stopping": "sound"})),
 })
 """The registry of methods ``stopping_trial`` accepts by name; pass a :class:`StoppingMethod`
 object for anything else."""
@@ -513,7 +525,7 @@ def stopping_trial(
         i = 0
         while True:
             i += 1
-            # One breath per measurement (MEASUREMENT_INTERVAL_S): the sound rule's time floor.
+            # One breath per measurement (MEASUREMENT_INTERVAL_S): what a time floor reads.
             step = opt.observe(i * MEASUREMENT_INTERVAL_S, measure(f_true, true_var, rng))
             if step.phase is Phase.OPTIMIZATION:
                 t += 1
