@@ -69,6 +69,7 @@ __all__ = [
     "PeerMethod",
     "StoppingCampaign",
     "StoppingTask",
+    "against_peers",
     "load_trials",
     "peer_trial",
     "run_stopping_task",
@@ -457,7 +458,43 @@ def summarize_stopping(results: Iterable[Mapping[str, Any]], campaign: StoppingC
                     "frac_final_lower": float(np.mean(d_fin < 0)),
                     "frac_final_tied": float(np.mean(d_fin == 0)),
                 })
-    return {"settings": round_sig(settings), "comparisons": round_sig(comparisons)}
+    return {"settings": round_sig(settings), "comparisons": round_sig(comparisons),
+            "against_peers": against_peers(settings)}
+
+
+def against_peers(settings: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """Which hilbo methods end below the better Optuna peer, setting by setting (mean y_T).
+
+    The statistic is the mean over trials of y_T, y at the end of the optimisation phase (t =
+    budget): Kim et al. 2019 §III.2 define y_t by the recommendation x_t, and what a study has
+    at its end is x_T (Fig. 2's curves end there). A setting (function × noise) counts for a
+    method when its mean y_T is strictly below the lower of the peers' mean y_T.
+
+    Args:
+        settings: The ``settings`` of :func:`summarize_stopping`.
+
+    Returns:
+        ``{"settings": [{function, noise, best_peer, best_peer_y_final, below: {method: bool}}],
+        "count": {method: settings below}, "n_settings": settings with a peer}``; empty counts
+        when the campaign ran no peer.
+    """
+    by_setting: dict[tuple[str, float], dict[str, float]] = {}
+    for st in settings:
+        key = (st["function"], float(st["noise"]))
+        by_setting.setdefault(key, {})[st["method"]] = float(st["y_final_mean"])
+    rows: list[dict[str, Any]] = []
+    count: dict[str, int] = {}
+    for (f, noise), ys in by_setting.items():
+        peers = {m: y for m, y in ys.items() if m in PEER_METHODS}
+        if not peers:
+            continue
+        best = min(peers, key=lambda m: peers[m])
+        below = {m: y < peers[best] for m, y in ys.items() if m not in PEER_METHODS}
+        for m, ok in below.items():
+            count[m] = count.get(m, 0) + int(ok)
+        rows.append({"function": f, "noise": noise, "best_peer": best, "best_peer_y_final": peers[best],
+                     "below": below})
+    return {"settings": rows, "count": count, "n_settings": len(rows)}
 
 
 def _pm(mean: Any, se: Any, digits: int = 3) -> str:
@@ -491,6 +528,10 @@ def stopping_table(summary: Mapping[str, Any]) -> str:
         out += "\n" + markdown_table(
             ["function", "σ_z²/σ̃²", "paired difference", "pairs", "Δ y_final (mean ± SE)",
              "Δ mean y_t (mean ± SE)", "trials ending lower"], crow)
+    peers = summary.get("against_peers") or {}
+    if peers.get("n_settings"):
+        prow = [[m, f"{k} of {peers['n_settings']}"] for m, k in peers["count"].items()]
+        out += "\n" + markdown_table(["method", "mean y_T below the better TPE + pruner"], prow)
     return out
 
 

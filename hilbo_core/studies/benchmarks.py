@@ -54,6 +54,7 @@ __all__ = [
     "MEASUREMENT_INTERVAL_S",
     "METHODS",
     "NOISE_LEVELS",
+    "SOUND_STUDY_FLOOR_S",
     "NoiseEstimate",
     "NoiseModel",
     "StoppingMethod",
@@ -78,8 +79,17 @@ _NOISE_STREAM = 0x5EED
 MEASUREMENT_INTERVAL_S = DEFAULT_BREATH_INTERVAL_S
 """Seconds between two measurements of the study: each measurement stands for one breath (the
 seed's N = 45 measurements per evaluation are its 45 breaths), at a walking adult's mean breath
-interval. The estimators of the study ignore time; the sound rule's times (``min_decision_s``
-30 s, ``boundary_s`` 60 s) read it, so here they mean 10 and 20 measurements."""
+interval. The estimators of the study ignore time; the sound rules' times read it: the
+default's ``boundary_s`` 60 s is 20 measurements here, ``sound-60s``'s floor 20 too."""
+
+SOUND_STUDY_FLOOR_S = 0.0
+"""The sound rule's time floor (``min_decision_s``) in this study: none. In the lab the floor
+waits until the previous setting's level has faded from the breaths (the first-order transition,
+:class:`~hilbo_core.stopping.SoundRule`). Kim et al. 2019 §III.2's measurements have no
+transition (every z is f(x) + ε from the first one, and the estimate is unbiased after one), so
+the same rationale gives no floor. The sequential boundary stays (its reason, repeated looks at
+accumulating data, holds here too), as do the threshold floor, the GP-posterior incumbent and the
+accept stop."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -338,8 +348,13 @@ METHODS: Mapping[str, StoppingMethod] = MappingProxyType({
                             MappingProxyType({"stopping": "fixed"})),
     "adaptive": StoppingMethod("adaptive", "BO with Algorithm 2 thresholds and the σ-scaled offset rule",
                                MappingProxyType({"stopping": "adaptive"})),
-    "sound": StoppingMethod("sound", "BO with hilbo's default rule (sound: time and threshold floors, "
-                            "GP-posterior incumbent, accept stop)", MappingProxyType({"stopping": "sound"})),
+    "sound": StoppingMethod("sound", "BO with hilbo's default rule (sound: sequential boundary, threshold "
+                            "floor, GP-posterior incumbent, accept stop; no time floor, the study has "
+                            "no transition)",
+                            MappingProxyType({"stopping": "sound", "min_decision_s": SOUND_STUDY_FLOOR_S})),
+    "sound-60s": StoppingMethod("sound-60s", "the earlier sound rule (sound-floor): the lab's fixed 60 s "
+                                "time floor read as 20 breath-long measurements, accept at 3 σ",
+                                MappingProxyType({"stopping": "sound-floor"})),
 })
 """The registry of methods ``stopping_trial`` accepts by name; pass a :class:`StoppingMethod`
 object for anything else."""
@@ -513,7 +528,7 @@ def stopping_trial(
         i = 0
         while True:
             i += 1
-            # One breath per measurement (MEASUREMENT_INTERVAL_S): the sound rule's time floor.
+            # One breath per measurement (MEASUREMENT_INTERVAL_S): what a time floor reads.
             step = opt.observe(i * MEASUREMENT_INTERVAL_S, measure(f_true, true_var, rng))
             if step.phase is Phase.OPTIMIZATION:
                 t += 1

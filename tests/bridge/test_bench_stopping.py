@@ -13,6 +13,7 @@ from bridge.bench.cli import bench_main
 from bridge.bench.executors import LocalExecutor
 from bridge.bench.stopping import (
     StoppingCampaign,
+    against_peers,
     load_trials,
     run_campaign,
     stopping_table,
@@ -75,6 +76,27 @@ def test_summary_means_and_standard_errors_by_hand() -> None:
     table = stopping_table(s)
     assert "| branin | 1 | fixed | 2 | 0.375 ± 0.125 |" in table
     assert "adaptive − fixed" in table
+
+
+def test_against_peers_counts_settings_below_the_better_peer_by_mean_y_final() -> None:
+    def setting(method: str, function: str, y_final: float) -> dict:
+        return {"method": method, "function": function, "noise": 1.0, "y_final_mean": y_final}
+
+    settings = [setting("sound", "branin", 0.30), setting("adaptive", "branin", 0.50),
+                setting("tpe-wilcoxon", "branin", 0.40), setting("tpe-halving", "branin", 0.45),
+                setting("sound", "levy", 0.20), setting("adaptive", "levy", 0.10),
+                setting("tpe-wilcoxon", "levy", 0.30), setting("tpe-halving", "levy", 0.20),
+                setting("sound", "ackley", 0.10)]  # no peer ran on ackley: not a setting
+    out = against_peers(settings)
+    assert out["n_settings"] == 2 and out["count"] == {"sound": 1, "adaptive": 1}
+    branin, levy = out["settings"]
+    assert branin["best_peer"] == "tpe-wilcoxon" and branin["best_peer_y_final"] == 0.40
+    assert branin["below"] == {"sound": True, "adaptive": False}
+    # A tie with the better peer is not below it.
+    assert levy["best_peer"] == "tpe-halving" and levy["below"] == {"sound": False, "adaptive": True}
+    assert against_peers(settings[-1:]) == {"settings": [], "count": {}, "n_settings": 0}
+    table = stopping_table({"settings": [], "against_peers": out})
+    assert "| sound | 1 of 2 |" in table and "mean y_T below the better TPE + pruner" in table
 
 
 def test_summary_grid_keeps_the_last_measurement() -> None:

@@ -11,11 +11,13 @@ from hypothesis import strategies as st
 
 from hilbo_core.errors import ConfigError
 from hilbo_core.metabolic import GaussianProductEstimator
+from hilbo_core.optimizer import OptimizerConfig
 from hilbo_core.space import DesignKind
 from hilbo_core.studies.benchmarks import (
     FUNCTIONS,
     MEASUREMENT_INTERVAL_S,
     METHODS,
+    SOUND_STUDY_FLOOR_S,
     NoiseEstimate,
     StoppingMethod,
     StoppingProtocol,
@@ -174,7 +176,8 @@ def test_trial_accepts_negative_objectives_and_custom_methods() -> None:
 
 @pytest.mark.parametrize(("kwargs", "match"), [
     ({"function": "rosenbrock"}, "unknown function 'rosenbrock'; choose one of"),
-    ({"method": "bogus"}, r"unknown method 'bogus'; choose one of \['adaptive', 'fixed', 'sound'\]"),
+    ({"method": "bogus"},
+     r"unknown method 'bogus'; choose one of \['adaptive', 'fixed', 'sound', 'sound-60s'\]"),
     ({"noise": 0.0}, "noise=0.0"),
     ({"noise": "loud"}, "noise='loud'"),
     ({"seed": -1}, "seed=-1"),
@@ -235,7 +238,7 @@ def test_methods_may_not_override_the_protocol() -> None:
     bad = StoppingMethod("cheat", "bigger budget", {"budget_breaths": 10_000})
     with pytest.raises(ConfigError, match="may not override protocol option"):
         stopping_trial("branin", 1.0, bad, 0, TOY)
-    assert set(METHODS) == {"fixed", "adaptive", "sound"}
+    assert set(METHODS) == {"fixed", "adaptive", "sound", "sound-60s"}
 
 
 def test_the_study_design_has_no_centre_point_so_x0_is_not_ackleys_optimum() -> None:
@@ -253,13 +256,24 @@ def test_the_study_design_has_no_centre_point_so_x0_is_not_ackleys_optimum() -> 
         "ackley", 0.1, "fixed", 0, proto)["f_x0"]
 
 
-def test_the_default_sound_rule_runs_in_the_study_and_stops_after_its_time_floor() -> None:
-    # One measurement is one breath of MEASUREMENT_INTERVAL_S: the sound rule's 60 s floor is
-    # 20 measurements, so with N = 45 it can stop early (before, its floor exceeded N units).
-    assert MEASUREMENT_INTERVAL_S == 3.0
+def test_the_study_runs_the_lab_sound_rule_without_its_time_floor() -> None:
+    # The lab's rule, only its time floor (the transition the study does not have) is 0; its
+    # sequential boundary (60 s: 20 measurements) stays.
+    lab = OptimizerConfig()
+    assert SOUND_STUDY_FLOOR_S == 0.0 and lab.min_decision_s == 30.0 and lab.boundary_s == 60.0
+    assert dict(METHODS["sound"].options) == {"stopping": "sound", "min_decision_s": 0.0}
+    assert dict(METHODS["sound-60s"].options) == {"stopping": "sound-floor"}
+    assert MEASUREMENT_INTERVAL_S == 3.0  # sound-60s: the 60 s floor is 20 measurements
+
+
+def test_without_the_time_floor_the_sound_rule_measures_more_settings() -> None:
     proto = StoppingProtocol(n_explore=4, max_breaths=45, window=2, budget=450, n_candidates=64,
                              n_local=0)
-    r = stopping_trial("branin", 10.0, "sound", 3, proto)
-    assert r["method"] == "sound" and r["measurements"] == 450
-    assert r["early_stops"] >= 1
-    assert r["evaluations"] > 450 // 45
+    free = stopping_trial("branin", 0.1, "sound", 3, proto)
+    floored = stopping_trial("branin", 0.1, "sound-60s", 3, proto)
+    assert free["measurements"] == floored["measurements"] == 450
+    # With the floor every evaluation but the last takes >= 20 of the 450 measurements.
+    assert floored["early_stops"] >= 1 and floored["evaluations"] <= 450 // 20 + 1
+    # Without it, the same trial measures more settings in the same 450 measurements.
+    assert free["early_stops"] >= floored["early_stops"]
+    assert free["evaluations"] > floored["evaluations"] + 2
