@@ -1,7 +1,8 @@
 """Why a ``sound`` session on the noisy wearer ends above 50 % regret: one line per subject.
 
-Re-runs the default (``sound``) session of each chosen subject exactly as ``hilbo bench hil``
-does (same seed, same wearer, same protocol) and prints, as one JSON line per subject:
+Re-runs the default (``sound``; ``--method``: another BO method of ``hilbo bench hil``) session
+of each chosen subject exactly as ``hilbo bench hil`` does (same seed, same wearer, same
+protocol) and prints, as one JSON line per subject:
 
 * the landscape: ``family``, ``reduction_w`` (unassisted minus optimum), the share of random
   feasible settings below 30 % / 50 % regret (``share_lt30``, ``share_lt50``) and their median
@@ -57,7 +58,7 @@ VARIANTS: dict[str, dict[str, Any]] = {
 N_RANDOM = 1500  # random feasible settings for the landscape's shares and medians
 
 
-def diagnose(seed: int, variant: str) -> dict[str, Any]:
+def diagnose(seed: int, variant: str, method: str = "sound") -> dict[str, Any]:
     """One subject's session and its diagnosis (see the module docstring for the keys)."""
     space = preset(SPACE)
     config = RealisticWearerConfig(**VARIANTS[variant])
@@ -82,7 +83,7 @@ def diagnose(seed: int, variant: str) -> dict[str, Any]:
         recs.append((rec.t_end, opt.best()[0]))
         hyp.append(opt._hyp)  # the last fitted hyperparameters (diagnosis only)
 
-    stopping, protocol, options, protocol_options = _BO_VARIANTS["sound"]
+    stopping, protocol, options, protocol_options = _BO_VARIANTS[method]
     summary = run_insim(SimConfig(minutes=60, seed=seed, preset=SPACE, stopping=stopping,
                                   refit="at_proposal", wearer="noisy", protocol=protocol,
                                   options=options, protocol_options=protocol_options),
@@ -100,7 +101,7 @@ def diagnose(seed: int, variant: str) -> dict[str, Any]:
     rec30 = [p for t, p in recs if t <= 1800.0]
     last = hyp[-1]
     return {
-        "seed": seed, "variant": variant, "family": judge.family.value,
+        "seed": seed, "variant": variant, "method": method, "family": judge.family.value,
         "reduction_w": round(reduction, 1),
         "share_lt30": round(float(np.mean(rand < 30.0)), 3),
         "share_lt50": round(float(np.mean(rand < 50.0)), 3),
@@ -128,9 +129,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("seeds", nargs="+", type=int, help="subject seeds")
     parser.add_argument("--variant", choices=sorted(VARIANTS), default="noisy")
+    parser.add_argument("--method", choices=sorted(_BO_VARIANTS), default="sound",
+                        help="the BO method of hilbo bench hil to re-run (default: sound)")
     args = parser.parse_args()
     for seed in args.seeds:
-        sys.stdout.write(json.dumps(diagnose(seed, args.variant)) + "\n")
+        sys.stdout.write(json.dumps(diagnose(seed, args.variant, args.method)) + "\n")
         sys.stdout.flush()
 
 
