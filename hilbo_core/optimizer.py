@@ -224,6 +224,9 @@ class OptimizerConfig:
             flat (length-scales at their prior), and EI then goes where the posterior SD is
             largest, the boundary of the cube (Eriksson et al. 2019, TuRBO, NeurIPS: a local
             model's region keeps the search where the data are).
+        trust_region_alternate: With ``trust_region``, every other proposal (those after an
+            odd number of evaluations) is over the whole feasible set, so the box cannot trap
+            the search near a mediocre incumbent.
         seed: Seed of the run's random generator.
         xi: EI's ξ (Kim et al. 2019 §II.B sign convention).
         kernel: ``"matern52"`` or ``"se"``.
@@ -269,6 +272,7 @@ class OptimizerConfig:
     ei_best: EIBestKind = EIBestKind.OBSERVED
     drift_hours: float | None = None
     trust_region: float | None = None
+    trust_region_alternate: bool = False
     seed: int = 0
     xi: float = 0.0
     kernel: KernelKind = KernelKind.MATERN52
@@ -339,6 +343,9 @@ class OptimizerConfig:
                 raise ConfigError(
                     f"trust_region={tr!r}; expected a half-width in (0, 1] of the unit cube or None")
             object.__setattr__(self, "trust_region", float(tr))
+        if not isinstance(self.trust_region_alternate, bool):
+            raise ConfigError(
+                f"trust_region_alternate={self.trust_region_alternate!r}; expected true or false")
         try:
             object.__setattr__(self, "kernel", KernelKind(self.kernel))
         except ValueError as err:
@@ -1277,7 +1284,9 @@ class HILOptimizer:
             best_observed = min(e.mean for e in self._evaluations)  # min(S), Kim et al. 2019 §II.B
         A_u, b_u = self.space.unit_constraints()
         n_local = self.config.n_local
-        if self.config.trust_region is None:
+        local = self.config.trust_region is not None and not (
+            self.config.trust_region_alternate and len(self._evaluations) % 2)
+        if not local:
             cand = self.space.sample_unit(self.config.n_candidates, self._rng)
         else:
             cand = self._trust_region_candidates(self.space.to_unit(

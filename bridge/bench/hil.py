@@ -143,6 +143,8 @@ _BO_VARIANTS: dict[str, tuple[str, str, tuple[tuple[str, Any], ...], tuple[tuple
     # EI's candidates in a box of half-width 0.25 / 0.4 (unit cube) around the incumbent
     "sound-tr25": ("sound", "fast", (("trust_region", 0.25),), ()),
     "sound-tr40": ("sound", "fast", (("trust_region", 0.4),), ()),
+    # the same box for every other proposal, the whole feasible set for the others
+    "sound-tr40-alt": ("sound", "fast", (("trust_region", 0.4), ("trust_region_alternate", True)), ()),
 }
 ABLATION_METHODS: tuple[str, ...] = tuple(m for m in _BO_VARIANTS if m.startswith("sound-"))
 """The default's ablations (``--methods sound-seed,...``)."""

@@ -79,3 +79,28 @@ def test_trust_region_candidates_are_feasible_and_in_the_box(seed: int, hw: floa
     assert np.all(cand @ A_u.T <= b_u + 1e-9)
     assert np.all((cand >= 0.0) & (cand <= 1.0))
     assert np.all(np.abs(cand - centre) <= hw + 1e-12)
+
+
+def _told_n(n_extra: int, **options) -> HILOptimizer:
+    """_told's six settings plus ``n_extra`` more at 390 W, with ``options``."""
+    opt = HILOptimizer(SPACE, estimator_factory=_product, n_explore=2, seed=0, n_candidates=256,
+                       **options)
+    rng = np.random.default_rng(0)
+    opt.tell(SPACE.to_dict(SPACE.from_unit(BEST_U)), 300.0, 3.0**2, breaths=45)
+    for u in SPACE.sample_unit(5 + n_extra, rng):
+        opt.tell(SPACE.to_dict(SPACE.from_unit(u)), float(rng.uniform(380.0, 420.0)), 3.0**2, breaths=45)
+    return opt
+
+
+def test_alternating_trust_region_uses_the_box_after_even_counts_and_the_whole_set_after_odd() -> None:
+    # Same state, same generator: after 6 evaluations the alternating optimizer proposes what the
+    # box-only one does, after 7 what the optimizer without a box does.
+    alt = {"trust_region": 0.1, "trust_region_alternate": True}
+    assert _told_n(0, **alt).ask() == _told_n(0, trust_region=0.1).ask()
+    assert _told_n(1, **alt).ask() == _told_n(1).ask()
+    assert _told_n(1, **alt).ask() != _told_n(1, trust_region=0.1).ask()
+
+
+def test_a_bad_trust_region_alternate_is_refused() -> None:
+    with pytest.raises(ConfigError, match="trust_region_alternate"):
+        OptimizerConfig(trust_region=0.4, trust_region_alternate="yes")
