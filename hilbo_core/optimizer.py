@@ -217,6 +217,16 @@ class OptimizerConfig:
             median ``drift_hours`` h (long relative to the session: the cost drifts slowly), and
             predicts every setting (x*, the recommendation, EI) *now*; None (default) ignores
             time. The clock is the optimizer's: breath time of all evaluations so far.
+        trust_region: Half-width (unit cube, in (0, 1]) of a box around the sound rule's
+            incumbent (the evaluated setting of lowest posterior mean) inside which EI's candidates
+            are drawn, without local refinement, so no proposal leaves the box; None (default):
+            the whole feasible set. Under breath noise the GP of a 6-D landscape can stay nearly
+            flat (length-scales at their prior), and EI then goes where the posterior SD is
+            largest, the boundary of the cube (Eriksson et al. 2019, TuRBO, NeurIPS: a local
+            model's region keeps the search where the data are).
+        trust_region_alternate: With ``trust_region``, every other proposal (those after an
+            odd number of evaluations) is over the whole feasible set, so the box cannot trap
+            the search near a mediocre incumbent.
         seed: Seed of the run's random generator.
         xi: EI's ξ (Kim et al. 2019 §II.B sign convention).
         kernel: ``"matern52"`` or ``"se"``.
@@ -261,6 +271,8 @@ class OptimizerConfig:
     explore_rel_sd: float | None = None
     ei_best: EIBestKind = EIBestKind.OBSERVED
     drift_hours: float | None = None
+    trust_region: float | None = None
+    trust_region_alternate: bool = False
     seed: int = 0
     xi: float = 0.0
     kernel: KernelKind = KernelKind.MATERN52
@@ -324,6 +336,16 @@ class OptimizerConfig:
         if h is not None and (isinstance(h, bool) or not isinstance(h, int | float)
                               or not (math.isfinite(h) and h > 0)):
             raise ConfigError(f"drift_hours={h!r}; expected a positive number of hours or None")
+        tr = self.trust_region
+        if tr is not None:
+            if (isinstance(tr, bool) or not isinstance(tr, int | float | np.integer | np.floating)
+                    or not (math.isfinite(tr) and 0.0 < tr <= 1.0)):
+                raise ConfigError(
+                    f"trust_region={tr!r}; expected a half-width in (0, 1] of the unit cube or None")
+            object.__setattr__(self, "trust_region", float(tr))
+        if not isinstance(self.trust_region_alternate, bool):
+            raise ConfigError(
+                f"trust_region_alternate={self.trust_region_alternate!r}; expected true or false")
         try:
             object.__setattr__(self, "kernel", KernelKind(self.kernel))
         except ValueError as err:
@@ -1261,7 +1283,15 @@ class HILOptimizer:
         else:
             best_observed = min(e.mean for e in self._evaluations)  # min(S), Kim et al. 2019 §II.B
         A_u, b_u = self.space.unit_constraints()
-        cand = self.space.sample_unit(self.config.n_candidates, self._rng)
+        n_local = self.config.n_local
+        local = self.config.trust_region is not None and not (
+            self.config.trust_region_alternate and len(self._evaluations) % 2)
+        if not local:
+            cand = self.space.sample_unit(self.config.n_candidates, self._rng)
+        else:
+            cand = self._trust_region_candidates(self.space.to_unit(
+                self.space.from_dict(self._incumbent[0])))
+            n_local = 0  # a refinement could leave the box
         d = self.space.dim
 
         def predict(U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -1272,7 +1302,7 @@ class HILOptimizer:
             return m, v, dm[:, :d], dv[:, :d]  # time is not a decision variable
 
         u, _ = maximize_ei(predict, best_observed, candidates=cand, A_ub=A_u, b_ub=b_u,
-                           rng=self._rng, xi=self.config.xi, n_local=self.config.n_local,
+                           rng=self._rng, xi=self.config.xi, n_local=n_local,
                            predict_grad=predict_grad)
         x = self.space.from_unit(np.clip(u, 0.0, 1.0))
         if not self.space.is_feasible(x):
@@ -1288,6 +1318,28 @@ class HILOptimizer:
             prior = (float(m[0]), float(v[0]) + float(nugget))
         self._pending = (prior, False)
         return x
+
+    def _trust_region_candidates(self, centre: np.ndarray) -> np.ndarray:
+        """Feasible unit-cube points in the box ``centre ± trust_region`` (clipped to the cube):
+        the centre (feasible: an evaluated setting) and up to ``n_candidates - 1`` uniform draws
+        that satisfy the constraints, shape (m, d), 1 <= m <= n_candidates."""
+        hw = float(self.config.trust_region or 1.0)
+        lo, hi = np.clip(centre - hw, 0.0, 1.0), np.clip(centre + hw, 0.0, 1.0)
+        A_u, b_u = self.space.unit_constraints()
+        n = self.config.n_candidates
+        # Four rounds of n draws at most: the box around a feasible point is mostly feasible
+        # unless it sits on a constraint, and fewer candidates only make the search coarser.
+        kept = [centre.reshape(1, -1)]
+        have = 1
+        for _ in range(4):
+            u = lo + self._rng.random((n, centre.size)) * (hi - lo)
+            if len(b_u):
+                u = u[np.all(u @ A_u.T <= b_u + 1e-12, axis=1)]
+            kept.append(u[: n - have])
+            have += len(kept[-1])
+            if have >= n:
+                break
+        return np.concatenate(kept)
 
     # ------------------------------------------------------------------ serialisation
     def to_json(self) -> dict[str, Any]:

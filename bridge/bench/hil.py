@@ -140,6 +140,11 @@ _BO_VARIANTS: dict[str, tuple[str, str, tuple[tuple[str, Any], ...], tuple[tuple
     "sound-nei": ("sound", "fast", (("n_explore", 6), ("ei_best", "posterior")), (("n_explore", 6),)),
     # the default before the sequential boundaries: no decision before a fixed 60 s, accept at 3 σ
     "sound-floor": ("sound-floor", "fast", (("accept_z", 3.0),), ()),
+    # EI's candidates in a box of half-width 0.25 / 0.4 (unit cube) around the incumbent
+    "sound-tr25": ("sound", "fast", (("trust_region", 0.25),), ()),
+    "sound-tr40": ("sound", "fast", (("trust_region", 0.4),), ()),
+    # the same box for every other proposal, the whole feasible set for the others
+    "sound-tr40-alt": ("sound", "fast", (("trust_region", 0.4), ("trust_region_alternate", True)), ()),
 }
 ABLATION_METHODS: tuple[str, ...] = tuple(m for m in _BO_VARIANTS if m.startswith("sound-"))
 """The default's ablations (``--methods sound-seed,...``)."""

@@ -15,7 +15,8 @@ THESIS_METHODS: tuple[str, ...] = ("adaptive-day2", *PRIOR_METHODS, "adaptive-fe
 #: (bridge/bench/hil.py, ``_BO_VARIANTS``); not run by default.
 ABLATION_METHODS: tuple[str, ...] = ("sound-seed", "sound-seed-global", "sound-seed-confirm",
                                      "sound-fast-noconfirm", "sound-e6", "sound-e4",
-                                     "sound-explore-sd", "sound-nei", "sound-floor")
+                                     "sound-explore-sd", "sound-nei", "sound-floor", "sound-tr25",
+                                     "sound-tr40", "sound-tr40-alt")
 HIL_METHODS: tuple[str, ...] = (*DEFAULT_HIL_METHODS, "adaptive-ahead", *THESIS_METHODS,
                                 *ABLATION_METHODS)
 """Every method ``hilbo bench hil --methods`` accepts."""
