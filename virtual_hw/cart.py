@@ -126,9 +126,12 @@ _log = logging.getLogger(__name__)
 
 # A pty client that appears (open(2) clears POLLHUP) is not ready yet: pyserial's open() then
 # configures the port (tcsetattr) and flushes its input queue (tcflush), eating any line written
-# in between. The cart marks a fresh pty with a sentinel speed (B50), waits until the opener has
-# set its own (Linux reports the slave's termios on the master), then this much longer. A reader
-# that configures nothing is written to after _CLOSE_TIMEOUT_S. Lines are delayed, never lost.
+# in between. The cart marks a fresh pty with a sentinel speed (B50) and waits until the opener
+# has set its own (Linux reports the slave's termios on the master); where the master can be put
+# in packet mode (TIOCPKT, Linux) it then waits for the opener's flush itself, which the master
+# reads as a TIOCPKT_FLUSHREAD packet, so a reader descheduled between the two calls loses
+# nothing. Without packet mode, or for a reader that never flushes, it writes _PTY_ATTACH_GRACE_S
+# after the speed changed, or after _CLOSE_TIMEOUT_S. Lines are delayed, never lost.
 _PTY_ATTACH_GRACE_S = 0.02
 _PTY_POLL_S = 0.01  # wall period of "is anyone attached yet?" while waiting for a client
 _PTY_EMPTY_POLLS = 3  # empty looks at the reader's queue, _PTY_POLL_S apart, before a close
@@ -506,6 +509,7 @@ class _PtyEndpoint(_Endpoint):
         self._dir: Path | None = None
         self._master: int | None = None
         self._attached = False
+        self._packet_mode = False
         self.device = ""
 
     @property
@@ -529,6 +533,7 @@ class _PtyEndpoint(_Endpoint):
             os.close(slave)  # nobody holds the slave: POLLHUP on the master until a client opens it
         _set_sentinel_speed(master)
         os.set_blocking(master, False)
+        self._packet_mode = _set_packet_mode(master)
         self._master = master
         self._attached = False
         tmp = self.path.with_suffix(".new")
@@ -553,6 +558,7 @@ class _PtyEndpoint(_Endpoint):
                 self.stats["clients_gone"] += 1
                 if self._master is not None:
                     _set_sentinel_speed(self._master)  # the next opener must configure it again
+                    _take_packets(self._master)  # the gone client's: not the next opener's flush
             self._attached = False
             return 0
         if not self._attached:
@@ -568,7 +574,13 @@ class _PtyEndpoint(_Endpoint):
         deadline = loop.time() + _CLOSE_TIMEOUT_S
         while self._master is not None and _has_sentinel_speed(self._master) and loop.time() < deadline:
             await asyncio.sleep(_PTY_POLL_S / 2)
-        await asyncio.sleep(_PTY_ATTACH_GRACE_S)
+        if not self._packet_mode:
+            await asyncio.sleep(_PTY_ATTACH_GRACE_S)
+            return
+        while self._master is not None and loop.time() < deadline:
+            if _take_packets(self._master) & _TIOCPKT_FLUSHREAD:
+                return
+            await asyncio.sleep(_PTY_POLL_S / 2)
 
     async def _write(self, data: bytes) -> bool:
         view = memoryview(data)
@@ -653,6 +665,38 @@ class _PtyEndpoint(_Endpoint):
 
     def address_line(self) -> str:
         return f"serial {self.path}"
+
+
+_TIOCPKT_FLUSHREAD = 0x01  # <linux/tty.h>: the slave's input queue was flushed
+
+
+def _set_packet_mode(master: int) -> bool:
+    """Put a pty master in packet mode (TIOCPKT) where the platform has it; True if it is."""
+    import fcntl
+    import termios
+
+    request = getattr(termios, "TIOCPKT", None)
+    if request is None:
+        return False
+    try:
+        fcntl.ioctl(master, request, struct.pack("i", 1))
+    except OSError as err:
+        _log.debug("virtual cart: no pty packet mode: %s", err)
+        return False
+    return True
+
+
+def _take_packets(master: int) -> int:
+    """Read every pending packet from a packet-mode pty master; their control bits, OR-ed."""
+    bits = 0
+    while True:
+        try:
+            packet = os.read(master, 4096)
+        except (BlockingIOError, OSError):
+            return bits
+        if not packet:
+            return bits
+        bits |= packet[0]
 
 
 def _set_sentinel_speed(fd: int) -> None:

@@ -14,6 +14,7 @@ from collections.abc import Callable
 from typing import Any
 
 import pytest
+from serial import serialposix
 from vcart_harness import run_session
 
 from drivers.cart import serial_port
@@ -22,8 +23,12 @@ from virtual_hw.cart import LinkKind
 _LATE_S = 0.3  # a descheduled thread on a loaded 2-core PC (seen: stalls of 100-225 ms)
 
 
-def _late(fn: Callable[..., Any], *, on_error_only: bool) -> Callable[..., Any]:
+def _late(fn: Callable[..., Any], *, on_error_only: bool = False,
+          before: bool = False) -> Callable[..., Any]:
     def slow(*args: Any, **kwargs: Any) -> Any:
+        if before:
+            time.sleep(_LATE_S)
+            return fn(*args, **kwargs)
         try:
             result = fn(*args, **kwargs)
         except OSError:
@@ -57,3 +62,16 @@ async def test_a_slow_reopen_still_reconnects_before_the_session_ends(
     assert session.stream.transport.drops == 1 and session.stream.reconnects == 1
     assert min(r.t_s for r in session.records if r.t_s > 60.0) < 75.0
     assert session.stream.validator.missing_seq == session.undelivered_seqs()
+
+
+async def test_a_reader_late_to_flush_its_input_at_open_loses_no_line(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # pyserial's open() sets the port up (tcsetattr), then flushes its input (tcflush): a line the
+    # cart writes in between is flushed. The cart waits for the flush itself (pty packet mode).
+    monkeypatch.setattr(serialposix.Serial, "reset_input_buffer",
+                        _late(serialposix.Serial.reset_input_buffer, before=True))
+    session = await run_session(LinkKind.SERIAL, faults=["disconnect@60+10"], end_s=150.0, seed=7)
+    assert session.stream.transport.drops == 1 and session.stream.reconnects == 1
+    assert session.stream.validator.missing_seq == session.undelivered_seqs()
+    assert len(session.records) == len(session.readable())
