@@ -57,7 +57,7 @@ __all__ = [
     "json_schema",
 ]
 
-FORMAT_VERSION = 5
+FORMAT_VERSION = 6
 """Version of the log format (channels, their records and schemas).
 
 Stored in ``/config`` and the ``hilbo.session`` metadata. Bump it whenever the writer's output
@@ -80,9 +80,11 @@ otherwise, and a golden file of the new version goes to ``tests/data/logs/v<N>/`
   stopping rule may be ``"sound-floor"`` (the fixed-clock rule that ``"sound"`` was up to 4).
   Older states read with ``boundary_s`` 60 s, which leaves their rule as it was: their
   ``min_decision_s`` (60 s) is at or past the boundary, where its factor is 1.
+* 6: the optimizer config gains the opt-in trust region for EI's candidates (``trust_region``,
+  ``trust_region_alternate``). Older states read without one (None, False): as they ran.
 """
 
-READABLE_VERSIONS = frozenset({1, 2, 3, 4, 5})
+READABLE_VERSIONS = frozenset({1, 2, 3, 4, 5, 6})
 """Format versions the readers open."""
 
 METADATA_NAME = "hilbo.session"

@@ -6,7 +6,8 @@ version (the file of an older version is never rewritten: it stands for the logs
 wrote). v1 was written with this script by the writer of main at 41b65f5 (whose SessionLog had no
 ``started_unix_ns``: its /config holds the wall clock of that run); v2 by the msgspec writer;
 v3 when the optimizer state gained ``accept_z``; v4 when it gained the confirmation of the
-recommendation; v5 when its config gained the sound rule's ``boundary_s``.
+recommendation; v5 when its config gained the sound rule's ``boundary_s``; v6 when it gained
+the opt-in trust region.
 
 ``tests/bridge/test_log_golden.py`` also writes this session in-process and compares a digest of
 the writer's output (schemas and records) with ``digests.json``, keyed by format version.
