@@ -41,25 +41,17 @@ def _late(fn: Callable[..., Any], *, on_error_only: bool = False,
     return slow
 
 
-async def test_a_drop_seen_late_by_the_read_thread_still_happens_at_the_disconnect(
-    monkeypatch: pytest.MonkeyPatch,
+@pytest.mark.parametrize(("owner", "name", "on_error_only"), [
+    pytest.param(serial_port, "_read_available", True, id="a drop seen late by the read thread"),
+    pytest.param(serial_port.SerialTransport, "_open_blocking", False, id="a slow reopen"),
+])
+async def test_a_late_serial_thread_still_sees_the_drop_and_reconnects_in_time(
+    monkeypatch: pytest.MonkeyPatch, owner: object, name: str, on_error_only: bool,
 ) -> None:
-    monkeypatch.setattr(serial_port, "_read_available",
-                        _late(serial_port._read_available, on_error_only=True))
+    monkeypatch.setattr(owner, name, _late(getattr(owner, name), on_error_only=on_error_only))
     session = await run_session(LinkKind.SERIAL, faults=["disconnect@60+10"], end_s=150.0, seed=7)
     assert session.stream.transport.drops == 1 and session.stream.reconnects == 1
     # The link came back at 70 s: every breath from a few backoff seconds after it arrived.
-    assert min(r.t_s for r in session.records if r.t_s > 60.0) < 75.0
-    assert session.stream.validator.missing_seq == session.undelivered_seqs()
-
-
-async def test_a_slow_reopen_still_reconnects_before_the_session_ends(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
-    monkeypatch.setattr(serial_port.SerialTransport, "_open_blocking",
-                        _late(serial_port.SerialTransport._open_blocking, on_error_only=False))
-    session = await run_session(LinkKind.SERIAL, faults=["disconnect@60+10"], end_s=150.0, seed=7)
-    assert session.stream.transport.drops == 1 and session.stream.reconnects == 1
     assert min(r.t_s for r in session.records if r.t_s > 60.0) < 75.0
     assert session.stream.validator.missing_seq == session.undelivered_seqs()
 
