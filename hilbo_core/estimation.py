@@ -475,6 +475,18 @@ class TransitionEstimator:
         mean, var = divide_gaussian(self._mean, self._var_fit, *self._prior_c)
         return mean, var + self._model_error_var(mean)
 
+    def model_error_var(self) -> float:
+        """The model-error share of :meth:`data_only`'s variance, (model_error_rel·c)² in W²:
+        the steady state's drift, which settings measured minutes apart share (the optimizer's
+        ``drift_corr_s`` correlates it in time).
+
+        Raises:
+            EstimatorError: No breath has been fused yet.
+        """
+        self._require_started()
+        mean, _ = divide_gaussian(self._mean, self._var_fit, *self._prior_c)
+        return self._model_error_var(mean)
+
     # ------------------------------------------------------------------ inputs
     def start_from(self, level_w: float, level_var_w2: float, noise_cv: float | None = None,
                    tau_log_lik: Any = None) -> None:

@@ -315,7 +315,8 @@ def _mll_terms(
 ) -> tuple[float, np.ndarray] | None:
     """Log marginal likelihood and gradient w.r.t. θ; None where K_y is not factorisable.
 
-    ``sq_diffs`` is :func:`_sq_diffs` of the kernel inputs, computed once per fit.
+    ``sq_diffs`` is :func:`_sq_diffs` of the kernel inputs, computed once per fit;
+    ``extra_noise`` the known observation noise: variances (n,) or a covariance matrix (n, n).
     """
     n, _, d = sq_diffs.shape
     inv_ls2 = np.exp(-2.0 * theta[:d])
@@ -326,8 +327,8 @@ def _mll_terms(
         Kf = signal_var * np.exp(-0.5 * r2)
     else:
         Kf = _matern52_from_r2(r2, signal_var)
-    Ky = Kf.copy()
-    Ky[np.diag_indices(n)] += extra_noise + noise_var
+    Ky = Kf + extra_noise if extra_noise.ndim == 2 else Kf.copy()
+    Ky[np.diag_indices(n)] += (0.0 if extra_noise.ndim == 2 else extra_noise) + noise_var
     L = _cholesky(Ky)
     if L is None:
         return None
@@ -379,11 +380,13 @@ def log_marginal_likelihood(
     kernel: KernelKind = KernelKind.MATERN52,
     *,
     return_grad: bool = False,
+    noise_corr: np.ndarray | None = None,
 ) -> float | tuple[float, np.ndarray]:
     """Log marginal likelihood of a zero-mean GP, R&W eq. 5.8, with per-observation noise.
 
-    The data are used as given (no standardisation): K_y = K(X, X) + diag(noise_var) +
-    hyperparameters.noise_var · I.
+    The data are used as given (no standardisation): K_y = K(X, X) + Σ + hyperparameters.noise_var
+    · I, with Σ = diag(noise_var), or S·noise_corr·S (S = diag(√noise_var)) when errors are
+    correlated.
 
     Args:
         X: Kernel inputs, shape (n, d) with d = hyperparameters.dim.
@@ -392,6 +395,8 @@ def log_marginal_likelihood(
         hyperparameters: Kernel and homoscedastic-noise hyperparameters.
         kernel: Kernel kind.
         return_grad: Also return the gradient w.r.t. θ = [log l_1..d, log σ_f², log σ_n²].
+        noise_corr: Correlation matrix of the observations' errors, shape (n, n), or None
+            (independent errors); needs ``noise_var``.
 
     Returns:
         log p(y | X, θ), or (log p, gradient of shape (d + 2,)) when ``return_grad``.
@@ -409,11 +414,33 @@ def log_marginal_likelihood(
     extra = np.zeros(X.shape[0]) if noise_var is None else np.asarray(noise_var, dtype=float)
     if extra.shape != y.shape:
         raise ConfigError(f"noise_var must have shape {y.shape}, got {extra.shape}")
+    if noise_corr is not None:
+        if noise_var is None:
+            raise ConfigError("noise_corr needs noise_var (the errors' variances)")
+        extra = _error_cov(extra, _check_corr(noise_corr, y.shape[0]))
     theta = hyperparameters.to_log_params()
     out = _mll_terms(_sq_diffs(X), y, extra, theta, kernel, return_grad)
     if out is None:
         raise EstimatorError(f"K_y is not positive definite for hyperparameters {hyperparameters}")
     return out if return_grad else out[0]
+
+
+def _check_corr(noise_corr: np.ndarray, n: int) -> np.ndarray:
+    """``noise_corr`` as a float (n, n) correlation matrix, else ConfigError."""
+    R = np.asarray(noise_corr, dtype=float)
+    if R.shape != (n, n):
+        raise ConfigError(f"noise_corr must have shape ({n}, {n}), got {R.shape}")
+    if not np.isfinite(R).all() or not np.allclose(R, R.T) or np.any(np.abs(R) > 1.0 + 1e-12):
+        raise ConfigError("noise_corr must be a finite symmetric matrix with entries in [-1, 1]")
+    if not np.allclose(np.diag(R), 1.0):
+        raise ConfigError("noise_corr must have a unit diagonal (it is a correlation matrix)")
+    return R
+
+
+def _error_cov(noise_var: np.ndarray, noise_corr: np.ndarray) -> np.ndarray:
+    """S·R·S, S = diag(√noise_var): the covariance of the observations' errors."""
+    s = np.sqrt(noise_var)
+    return noise_corr * np.outer(s, s)
 
 
 # --------------------------------------------------------------------------------------------
@@ -439,6 +466,7 @@ class _Posterior:
     F: np.ndarray  # (n, k) kernel inputs φ(X)
     y: np.ndarray  # (n,) original units
     noise_var: np.ndarray | None  # (n,) original units
+    noise_corr: np.ndarray | None  # (n, n) correlation of the errors, or None (independent)
     y_mean: float
     y_std: float
     hyper: GPHyperparameters
@@ -626,6 +654,7 @@ class GaussianProcess:
         rng: np.random.Generator,
         init: GPHyperparameters | None = None,
         optimize: bool = True,
+        noise_corr: np.ndarray | None = None,
     ) -> GaussianProcess:
         """Condition on data and (optionally) fit hyperparameters by MAP marginal likelihood.
 
@@ -643,6 +672,10 @@ class GaussianProcess:
                 these are used as they are.
             optimize: False to skip the likelihood optimisation (fixed hyperparameters: ``init``
                 or, without it, the prior medians).
+            noise_corr: Correlation matrix of the observations' errors, shape (n, n), unit
+                diagonal; None (default) for independent errors. With it the errors' covariance
+                is S·noise_corr·S, S = diag(√noise_var) (e.g. a drift shared by settings measured
+                close in time), and :meth:`predict` is still the latent f, without it.
 
         Returns:
             self.
@@ -653,6 +686,10 @@ class GaussianProcess:
             EstimatorError: No hyperparameters give a positive-definite K_y.
         """
         X, y, noise_var = self._validate(X, y, noise_var)
+        if noise_corr is not None:
+            if noise_var is None:
+                raise ConfigError("noise_corr needs noise_var (the errors' variances)")
+            noise_corr = _check_corr(noise_corr, y.shape[0])
         F = self._features(X, "X")
         n, dim = F.shape
         if init is not None and init.dim != dim:
@@ -667,6 +704,8 @@ class GaussianProcess:
             y_std = math.sqrt(float(np.mean(noise_var))) if noise_var is not None else 1.0
         ys = (y - y_mean) / y_std
         extra = np.zeros(n) if noise_var is None else noise_var / y_std**2
+        if noise_corr is not None:
+            extra = _error_cov(extra, noise_corr)
 
         if init is None:
             theta0 = self._default_hyperparameters(dim).to_log_params()
@@ -680,7 +719,11 @@ class GaussianProcess:
 
         ls = np.asarray(hyper.lengthscales)
         Ky = kernel_matrix(self._kernel, F, F, ls, hyper.signal_var)
-        Ky[np.diag_indices(n)] += extra + hyper.noise_var
+        if extra.ndim == 2:
+            Ky += extra
+            Ky[np.diag_indices(n)] += hyper.noise_var
+        else:
+            Ky[np.diag_indices(n)] += extra + hyper.noise_var
         L = _cholesky(Ky)
         if L is None:
             raise EstimatorError(
@@ -692,6 +735,7 @@ class GaussianProcess:
             F=F,
             y=y.copy(),
             noise_var=None if noise_var is None else noise_var.copy(),
+            noise_corr=None if noise_corr is None else noise_corr.copy(),
             y_mean=y_mean,
             y_std=y_std,
             hyper=hyper,
@@ -800,6 +844,25 @@ class GaussianProcess:
         Ks = self._cross_kernel(self._features(Xs, "Xs"), post)
         return post.y_mean + post.y_std * (Ks @ post.alpha)
 
+    def predict_error(self, cross_cov: np.ndarray) -> np.ndarray:
+        """Posterior mean of errors correlated with the observations' errors (R&W eq. 2.25
+        with the error's cross-covariance in place of k*): E[e* | y] = C* K_y⁻¹ (y − ȳ).
+
+        Args:
+            cross_cov: Covariance of each new error with each observation's error in original
+                y units², shape (m, n) (e.g. the drift now against the drift at each
+                evaluation).
+
+        Returns:
+            The errors' posterior means in original y units, shape (m,).
+        """
+        post = self._posterior()
+        C = np.asarray(cross_cov, dtype=float)
+        if C.ndim != 2 or C.shape[1] != post.y.shape[0] or not np.isfinite(C).all():
+            raise ConfigError(
+                f"cross_cov must be finite with shape (m, {post.y.shape[0]}), got {C.shape}")
+        return (C / post.y_std) @ post.alpha
+
     def predict_with_grad(
         self, Xs: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -877,5 +940,6 @@ class GaussianProcess:
         extra = None if post.noise_var is None else post.noise_var / post.y_std**2
         ys = (post.y - post.y_mean) / post.y_std
         return log_marginal_likelihood(
-            post.F, ys, extra, hp, self._kernel, return_grad=return_grad
+            post.F, ys, extra, hp, self._kernel, return_grad=return_grad,
+            noise_corr=post.noise_corr,
         )

@@ -37,6 +37,7 @@ from hilbo_core.errors import ConfigError, EstimatorError, MeasurementError
 
 __all__ = [
     "DataOnlyEstimator",
+    "DriftAwareEstimator",
     "Estimator",
     "EstimatorFactory",
     "GaussianProductEstimator",
@@ -141,6 +142,17 @@ class DataOnlyEstimator(Protocol):
 
     def data_only(self) -> tuple[float, float]:
         """(mean, variance) of c from the measurements alone: the posterior ÷ the prior on c."""
+        ...
+
+
+@runtime_checkable
+class DriftAwareEstimator(Protocol):
+    """An estimator whose :meth:`DataOnlyEstimator.data_only` variance includes a model error for
+    the drift of a real steady state, and can say how much of it that is."""
+
+    def model_error_var(self) -> float:
+        """The drift's share of ``data_only()``'s variance (W²): an error that settings measured
+        close in time share, unlike the breath noise."""
         ...
 
 

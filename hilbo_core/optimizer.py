@@ -70,7 +70,7 @@ from hilbo_core.acquisition import maximize_ei, minimize_lcb
 from hilbo_core.errors import ConfigError, MeasurementError, OptimizerStateError
 from hilbo_core.estimation import EstimatorKind, StartState, TransitionEstimator
 from hilbo_core.gp import GaussianProcess, GPHyperparameters, KernelKind
-from hilbo_core.metabolic import DataOnlyEstimator, Estimator, MetabolicUKF
+from hilbo_core.metabolic import DataOnlyEstimator, DriftAwareEstimator, Estimator, MetabolicUKF
 from hilbo_core.space import DesignKind, ParameterSpace
 from hilbo_core.stopping import (
     FixedIntervalRule,
@@ -217,6 +217,17 @@ class OptimizerConfig:
             median ``drift_hours`` h (long relative to the session: the cost drifts slowly), and
             predicts every setting (x*, the recommendation, EI) *now*; None (default) ignores
             time. The clock is the optimizer's: breath time of all evaluations so far.
+        drift_corr_s: Correlation time in s of the estimator's model error (its share of each
+            observation's variance, :class:`~hilbo_core.metabolic.DriftAwareEstimator`): the drift
+            of a real steady state is one error that settings measured minutes apart share, not
+            an independent error per setting. With a number the GP's errors are correlated as
+            exp(−Δt²/(2·drift_corr_s²)) in the drift's share (Δt on the optimizer's clock, between
+            the evaluations' ends), the GP's f is the landscape without the drift, and the stop
+            decision compares the candidate with the incumbent plus the drift inferred now. A
+            steady state drifts by about ±1 %/min with an SD of about 3 % within minutes
+            (docs/results.md, the estimator's model error): a smooth process of SD s and RMS rate
+            r has a time scale s/r ≈ 3 min, hence 180 s. None: independent errors (the earlier
+            model).
         trust_region: Half-width (unit cube, in (0, 1]) of a box around the sound rule's
             incumbent (the evaluated setting of lowest posterior mean) inside which EI's candidates
             are drawn, without local refinement, so no proposal leaves the box; None (default):
@@ -271,6 +282,7 @@ class OptimizerConfig:
     explore_rel_sd: float | None = None
     ei_best: EIBestKind = EIBestKind.OBSERVED
     drift_hours: float | None = None
+    drift_corr_s: float | None = None
     trust_region: float | None = None
     trust_region_alternate: bool = False
     seed: int = 0
@@ -336,6 +348,10 @@ class OptimizerConfig:
         if h is not None and (isinstance(h, bool) or not isinstance(h, int | float)
                               or not (math.isfinite(h) and h > 0)):
             raise ConfigError(f"drift_hours={h!r}; expected a positive number of hours or None")
+        dc = self.drift_corr_s
+        if dc is not None and (isinstance(dc, bool) or not isinstance(dc, int | float)
+                               or not (math.isfinite(dc) and dc > 0)):
+            raise ConfigError(f"drift_corr_s={dc!r}; expected a positive number of seconds or None")
         tr = self.trust_region
         if tr is not None:
             if (isinstance(tr, bool) or not isinstance(tr, int | float | np.integer | np.floating)
@@ -440,6 +456,8 @@ class Evaluation:
             prior on c divided out; None means ``mean`` (estimators without ``data_only()``,
             :meth:`HILOptimizer.tell`, states written before the data-only observations existed).
         obs_var: Its variance (W²); None means ``var``.
+        drift_var: The model error's share of ``obs_var`` (W²,
+            :class:`~hilbo_core.metabolic.DriftAwareEstimator`); None: none known.
     """
 
     index: int
@@ -453,6 +471,7 @@ class Evaluation:
     reason: str
     obs_mean: float | None = None
     obs_var: float | None = None
+    drift_var: float | None = None
 
     @property
     def gp_observation(self) -> tuple[float, float]:
@@ -656,6 +675,9 @@ class HILOptimizer:
         self._units: np.ndarray = np.empty((0, space.dim))
         self._units_last: Evaluation | None = None
         self._incumbent: tuple[dict[str, float], float, float] | None = None
+        # The drift inferred when the current candidate was proposed (W, drift_corr_s): the
+        # stop decision's incumbent reads this much higher now.
+        self._drift_now_w = 0.0
         # Set by _propose for the setting ask() is about to start (see _Current).
         self._pending: tuple[tuple[float, float] | None, bool] = (None, False)
         # The confirmation (begin_confirmation): (params, predicted mean, predicted var) and the
@@ -904,18 +926,23 @@ class HILOptimizer:
         return self._step(False, "", decision)
 
     def tell(self, params: Mapping[str, float], mean: float, var: float, *,
-             breaths: int = 0, duration_s: float = 0.0) -> Evaluation:
+             breaths: int = 0, duration_s: float = 0.0,
+             drift_var: float | None = None) -> Evaluation:
         """Add a completed evaluation measured outside the breath loop.
 
         Only allowed between evaluations. Counts as an optimisation-phase observation for the
-        GP; it does not consume budget.
+        GP; it does not consume budget. ``duration_s`` advances the optimizer's clock of
+        ``drift_corr_s``; ``drift_var`` (W², at most ``var``) is the drift's share of ``var``.
         """
         if self._current is not None:
             raise OptimizerStateError("tell() while a setting is being measured; finish it first")
         x = self.space.check(params)
         _check_mean_var(mean, var, "tell")
+        if drift_var is not None and not (math.isfinite(drift_var) and 0.0 <= drift_var <= var):
+            raise MeasurementError(f"tell: drift_var={drift_var!r}; expected a variance in [0, var={var!r}]")
         ev = Evaluation(len(self._evaluations), self.space.to_dict(x), float(mean), float(var),
-                        int(breaths), float(duration_s), Phase.OPTIMIZATION.value, False, "told")
+                        int(breaths), float(duration_s), Phase.OPTIMIZATION.value, False, "told",
+                        drift_var=None if drift_var is None else float(drift_var))
         self._evaluations.append(ev)
         return ev
 
@@ -1078,12 +1105,16 @@ class HILOptimizer:
             return BreathStep(False, mean, var, i, cur.phase, decision)
         obs_mean: float | None = None
         obs_var: float | None = None
+        drift_var: float | None = None
         if isinstance(self._estimator, DataOnlyEstimator):
             obs_mean, obs_var = self._estimator.data_only()
+            if isinstance(self._estimator, DriftAwareEstimator):
+                drift_var = min(float(self._estimator.model_error_var()), obs_var)
         ev = Evaluation(
             index=len(self._evaluations), params=dict(cur.params), mean=mean, var=var,
             breaths=len(cur.breaths), duration_s=cur.breaths[-1][0], phase=cur.phase.value,
             stopped_early=reason == "threshold", reason=reason, obs_mean=obs_mean, obs_var=obs_var,
+            drift_var=drift_var,
         )
         self._keep_body_level()
         self._evaluations.append(ev)
@@ -1138,7 +1169,7 @@ class HILOptimizer:
         if self._incumbent is None:
             ev = min(self._evaluations, key=lambda e: e.mean)
             return ev.mean, ev.var
-        return self._incumbent[1], self._incumbent[2]
+        return self._incumbent[1] + self._drift_now_w, self._incumbent[2]
 
     def _budget_spent(self) -> bool:
         c = self.config
@@ -1177,6 +1208,52 @@ class HILOptimizer:
         v = [s for _, s in obs] + [p.var for p in self._priors]
         return U, np.array(y), np.array(v)
 
+    def _drift_terms(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Each GP observation's drift SD (W; 0 for fast priors and evaluations without one) and
+        its time on the optimizer's clock (s, the evaluation's end), or None without
+        ``drift_corr_s`` or without any drift."""
+        if self.config.drift_corr_s is None:
+            return None
+        sd = np.sqrt([e.drift_var or 0.0 for e in self._evaluations] + [0.0] * len(self._priors))
+        if not np.any(sd > 0.0):
+            return None
+        ends = np.cumsum([e.duration_s for e in self._evaluations])
+        return sd, np.concatenate([ends, np.zeros(len(self._priors))])
+
+    def _drift_cov(self, sd_a: np.ndarray, t_a: np.ndarray, sd_b: np.ndarray,
+                   t_b: np.ndarray) -> np.ndarray:
+        """Covariance (W²) of the drift at times t_a against t_b, shape (len(a), len(b))."""
+        ell = float(self.config.drift_corr_s or 1.0)
+        rho = np.exp(-0.5 * ((t_a[:, None] - t_b[None, :]) / ell) ** 2)
+        return rho * np.outer(sd_a, sd_b)
+
+    def _noise_corr(self, v: np.ndarray) -> np.ndarray | None:
+        """The correlation matrix of the GP observations' errors (variances v, W²): the drift's
+        share correlated in time, the rest independent; None without drift terms."""
+        terms = self._drift_terms()
+        if terms is None:
+            return None
+        sd, t = terms
+        C = self._drift_cov(sd, t, sd, t)
+        np.fill_diagonal(C, v)
+        s = np.sqrt(v)
+        R = C / np.outer(s, s)
+        np.fill_diagonal(R, 1.0)
+        return R
+
+    def _drift_now(self, gp: GaussianProcess) -> float:
+        """The drift inferred at the optimizer's present time (W; 0 without drift terms): what a
+        setting measured now reads above its landscape cost."""
+        terms = self._drift_terms()
+        if terms is None:
+            return 0.0
+        sd, t = terms
+        now = float(t[: len(self._evaluations)].max()) if self._evaluations else 0.0
+        known = sd[: len(self._evaluations)]
+        sd_now = np.array([float(np.sqrt(np.mean(known[known > 0.0] ** 2)))])
+        C = self._drift_cov(sd_now, np.array([now]), sd, t)
+        return float(gp.predict_error(C)[0])
+
     def _n_obs(self) -> int:
         return len(self._evaluations) + len(self._priors)
 
@@ -1200,7 +1277,7 @@ class HILOptimizer:
         U, y, v = self._training_set()
         gp = GaussianProcess(self.config.kernel)
         refit = self._refit_due()
-        gp.fit(U, y, v, rng=rng, init=self._hyp, optimize=refit)
+        gp.fit(U, y, v, rng=rng, init=self._hyp, optimize=refit, noise_corr=self._noise_corr(v))
         if store and refit:
             self._hyp = gp.hyperparameters  # warm start of the next fit
             self._n_at_fit = int(y.size)
@@ -1275,6 +1352,10 @@ class HILOptimizer:
         # (Kim et al. 2019 §II.D: "the best parameter setting found thus far as defined by the GP").
         sound = self.config.stopping.is_sound
         self._incumbent = self._gp_incumbent(gp) if sound else self._gp_best(gp)
+        # The candidate is measured now, with today's drift in its breaths: the stop decision
+        # compares it with the incumbent as it would read now (drift_corr_s).
+        drift_now = self._drift_now(gp) if sound else 0.0
+        self._drift_now_w = drift_now
         if self.config.ei_best is EIBestKind.POSTERIOR:
             # Noisy EI's plug-in incumbent: the lowest posterior mean among the evaluated
             # settings. min(S) of noisy estimates is optimistic (the luckiest estimate), so EI
@@ -1315,7 +1396,7 @@ class HILOptimizer:
             # The candidate's cost is f(x_t) plus the GP's learned homoscedastic term (what
             # varies between measurements of one setting beyond the estimator's own noise).
             nugget = gp.hyperparameters.noise_var * gp.y_std**2
-            prior = (float(m[0]), float(v[0]) + float(nugget))
+            prior = (float(m[0]) + drift_now, float(v[0]) + float(nugget))
         self._pending = (prior, False)
         return x
 
@@ -1376,6 +1457,7 @@ class HILOptimizer:
             "hyp": None if self._hyp is None else self._hyp.to_dict(),
             "n_at_fit": self._n_at_fit,
             "incumbent": None if self._incumbent is None else list(self._incumbent),
+            "drift_now_w": self._drift_now_w,
             "opt_breaths": self._opt_breaths,
             "opt_seconds": self._opt_seconds,
             "handover": None if self._handover is None else self._handover.to_json(),
@@ -1422,6 +1504,7 @@ class HILOptimizer:
             if data["incumbent"] is not None:
                 p, m, v = data["incumbent"]
                 opt._incumbent = (dict(p), float(m), float(v))
+            opt._drift_now_w = float(data.get("drift_now_w", 0.0))  # absent before drift_corr_s
             opt._confirm_requested = bool(data.get("confirm_requested", False))
             confirm = data.get("confirm")  # absent in states written before the confirmation
             if confirm is not None:

@@ -145,6 +145,8 @@ _BO_VARIANTS: dict[str, tuple[str, str, tuple[tuple[str, Any], ...], tuple[tuple
     "sound-tr40": ("sound", "fast", (("trust_region", 0.4),), ()),
     # the same box for every other proposal, the whole feasible set for the others
     "sound-tr40-alt": ("sound", "fast", (("trust_region", 0.4), ("trust_region_alternate", True)), ()),
+    # the estimator's model error correlated in time (the drift shared by nearby settings)
+    "sound-drift": ("sound", "fast", (("drift_corr_s", 180.0),), ()),
 }
 ABLATION_METHODS: tuple[str, ...] = tuple(m for m in _BO_VARIANTS if m.startswith("sound-"))
 """The default's ablations (``--methods sound-seed,...``)."""

@@ -57,7 +57,7 @@ __all__ = [
     "json_schema",
 ]
 
-FORMAT_VERSION = 6
+FORMAT_VERSION = 7
 """Version of the log format (channels, their records and schemas).
 
 Stored in ``/config`` and the ``hilbo.session`` metadata. Bump it whenever the writer's output
@@ -82,9 +82,13 @@ otherwise, and a golden file of the new version goes to ``tests/data/logs/v<N>/`
   ``min_decision_s`` (60 s) is at or past the boundary, where its factor is 1.
 * 6: the optimizer config gains the opt-in trust region for EI's candidates (``trust_region``,
   ``trust_region_alternate``). Older states read without one (None, False): as they ran.
+* 7: evaluations (``/observations`` and the optimizer state's) gain ``drift_var``, the
+  estimator's model-error share of their variance; the optimizer config gains the opt-in
+  ``drift_corr_s`` and its state ``drift_now_w``. Older states read without them (None, 0): as
+  they ran, with independent errors.
 """
 
-READABLE_VERSIONS = frozenset({1, 2, 3, 4, 5, 6})
+READABLE_VERSIONS = frozenset({1, 2, 3, 4, 5, 6, 7})
 """Format versions the readers open."""
 
 METADATA_NAME = "hilbo.session"
@@ -311,6 +315,9 @@ class Evaluation(_Record, kw_only=True):
         "Data-only mean the GP is told (the posterior with the estimator's prior on c divided "
         "out), W; absent: mean")] = None
     obs_var: Annotated[float | None, _d("Its variance, W²; absent: var")] = None
+    drift_var: Annotated[float | None, _d(
+        "The estimator's model-error (steady-state drift) share of obs_var, W²; absent: "
+        "none known")] = None
 
 
 class OptimizerState(_Record, kw_only=True):

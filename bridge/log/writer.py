@@ -554,6 +554,7 @@ class SessionLog:
             stopped_early=bool(e.stopped_early), reason=str(e.reason), t_start=t_start, t_end=t_end,
             obs_mean=None if e.obs_mean is None else float(e.obs_mean),
             obs_var=None if e.obs_var is None else float(e.obs_var),
+            drift_var=None if e.drift_var is None else float(e.drift_var),
         ), None if t_s is None else _t_ns(t_s))
 
     def log_optimizer_state(self, optimizer: HILOptimizer, *, reason: str,
