@@ -844,6 +844,26 @@ class GaussianProcess:
         Ks = self._cross_kernel(self._features(Xs, "Xs"), post)
         return post.y_mean + post.y_std * (Ks @ post.alpha)
 
+    def predict_cov(self, Xa: np.ndarray, Xb: np.ndarray) -> np.ndarray:
+        """Posterior covariance of the latent f between two sets of points (R&W eq. 2.24):
+        k(a, b) − k(a, X) K_y⁻¹ k(X, b), in original y units².
+
+        Args:
+            Xa: Query points in the unit cube, shape (m_a, d).
+            Xb: Query points in the unit cube, shape (m_b, d).
+
+        Returns:
+            Covariance, shape (m_a, m_b).
+        """
+        post = self._posterior()
+        Xa, Xb = self._check_query(Xa, post), self._check_query(Xb, post)
+        Fa, Fb = self._features(Xa, "Xa"), self._features(Xb, "Xb")
+        Va = solve_triangular(post.L, self._cross_kernel(Fa, post).T, lower=True, check_finite=False)
+        Vb = solve_triangular(post.L, self._cross_kernel(Fb, post).T, lower=True, check_finite=False)
+        hp = post.hyper
+        Kab = kernel_matrix(self._kernel, Fa, Fb, post.ls, hp.signal_var)
+        return post.y_std**2 * (Kab - Va.T @ Vb)
+
     def predict_error(self, cross_cov: np.ndarray) -> np.ndarray:
         """Posterior mean of errors correlated with the observations' errors (R&W eq. 2.25
         with the error's cross-covariance in place of k*): E[e* | y] = C* K_y⁻¹ (y − ȳ).

@@ -70,6 +70,7 @@ from hilbo_core.acquisition import maximize_ei, minimize_lcb
 from hilbo_core.errors import ConfigError, MeasurementError, OptimizerStateError
 from hilbo_core.estimation import EstimatorKind, StartState, TransitionEstimator
 from hilbo_core.gp import GaussianProcess, GPHyperparameters, KernelKind
+from hilbo_core.knowledge_gradient import knowledge_gradient_min
 from hilbo_core.metabolic import DataOnlyEstimator, DriftAwareEstimator, Estimator, MetabolicUKF
 from hilbo_core.space import DesignKind, ParameterSpace
 from hilbo_core.stopping import (
@@ -85,6 +86,7 @@ from hilbo_core.stopping import (
 __all__ = [
     "DEFAULT_ACCEPT_Z",
     "FLOOR_ACCEPT_Z",
+    "AcquisitionKind",
     "BreathStep",
     "Confirmation",
     "EIBestKind",
@@ -101,6 +103,8 @@ __all__ = [
 ]
 
 _STATE_VERSION = 1
+# Feasible Sobol points added to the knowledge gradient's reference set with "kg-global".
+_KG_GLOBAL_REFERENCE = 128
 # Generator stream of fits made ahead (HyperparameterFit.seed), apart from the optimizer's own.
 _FIT_AHEAD_STREAM = 0xF17
 _MAX_WATTS = 5000.0
@@ -147,6 +151,23 @@ class EIBestKind(enum.Enum):
 
     OBSERVED = "observed"  # min(S): the lowest estimate (Kim et al. 2019 §II.B)
     POSTERIOR = "posterior"  # the lowest GP posterior mean among the evaluated settings (noisy EI)
+
+
+class AcquisitionKind(enum.Enum):
+    """How the optimizer chooses the next setting to measure."""
+
+    EI = "ei"  # Expected Improvement (Kim et al. 2019 §II.B)
+    # The knowledge gradient over the measured settings and the candidate (KGCP; Scott, Frazier
+    # & Powell 2011; hilbo_core/knowledge_gradient.py): the expected fall of the lowest posterior
+    # mean after one measurement, with that measurement's noise.
+    KG = "kg"
+    # The same over the measured settings and feasible Sobol points as well: the minimum it
+    # values is then the recommendation's, over the whole feasible set (RecommendKind.GLOBAL).
+    KG_GLOBAL = "kg-global"
+    # EI until the optimizer's clock reaches OptimizerConfig.kg_from_s, then "kg-global": EI's
+    # exploration to find the basin first, then measurements where they improve the
+    # recommendation.
+    EI_THEN_KG = "ei-then-kg"
 
 
 class RecommendKind(enum.Enum):
@@ -208,6 +229,15 @@ class OptimizerConfig:
             None (default): every exploration setting is measured for N breaths (the seed's
             Algorithm 1). Algorithm 2 then reads each shorter trace as if its last estimate had
             held to N.
+        acquisition: ``"ei"`` (default, Expected Improvement), ``"kg"`` (the knowledge
+            gradient, :mod:`hilbo_core.knowledge_gradient`: the value of one more measurement to
+            the recommendation, with that measurement's noise; the measured settings are
+            candidates too, so a promising setting may be measured again), ``"kg-global"`` (the
+            same over the feasible set) or ``"ei-then-kg"``, see :class:`AcquisitionKind`
+            (docs/noisy_wearer.md measures them).
+        kg_from_s: With ``"ei-then-kg"``, the optimizer's clock (s of breath time in its
+            evaluations, exploration included) from which it proposes by the knowledge gradient
+            (> 0; default 1620 s: minute 30 of a session that starts with a 3-minute warm-up).
         ei_best: The value EI improves on: ``"observed"`` (default: min(S), the seed's) or
             ``"posterior"`` (the lowest posterior mean among the evaluated settings: noisy EI's
             plug-in incumbent).
@@ -280,6 +310,8 @@ class OptimizerConfig:
     recommend: RecommendKind | None = None
     recommend_beta: float = 1.0
     explore_rel_sd: float | None = None
+    acquisition: AcquisitionKind = AcquisitionKind.EI
+    kg_from_s: float = 1620.0
     ei_best: EIBestKind = EIBestKind.OBSERVED
     drift_hours: float | None = None
     drift_corr_s: float | None = None
@@ -321,6 +353,7 @@ class OptimizerConfig:
         self._enum("design", DesignKind)
         self._enum("recommend", RecommendKind)
         self._enum("ei_best", EIBestKind)
+        self._enum("acquisition", AcquisitionKind)
         for name in ("min_decision_s", "a_floor", "recommend_beta"):
             v = getattr(self, name)
             if (isinstance(v, bool) or not isinstance(v, int | float | np.integer | np.floating)
@@ -348,6 +381,9 @@ class OptimizerConfig:
         if h is not None and (isinstance(h, bool) or not isinstance(h, int | float)
                               or not (math.isfinite(h) and h > 0)):
             raise ConfigError(f"drift_hours={h!r}; expected a positive number of hours or None")
+        kf = self.kg_from_s
+        if isinstance(kf, bool) or not isinstance(kf, int | float) or not (math.isfinite(kf) and kf > 0):
+            raise ConfigError(f"kg_from_s={kf!r}; expected a positive number of seconds")
         dc = self.drift_corr_s
         if dc is not None and (isinstance(dc, bool) or not isinstance(dc, int | float)
                                or not (math.isfinite(dc) and dc > 0)):
@@ -403,6 +439,7 @@ class OptimizerConfig:
         d["estimator"] = self.estimator.value
         d["design"] = DesignKind(self.design).value
         d["ei_best"] = self.ei_best.value
+        d["acquisition"] = self.acquisition.value
         return d
 
     @classmethod
@@ -1382,9 +1419,16 @@ class HILOptimizer:
             m, v, dm, dv = gp.predict_with_grad(self._now(U))
             return m, v, dm[:, :d], dv[:, :d]  # time is not a decision variable
 
-        u, _ = maximize_ei(predict, best_observed, candidates=cand, A_ub=A_u, b_ub=b_u,
-                           rng=self._rng, xi=self.config.xi, n_local=n_local,
-                           predict_grad=predict_grad)
+        acq = self.config.acquisition
+        if acq is AcquisitionKind.EI_THEN_KG:
+            clock = sum(e.duration_s for e in self._evaluations)
+            acq = AcquisitionKind.KG_GLOBAL if clock >= self.config.kg_from_s else AcquisitionKind.EI
+        if acq is not AcquisitionKind.EI:
+            u = self._maximize_kg(gp, cand, acq)
+        else:
+            u, _ = maximize_ei(predict, best_observed, candidates=cand, A_ub=A_u, b_ub=b_u,
+                               rng=self._rng, xi=self.config.xi, n_local=n_local,
+                               predict_grad=predict_grad)
         x = self.space.from_unit(np.clip(u, 0.0, 1.0))
         if not self.space.is_feasible(x):
             # Local refinement should never leave the set; if round-off does, the best
@@ -1399,6 +1443,29 @@ class HILOptimizer:
             prior = (float(m[0]) + drift_now, float(v[0]) + float(nugget))
         self._pending = (prior, False)
         return x
+
+    def _maximize_kg(self, gp: GaussianProcess, cand: np.ndarray,
+                     kind: AcquisitionKind = AcquisitionKind.KG) -> np.ndarray:
+        """The candidate (or measured setting) of highest knowledge gradient, unit cube (d,).
+
+        The reference set is the measured settings (KGCP, Scott et al. 2011); the measurement to
+        come has the median variance of the GP's observations of full-length evaluations (all of
+        them before any ran to N) plus the GP's homoscedastic term. No local refinement: KG is
+        evaluated on the feasible candidates only (the space's Sobol set, as EI's first stage).
+        """
+        ref = self._evaluation_units()
+        pool = np.concatenate([np.clip(cand, 0.0, 1.0), ref])
+        if kind is AcquisitionKind.KG_GLOBAL:
+            ref = np.concatenate([ref, self.space.sample_unit(_KG_GLOBAL_REFERENCE, self._rng)])
+        ref_q, pool_q = self._now(ref), self._now(pool)
+        mean_ref, _ = gp.predict(ref_q)
+        mean_c, var_c = gp.predict(pool_q)
+        cov = gp.predict_cov(ref_q, pool_q)
+        full = [e for e in self._evaluations if e.reason == "max_measurements"] or self._evaluations
+        noise = float(np.median([e.gp_observation[1] for e in full]))
+        noise += gp.hyperparameters.noise_var * gp.y_std**2
+        kg = knowledge_gradient_min(mean_ref, cov, mean_c, var_c, noise)
+        return pool[int(np.argmax(kg))]
 
     def _trust_region_candidates(self, centre: np.ndarray) -> np.ndarray:
         """Feasible unit-cube points in the box ``centre ± trust_region`` (clipped to the cube):

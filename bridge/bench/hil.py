@@ -147,6 +147,11 @@ _BO_VARIANTS: dict[str, tuple[str, str, tuple[tuple[str, Any], ...], tuple[tuple
     "sound-tr40-alt": ("sound", "fast", (("trust_region", 0.4), ("trust_region_alternate", True)), ()),
     # the estimator's model error correlated in time (the drift shared by nearby settings)
     "sound-drift": ("sound", "fast", (("drift_corr_s", 180.0),), ()),
+    # the knowledge gradient in place of EI
+    "sound-kg": ("sound", "fast", (("acquisition", "kg"),), ()),
+    "sound-kg-global": ("sound", "fast", (("acquisition", "kg-global"),), ()),
+    # EI for the first half of the hour, then the knowledge gradient
+    "sound-ei-kg": ("sound", "fast", (("acquisition", "ei-then-kg"),), ()),
 }
 ABLATION_METHODS: tuple[str, ...] = tuple(m for m in _BO_VARIANTS if m.startswith("sound-"))
 """The default's ablations (``--methods sound-seed,...``)."""

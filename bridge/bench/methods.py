@@ -16,7 +16,8 @@ THESIS_METHODS: tuple[str, ...] = ("adaptive-day2", *PRIOR_METHODS, "adaptive-fe
 ABLATION_METHODS: tuple[str, ...] = ("sound-seed", "sound-seed-global", "sound-seed-confirm",
                                      "sound-fast-noconfirm", "sound-e6", "sound-e4",
                                      "sound-explore-sd", "sound-nei", "sound-floor", "sound-tr25",
-                                     "sound-tr40", "sound-tr40-alt", "sound-drift")
+                                     "sound-tr40", "sound-tr40-alt", "sound-drift", "sound-kg",
+                                     "sound-kg-global", "sound-ei-kg")
 HIL_METHODS: tuple[str, ...] = (*DEFAULT_HIL_METHODS, "adaptive-ahead", *THESIS_METHODS,
                                 *ABLATION_METHODS)
 """Every method ``hilbo bench hil --methods`` accepts."""

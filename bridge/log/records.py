@@ -84,8 +84,9 @@ otherwise, and a golden file of the new version goes to ``tests/data/logs/v<N>/`
   ``trust_region_alternate``). Older states read without one (None, False): as they ran.
 * 7: evaluations (``/observations`` and the optimizer state's) gain ``drift_var``, the
   estimator's model-error share of their variance; the optimizer config gains the opt-in
-  ``drift_corr_s`` and its state ``drift_now_w``. Older states read without them (None, 0): as
-  they ran, with independent errors.
+  ``drift_corr_s``, ``acquisition`` (``"ei"``, the only one before, or a knowledge gradient) and
+  ``kg_from_s``, and its state ``drift_now_w``. Older states read without them (None, "ei", 0):
+  as they ran.
 """
 
 READABLE_VERSIONS = frozenset({1, 2, 3, 4, 5, 6, 7})
