@@ -327,8 +327,7 @@ def _mll_terms(
         Kf = signal_var * np.exp(-0.5 * r2)
     else:
         Kf = _matern52_from_r2(r2, signal_var)
-    Ky = Kf + extra_noise if extra_noise.ndim == 2 else Kf.copy()
-    Ky[np.diag_indices(n)] += (0.0 if extra_noise.ndim == 2 else extra_noise) + noise_var
+    Ky = _add_noise(Kf.copy(), extra_noise, noise_var)
     L = _cholesky(Ky)
     if L is None:
         return None
@@ -411,18 +410,40 @@ def log_marginal_likelihood(
         raise ConfigError(
             f"expected X (n, {hyperparameters.dim}) and y (n,), got {X.shape} and {y.shape}"
         )
-    extra = np.zeros(X.shape[0]) if noise_var is None else np.asarray(noise_var, dtype=float)
-    if extra.shape != y.shape:
-        raise ConfigError(f"noise_var must have shape {y.shape}, got {extra.shape}")
+    if noise_var is not None and np.shape(noise_var) != y.shape:
+        raise ConfigError(f"noise_var must have shape {y.shape}, got {np.shape(noise_var)}")
     if noise_corr is not None:
-        if noise_var is None:
-            raise ConfigError("noise_corr needs noise_var (the errors' variances)")
-        extra = _error_cov(extra, _check_corr(noise_corr, y.shape[0]))
+        noise_corr = _check_corr(noise_corr, y.shape[0])
+    extra = _known_noise(noise_var, noise_corr, y.shape[0])
     theta = hyperparameters.to_log_params()
     out = _mll_terms(_sq_diffs(X), y, extra, theta, kernel, return_grad)
     if out is None:
         raise EstimatorError(f"K_y is not positive definite for hyperparameters {hyperparameters}")
     return out if return_grad else out[0]
+
+
+def _known_noise(noise_var: np.ndarray | None, noise_corr: np.ndarray | None, n: int,
+                 scale: float = 1.0) -> np.ndarray:
+    """The known observation noise divided by ``scale``: variances (n,) (zeros without
+    ``noise_var``), or their covariance S·noise_corr·S (n, n), S = diag(√variances), with
+    ``noise_corr`` checked by :func:`_check_corr`."""
+    if noise_corr is None:
+        return np.zeros(n) if noise_var is None else np.asarray(noise_var, dtype=float) / scale
+    if noise_var is None:
+        raise ConfigError("noise_corr needs noise_var (the errors' variances)")
+    s = np.sqrt(np.asarray(noise_var, dtype=float) / scale)
+    return noise_corr * np.outer(s, s)
+
+
+def _add_noise(K: np.ndarray, extra: np.ndarray, noise_var: float) -> np.ndarray:
+    """K + the known noise ``extra`` (variances (n,) or a covariance (n, n)) + noise_var·I, in
+    place."""
+    if extra.ndim == 2:
+        K += extra
+        K[np.diag_indices(K.shape[0])] += noise_var
+    else:
+        K[np.diag_indices(K.shape[0])] += extra + noise_var
+    return K
 
 
 def _check_corr(noise_corr: np.ndarray, n: int) -> np.ndarray:
@@ -435,12 +456,6 @@ def _check_corr(noise_corr: np.ndarray, n: int) -> np.ndarray:
     if not np.allclose(np.diag(R), 1.0):
         raise ConfigError("noise_corr must have a unit diagonal (it is a correlation matrix)")
     return R
-
-
-def _error_cov(noise_var: np.ndarray, noise_corr: np.ndarray) -> np.ndarray:
-    """S·R·S, S = diag(√noise_var): the covariance of the observations' errors."""
-    s = np.sqrt(noise_var)
-    return noise_corr * np.outer(s, s)
 
 
 # --------------------------------------------------------------------------------------------
@@ -703,9 +718,7 @@ class GaussianProcess:
             # One point or constant targets: fall back to the measurement noise as the scale.
             y_std = math.sqrt(float(np.mean(noise_var))) if noise_var is not None else 1.0
         ys = (y - y_mean) / y_std
-        extra = np.zeros(n) if noise_var is None else noise_var / y_std**2
-        if noise_corr is not None:
-            extra = _error_cov(extra, noise_corr)
+        extra = _known_noise(noise_var, noise_corr, n, y_std**2)
 
         if init is None:
             theta0 = self._default_hyperparameters(dim).to_log_params()
@@ -718,12 +731,8 @@ class GaussianProcess:
             hyper = init if init is not None else GPHyperparameters.from_log_params(theta0)
 
         ls = np.asarray(hyper.lengthscales)
-        Ky = kernel_matrix(self._kernel, F, F, ls, hyper.signal_var)
-        if extra.ndim == 2:
-            Ky += extra
-            Ky[np.diag_indices(n)] += hyper.noise_var
-        else:
-            Ky[np.diag_indices(n)] += extra + hyper.noise_var
+        Ky = _add_noise(kernel_matrix(self._kernel, F, F, ls, hyper.signal_var), extra,
+                        hyper.noise_var)
         L = _cholesky(Ky)
         if L is None:
             raise EstimatorError(

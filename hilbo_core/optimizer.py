@@ -377,17 +377,9 @@ class OptimizerConfig:
         if r is not None and (isinstance(r, bool) or not isinstance(r, int | float)
                               or not (math.isfinite(r) and 0 < r < 1)):
             raise ConfigError(f"explore_rel_sd={r!r}; expected a fraction in (0, 1) or None")
-        h = self.drift_hours
-        if h is not None and (isinstance(h, bool) or not isinstance(h, int | float)
-                              or not (math.isfinite(h) and h > 0)):
-            raise ConfigError(f"drift_hours={h!r}; expected a positive number of hours or None")
-        kf = self.kg_from_s
-        if isinstance(kf, bool) or not isinstance(kf, int | float) or not (math.isfinite(kf) and kf > 0):
-            raise ConfigError(f"kg_from_s={kf!r}; expected a positive number of seconds")
-        dc = self.drift_corr_s
-        if dc is not None and (isinstance(dc, bool) or not isinstance(dc, int | float)
-                               or not (math.isfinite(dc) and dc > 0)):
-            raise ConfigError(f"drift_corr_s={dc!r}; expected a positive number of seconds or None")
+        _positive("drift_hours", self.drift_hours, "hours", optional=True)
+        _positive("kg_from_s", self.kg_from_s, "seconds", optional=False)
+        _positive("drift_corr_s", self.drift_corr_s, "seconds", optional=True)
         tr = self.trust_region
         if tr is not None:
             if (isinstance(tr, bool) or not isinstance(tr, int | float | np.integer | np.floating)
@@ -450,6 +442,16 @@ class OptimizerConfig:
         if unknown:
             raise ConfigError(f"unknown optimizer option(s) {unknown}; allowed: {sorted(allowed)}")
         return cls(**data)
+
+
+def _positive(name: str, value: object, unit: str, *, optional: bool) -> None:
+    """ConfigError unless ``value`` is a finite number > 0 (or None when ``optional``)."""
+    if optional and value is None:
+        return
+    if (isinstance(value, bool) or not isinstance(value, int | float)
+            or not (math.isfinite(value) and value > 0)):
+        raise ConfigError(f"{name}={value!r}; expected a positive number of {unit}"
+                          + (" or None" if optional else ""))
 
 
 def _int_at_least(name: str, value: object, low: int) -> None:
@@ -1236,7 +1238,7 @@ class HILOptimizer:
         U = np.concatenate([self._evaluation_units(), self.space.to_unit(xs.reshape(-1, self.space.dim))])
         if self.config.drift_hours is not None:
             # Session time of each evaluation (its end), fast priors at time 0 (they came first).
-            ends_h = np.cumsum([e.duration_s for e in self._evaluations]) / 3600.0
+            ends_h = self._evaluation_ends_s() / 3600.0
             t_h = np.concatenate([ends_h, np.zeros(len(self._priors))])
             U = np.column_stack([U, self._time_column(t_h)])
         # Data-only observations: the GP has its own prior.
@@ -1244,6 +1246,11 @@ class HILOptimizer:
         y = [m for m, _ in obs] + [p.mean for p in self._priors]
         v = [s for _, s in obs] + [p.var for p in self._priors]
         return U, np.array(y), np.array(v)
+
+    def _evaluation_ends_s(self) -> np.ndarray:
+        """Each evaluation's end on the optimizer's clock (breath time of the evaluations so
+        far, s), shape (n_evaluations,)."""
+        return np.cumsum([e.duration_s for e in self._evaluations], dtype=float)
 
     def _drift_terms(self) -> tuple[np.ndarray, np.ndarray] | None:
         """Each GP observation's drift SD (W; 0 for fast priors and evaluations without one) and
@@ -1254,8 +1261,11 @@ class HILOptimizer:
         sd = np.sqrt([e.drift_var or 0.0 for e in self._evaluations] + [0.0] * len(self._priors))
         if not np.any(sd > 0.0):
             return None
-        ends = np.cumsum([e.duration_s for e in self._evaluations])
-        return sd, np.concatenate([ends, np.zeros(len(self._priors))])
+        return sd, np.concatenate([self._evaluation_ends_s(), np.zeros(len(self._priors))])
+
+    def _clock_s(self) -> float:
+        """The optimizer's clock at the end of the last evaluation (s of breath time)."""
+        return float(sum(e.duration_s for e in self._evaluations))
 
     def _drift_cov(self, sd_a: np.ndarray, t_a: np.ndarray, sd_b: np.ndarray,
                    t_b: np.ndarray) -> np.ndarray:
@@ -1285,7 +1295,7 @@ class HILOptimizer:
         if terms is None:
             return 0.0
         sd, t = terms
-        now = float(t[: len(self._evaluations)].max()) if self._evaluations else 0.0
+        now = self._clock_s()
         known = sd[: len(self._evaluations)]
         sd_now = np.array([float(np.sqrt(np.mean(known[known > 0.0] ** 2)))])
         C = self._drift_cov(sd_now, np.array([now]), sd, t)
@@ -1332,7 +1342,7 @@ class HILOptimizer:
         """GP query points for unit-cube settings U (m, d): with drift, at the present time."""
         if self.config.drift_hours is None:
             return U
-        now_h = sum(e.duration_s for e in self._evaluations) / 3600.0
+        now_h = self._clock_s() / 3600.0
         cur = self._current
         if cur is not None and cur.breaths:
             now_h += cur.breaths[-1][0] / 3600.0
@@ -1393,14 +1403,6 @@ class HILOptimizer:
         # compares it with the incumbent as it would read now (drift_corr_s).
         drift_now = self._drift_now(gp) if sound else 0.0
         self._drift_now_w = drift_now
-        if self.config.ei_best is EIBestKind.POSTERIOR:
-            # Noisy EI's plug-in incumbent: the lowest posterior mean among the evaluated
-            # settings. min(S) of noisy estimates is optimistic (the luckiest estimate), so EI
-            # against it undervalues settings near the real best.
-            best_observed = float(np.min(gp.predict_mean(self._now(self._evaluation_units()))))
-        else:
-            best_observed = min(e.mean for e in self._evaluations)  # min(S), Kim et al. 2019 §II.B
-        A_u, b_u = self.space.unit_constraints()
         n_local = self.config.n_local
         local = self.config.trust_region is not None and not (
             self.config.trust_region_alternate and len(self._evaluations) % 2)
@@ -1410,25 +1412,14 @@ class HILOptimizer:
             cand = self._trust_region_candidates(self.space.to_unit(
                 self.space.from_dict(self._incumbent[0])))
             n_local = 0  # a refinement could leave the box
-        d = self.space.dim
-
-        def predict(U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            return gp.predict(self._now(U))
-
-        def predict_grad(U: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-            m, v, dm, dv = gp.predict_with_grad(self._now(U))
-            return m, v, dm[:, :d], dv[:, :d]  # time is not a decision variable
-
         acq = self.config.acquisition
         if acq is AcquisitionKind.EI_THEN_KG:
-            clock = sum(e.duration_s for e in self._evaluations)
-            acq = AcquisitionKind.KG_GLOBAL if clock >= self.config.kg_from_s else AcquisitionKind.EI
-        if acq is not AcquisitionKind.EI:
-            u = self._maximize_kg(gp, cand, acq)
+            late = self._clock_s() >= self.config.kg_from_s
+            acq = AcquisitionKind.KG_GLOBAL if late else AcquisitionKind.EI
+        if acq is AcquisitionKind.EI:
+            u = self._maximize_ei(gp, cand, n_local)
         else:
-            u, _ = maximize_ei(predict, best_observed, candidates=cand, A_ub=A_u, b_ub=b_u,
-                               rng=self._rng, xi=self.config.xi, n_local=n_local,
-                               predict_grad=predict_grad)
+            u = self._maximize_kg(gp, cand, acq)
         x = self.space.from_unit(np.clip(u, 0.0, 1.0))
         if not self.space.is_feasible(x):
             # Local refinement should never leave the set; if round-off does, the best
@@ -1443,6 +1434,30 @@ class HILOptimizer:
             prior = (float(m[0]) + drift_now, float(v[0]) + float(nugget))
         self._pending = (prior, False)
         return x
+
+    def _maximize_ei(self, gp: GaussianProcess, cand: np.ndarray, n_local: int) -> np.ndarray:
+        """EI's maximiser over the candidates, the best ``n_local`` refined, unit cube (d,)."""
+        if self.config.ei_best is EIBestKind.POSTERIOR:
+            # Noisy EI's plug-in incumbent: the lowest posterior mean among the evaluated
+            # settings. min(S) of noisy estimates is optimistic (the luckiest estimate), so EI
+            # against it undervalues settings near the real best.
+            best_observed = float(np.min(gp.predict_mean(self._now(self._evaluation_units()))))
+        else:
+            best_observed = min(e.mean for e in self._evaluations)  # min(S), Kim et al. 2019 §II.B
+        A_u, b_u = self.space.unit_constraints()
+        d = self.space.dim
+
+        def predict(U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            return gp.predict(self._now(U))
+
+        def predict_grad(U: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+            m, v, dm, dv = gp.predict_with_grad(self._now(U))
+            return m, v, dm[:, :d], dv[:, :d]  # time is not a decision variable
+
+        u, _ = maximize_ei(predict, best_observed, candidates=cand, A_ub=A_u, b_ub=b_u,
+                           rng=self._rng, xi=self.config.xi, n_local=n_local,
+                           predict_grad=predict_grad)
+        return np.asarray(u, dtype=float)
 
     def _maximize_kg(self, gp: GaussianProcess, cand: np.ndarray,
                      kind: AcquisitionKind = AcquisitionKind.KG) -> np.ndarray:
