@@ -337,6 +337,10 @@ class ProtocolConfig(msgspec.Struct, **_STRUCT):
         seed: The optimizer's random seed (>= 0).
         xi: Expected Improvement's ξ (Kim et al. 2019 §II.B sign convention).
         kernel: ``matern52`` or ``se``.
+        prior_mean_sd: The GP's constant prior mean in SDs of the measured costs above their
+            average, 0-3; absent: 0.5 with the sound rules (an unmeasured setting is expected to
+            be worse than the settings the search chose to measure), 0 with Kim et al. 2019's
+            rules (their GP: the average) (:class:`hilbo_core.optimizer.OptimizerConfig`).
         n_candidates: Feasible Sobol candidates per acquisition maximisation.
         n_local: Candidates refined locally per acquisition maximisation.
         pause_between_bouts: Pause for the operator between the bouts; absent: the protocol's
@@ -390,6 +394,7 @@ class ProtocolConfig(msgspec.Struct, **_STRUCT):
     seed: Annotated[int, Meta(ge=0, le=2**63 - 1)] = OptimizerConfig.seed
     xi: Annotated[float, Meta(ge=-1e6, le=1e6)] = OptimizerConfig.xi
     kernel: KernelKind = OptimizerConfig.kernel
+    prior_mean_sd: Annotated[float, Meta(ge=0.0, le=3.0)] | None = None
     n_candidates: Annotated[int, Meta(ge=16, le=1_000_000)] = OptimizerConfig.n_candidates
     n_local: Annotated[int, Meta(ge=0, le=100)] = OptimizerConfig.n_local
     pause_between_bouts: bool | None = None
@@ -476,7 +481,8 @@ class ProtocolConfig(msgspec.Struct, **_STRUCT):
             budget_breaths=self.budget_breaths if with_budget else None, stopping=self.stopping,
             min_decision_s=self.min_decision_s, boundary_s=self.boundary_s, a_floor=self.a_floor,
             accept_z=self.accept_margin_z, design=self.design,
-            seed=self.seed, xi=self.xi, kernel=self.kernel, n_candidates=self.n_candidates,
+            seed=self.seed, xi=self.xi, kernel=self.kernel, prior_mean_sd=self.prior_mean_sd,
+            n_candidates=self.n_candidates,
             n_local=self.n_local, refit_lag=1 if self.refit is RefitMode.AHEAD else 0,
         )
 

@@ -1,9 +1,11 @@
 """Gaussian-process regression with per-observation noise for HIL Bayesian optimisation.
 
-The surrogate of Kim et al. 2019 §II.B: a zero-mean GP on standardised targets with an ARD
-squared-exponential or Matérn-5/2 kernel. Unlike Kim et al. 2019's single σ_n², every observation carries
-its own noise variance (an early-stopped estimate is noisier than a full one, a fast-prior point of
-Antonova 2016 noisier still), and a learned homoscedastic term is added on top:
+The surrogate of Kim et al. 2019 §II.B: a GP on standardised targets with an ARD
+squared-exponential or Matérn-5/2 kernel and a constant prior mean, zero (the targets' average)
+as Kim et al.'s or ``prior_mean_sd`` standard deviations above it (:meth:`GaussianProcess.fit`).
+Unlike Kim et al. 2019's single σ_n², every observation carries its own noise variance (an
+early-stopped estimate is noisier than a full one, a fast-prior point of Antonova 2016 noisier
+still), and a learned homoscedastic term is added on top:
 
     K_y = K(X, X) + diag(noise_var_i / std_y²) + σ_n² I.
 
@@ -482,7 +484,7 @@ class _Posterior:
     y: np.ndarray  # (n,) original units
     noise_var: np.ndarray | None  # (n,) original units
     noise_corr: np.ndarray | None  # (n, n) correlation of the errors, or None (independent)
-    y_mean: float
+    y_mean: float  # the prior mean, original units
     y_std: float
     hyper: GPHyperparameters
     L: np.ndarray  # (n, n) Cholesky factor of K_y
@@ -584,7 +586,7 @@ class GaussianProcess:
 
     @property
     def y_mean(self) -> float:
-        """Mean subtracted from the targets."""
+        """Mean subtracted from the targets: the constant prior mean (original units)."""
         return self._posterior().y_mean
 
     @property
@@ -670,11 +672,13 @@ class GaussianProcess:
         init: GPHyperparameters | None = None,
         optimize: bool = True,
         noise_corr: np.ndarray | None = None,
+        prior_mean_sd: float = 0.0,
     ) -> GaussianProcess:
         """Condition on data and (optionally) fit hyperparameters by MAP marginal likelihood.
 
-        Targets are standardised (y − mean)/std. With one observation or constant targets std is
-        replaced by √mean(noise_var) (or 1 without noise variances) so the model stays usable.
+        Targets are standardised (y − m)/std, m = mean(y) + prior_mean_sd·std the constant prior
+        mean. With one observation or constant targets std is replaced by √mean(noise_var) (or 1
+        without noise variances) so the model stays usable.
 
         Args:
             X: Inputs in the unit cube, shape (n, d).
@@ -691,16 +695,25 @@ class GaussianProcess:
                 diagonal; None (default) for independent errors. With it the errors' covariance
                 is S·noise_corr·S, S = diag(√noise_var) (e.g. a drift shared by settings measured
                 close in time), and :meth:`predict` is still the latent f, without it.
+            prior_mean_sd: The constant prior mean, in standard deviations of the targets above
+                their average (0, the default: at the average, Kim et al. 2019's zero-mean GP on
+                standardised targets). Far from every observation the posterior mean returns to
+                it, so a positive value says that an unmeasured input is expected to be worse
+                than the average of the measured ones (see ``OptimizerConfig.prior_mean_sd``).
 
         Returns:
             self.
 
         Raises:
-            ConfigError: Bad shapes, non-finite or out-of-cube X, ``init`` of the wrong dimension.
+            ConfigError: Bad shapes, non-finite or out-of-cube X, ``init`` of the wrong
+                dimension, a ``prior_mean_sd`` that is not a finite number.
             MeasurementError: Non-finite y or non-positive/non-finite noise variances.
             EstimatorError: No hyperparameters give a positive-definite K_y.
         """
         X, y, noise_var = self._validate(X, y, noise_var)
+        if (isinstance(prior_mean_sd, bool) or not isinstance(prior_mean_sd, int | float | np.floating)
+                or not math.isfinite(prior_mean_sd)):
+            raise ConfigError(f"prior_mean_sd={prior_mean_sd!r}; expected a finite number of SDs")
         if noise_corr is not None:
             if noise_var is None:
                 raise ConfigError("noise_corr needs noise_var (the errors' variances)")
@@ -717,6 +730,9 @@ class GaussianProcess:
         if not y_std > 1e-12 * max(1.0, abs(y_mean)):
             # One point or constant targets: fall back to the measurement noise as the scale.
             y_std = math.sqrt(float(np.mean(noise_var))) if noise_var is not None else 1.0
+        # The prior mean: the posterior is y_mean + y_std·(GP posterior of ys), and far from the
+        # data that GP posterior is 0.
+        y_mean += float(prior_mean_sd) * y_std
         ys = (y - y_mean) / y_std
         extra = _known_noise(noise_var, noise_corr, n, y_std**2)
 

@@ -86,6 +86,7 @@ from hilbo_core.stopping import (
 __all__ = [
     "DEFAULT_ACCEPT_Z",
     "FLOOR_ACCEPT_Z",
+    "SOUND_PRIOR_MEAN_SD",
     "AcquisitionKind",
     "BreathStep",
     "Confirmation",
@@ -122,6 +123,10 @@ FLOOR_ACCEPT_Z = 3.0
 # the floor rule has only its clock.
 SEQUENTIAL_MIN_DECISION_S = 30.0
 FLOOR_MIN_DECISION_S = 60.0
+# The GP's prior mean with the sound rules, in SDs of the observed costs above their average
+# (OptimizerConfig.prior_mean_sd argues it). A round, mild value, not tuned: 0.25-1.0 all beat
+# the average on the simulated wearers (docs/hour_answer.md).
+SOUND_PRIOR_MEAN_SD = 0.5
 
 
 class Phase(enum.Enum):
@@ -238,6 +243,20 @@ class OptimizerConfig:
         kg_from_s: With ``"ei-then-kg"``, the optimizer's clock (s of breath time in its
             evaluations, exploration included) from which it proposes by the knowledge gradient
             (> 0; default 1620 s: minute 30 of a session that starts with a 3-minute warm-up).
+        prior_mean_sd: The GP's constant prior mean, in standard deviations of the observed
+            costs above their average (:meth:`GaussianProcess.fit
+            <hilbo_core.gp.GaussianProcess.fit>`); None (default): 0.5 with the sound rules, 0
+            with the seed's (Kim et al. 2019's GP: the average). Far from every measurement the
+            posterior returns to this mean. At the average, an unmeasured region looks as good
+            as the settings measured so far and, with the largest posterior SD, EI's best bet:
+            in 6-D the search then spends its first proposals at the cube's boundary (the
+            known boundary over-exploration of GP-BO with stationary kernels, Siivola et al.
+            2018, IEEE MLSP), where extreme timings and forces are mostly worse. But the
+            settings measured are not a random sample: the exploration design covers the space
+            and every later one was chosen as promising, so an unmeasured setting is expected to
+            cost more than their average. Half an SD of the observed costs says so mildly: the
+            posterior SD far away (≈ 1 SD of the costs) still leaves EI room to go there.
+            docs/hour_answer.md measures it.
         ei_best: The value EI improves on: ``"observed"`` (default: min(S), the seed's) or
             ``"posterior"`` (the lowest posterior mean among the evaluated settings: noisy EI's
             plug-in incumbent).
@@ -313,6 +332,7 @@ class OptimizerConfig:
     acquisition: AcquisitionKind = AcquisitionKind.EI
     kg_from_s: float = 1620.0
     ei_best: EIBestKind = EIBestKind.OBSERVED
+    prior_mean_sd: float | None = None
     drift_hours: float | None = None
     drift_corr_s: float | None = None
     trust_region: float | None = None
@@ -350,6 +370,13 @@ class OptimizerConfig:
             object.__setattr__(self, "recommend", RecommendKind.GLOBAL if sound else RecommendKind.SEED)
         if self.design is None:
             object.__setattr__(self, "design", DesignKind.SOBOL if sound else DesignKind.MAXIMIN)
+        if self.prior_mean_sd is None:
+            object.__setattr__(self, "prior_mean_sd", SOUND_PRIOR_MEAN_SD if sound else 0.0)
+        pm = self.prior_mean_sd
+        if (isinstance(pm, bool) or not isinstance(pm, int | float | np.integer | np.floating)
+                or not (math.isfinite(pm) and 0.0 <= pm <= 3.0)):
+            raise ConfigError(f"prior_mean_sd={pm!r}; expected a number of SDs in [0, 3] or None")
+        object.__setattr__(self, "prior_mean_sd", float(pm))
         self._enum("design", DesignKind)
         self._enum("recommend", RecommendKind)
         self._enum("ei_best", EIBestKind)
@@ -618,6 +645,9 @@ class HyperparameterFit:
         init: Warm start (the last fitted hyperparameters), or None.
         seed: Entropy of the fit's own generator (the multi-start points), derived from the
             optimizer's seed and n, so a fit gives the same result wherever and whenever it runs.
+        noise_corr: The observations' error correlation (``OptimizerConfig.drift_corr_s``),
+            shape (n, n), or None: the fit's likelihood is the proposals'.
+        prior_mean_sd: The GP's prior mean (``OptimizerConfig.prior_mean_sd``).
     """
 
     kernel: KernelKind
@@ -626,6 +656,8 @@ class HyperparameterFit:
     var: np.ndarray
     init: GPHyperparameters | None
     seed: tuple[int, ...]
+    noise_corr: np.ndarray | None = None
+    prior_mean_sd: float = 0.0
 
     @property
     def n_obs(self) -> int:
@@ -640,7 +672,7 @@ def fit_hyperparameters(fit: HyperparameterFit) -> GPHyperparameters:
     """
     gp = GaussianProcess(fit.kernel)
     gp.fit(fit.X_unit, fit.y, fit.var, rng=np.random.default_rng(fit.seed), init=fit.init,
-           optimize=True)
+           optimize=True, noise_corr=fit.noise_corr, prior_mean_sd=fit.prior_mean_sd)
     return gp.hyperparameters
 
 
@@ -1106,7 +1138,9 @@ class HILOptimizer:
             return None
         U, y, v = self._training_set()
         return HyperparameterFit(kernel=self.config.kernel, X_unit=U, y=y, var=v, init=self._hyp,
-                                 seed=(self.config.seed, n, _FIT_AHEAD_STREAM))
+                                 seed=(self.config.seed, n, _FIT_AHEAD_STREAM),
+                                 noise_corr=self._noise_corr(v),
+                                 prior_mean_sd=float(self.config.prior_mean_sd or 0.0))
 
     def apply_hyperparameters(self, fit: HyperparameterFit, hyp: GPHyperparameters) -> bool:
         """Keep the result of ``fit`` (from :meth:`hyperparameter_fit`) for the next proposals.
@@ -1324,7 +1358,8 @@ class HILOptimizer:
         U, y, v = self._training_set()
         gp = GaussianProcess(self.config.kernel)
         refit = self._refit_due()
-        gp.fit(U, y, v, rng=rng, init=self._hyp, optimize=refit, noise_corr=self._noise_corr(v))
+        gp.fit(U, y, v, rng=rng, init=self._hyp, optimize=refit, noise_corr=self._noise_corr(v),
+               prior_mean_sd=float(self.config.prior_mean_sd or 0.0))
         if store and refit:
             self._hyp = gp.hyperparameters  # warm start of the next fit
             self._n_at_fit = int(y.size)
@@ -1564,6 +1599,8 @@ class HILOptimizer:
             config_data.setdefault("recommend", RecommendKind.SEED.value)
             # States written before the exploration design became a choice used maximin.
             config_data.setdefault("design", DesignKind.MAXIMIN.value)
+            # States written before the GP's prior mean became a choice had it at the average.
+            config_data.setdefault("prior_mean_sd", 0.0)
             # remeasure_best_s never acted (no session gave the optimizer a budget of its own):
             # the confirmation replaced it.
             config_data.pop("remeasure_best_s", None)

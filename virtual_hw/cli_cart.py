@@ -113,7 +113,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> argparse.ArgumentParser
     parser.add_argument("--seed", type=int, default=1, help="wearer (subject) seed (default 1)")
     parser.add_argument("--wearer", choices=WEARER_CHOICES, default=WearerKind.REALISTIC.value,
                         help="realistic (default: breath noise and outliers as in real data, "
-                             "tau 30-60 s, slow adaptation, two landscape families) or legacy "
+                             "tau 14-55 s, drift, slow adaptation, two landscape families), noisy "
+                             "(breath CV 15-25 %%, 3 %% outliers), slow (tau 30-60 s) or legacy "
                              "(the earlier simulated wearer)")
     parser.add_argument("--body-mass-kg", type=float, default=75.0,
                         help="the wearer's body mass, 20-250 kg (default 75; match [session] "

@@ -127,6 +127,7 @@ __all__ = [
     "HIP_PRIOR",
     "NOISY_BREATH_CV",
     "NOISY_OUTLIER_FRAC",
+    "SLOW_TAU_S",
     "WEARER_CHOICES",
     "ActuatorPrior",
     "AssistWindow",
@@ -546,21 +547,28 @@ class WearerKind(enum.Enum):
 
     * ``REALISTIC`` (the default of ``hilbo sim`` and ``hilbo bench hil``):
       :class:`virtual_hw.wearer_realistic.RealisticWearer` — breath noise and outliers as in real
-      data, per-person τ 30-60 s, slow adaptation, two landscape families.
+      data, per-person τ 14-55 s, drift, slow adaptation, two landscape families.
     * ``NOISY``: the realistic wearer with noisier breaths: a per-person breath CV of 15-25 %
       (instead of 8-12 %) and 3 % outlier breaths: the robustness check of the method.
+    * ``SLOW``: the realistic wearer with slower VO2 kinetics: a per-person τ of 30-60 s (the
+      long end of the population: the unfit, older or ill, Poole & Jones 2012, Compr Physiol
+      2:933-996; Selinger & Donelan 2014's ≈ 42 s for walking): the robustness check of the
+      estimator's τ prior (median 25 s) and of the search when each setting says less.
     * ``LEGACY``: :class:`SimulatedWearer` — one landscape family, AR(1) Gaussian noise, no
       adaptation; kept for the results and tests that were measured on it.
     """
 
     REALISTIC = "realistic"
     NOISY = "noisy"
+    SLOW = "slow"
     LEGACY = "legacy"
 
 
 #: The noisy wearer's per-person breath CV range and share of outlier breaths (WearerKind.NOISY).
 NOISY_BREATH_CV: tuple[float, float] = (0.15, 0.25)
 NOISY_OUTLIER_FRAC: tuple[float, float] = (0.03, 0.03)
+#: The slow wearer's per-person τ range in s (WearerKind.SLOW).
+SLOW_TAU_S: tuple[float, float] = (30.0, 60.0)
 
 #: What ``--wearer`` accepts.
 WEARER_CHOICES: tuple[str, ...] = tuple(k.value for k in WearerKind)
@@ -618,7 +626,8 @@ def make_wearer(kind: WearerKind | str, space: ParameterSpace, seed: int,
     """A simulated wearer of ``kind`` with its default population constants.
 
     Args:
-        kind: :class:`WearerKind` or its value (``"realistic"``, ``"legacy"``).
+        kind: :class:`WearerKind` or its value (``"realistic"``, ``"noisy"``, ``"slow"``,
+            ``"legacy"``).
         space: The parameter space.
         seed: The subject seed.
         body_mass_kg: The subject's mass in kg.
@@ -632,4 +641,7 @@ def make_wearer(kind: WearerKind | str, space: ParameterSpace, seed: int,
     if k is WearerKind.NOISY:
         noisy = RealisticWearerConfig(noise_cv=NOISY_BREATH_CV, outlier_frac=NOISY_OUTLIER_FRAC)
         return RealisticWearer(space, seed=seed, config=noisy, body_mass_kg=body_mass_kg)
+    if k is WearerKind.SLOW:
+        slow = RealisticWearerConfig(tau_s=SLOW_TAU_S)
+        return RealisticWearer(space, seed=seed, config=slow, body_mass_kg=body_mass_kg)
     return RealisticWearer(space, seed=seed, body_mass_kg=body_mass_kg)

@@ -457,8 +457,10 @@ def add_bench_parser(subparsers: Any) -> Any:
     hil.add_argument("--window", type=_int, default=2, help="BO's window W (2)")
     hil.add_argument("--grid-min", type=float, default=1.0, help="minutes grid of the summary (1)")
     hil.add_argument("--wearer", choices=WEARER_CHOICES, default=WearerKind.REALISTIC.value,
-                     help="simulated wearer: realistic (default; breathes like real data) or legacy (the "
-                          "earlier one; the Antonova 2016 methods need it)")
+                     help="simulated wearer: realistic (default; breath noise and outliers as in "
+                          "real data, tau 14-55 s, drift, slow adaptation, two landscape "
+                          "families), noisy (breath CV 15-25 %%, 3 %% outliers), slow (tau 30-60 "
+                          "s) or legacy (the earlier one; the Antonova 2016 methods need it)")
     hil.add_argument("--tuned-k", default="bo", metavar="bo|grid|K",
                      help="K of adaptive-tuned-k: bo = BO-RESAMPLE's recommendation, grid = the best "
                           "of an exhaustive grid, both tuned offline on the full-length trajectories "

@@ -152,6 +152,8 @@ _BO_VARIANTS: dict[str, tuple[str, str, tuple[tuple[str, Any], ...], tuple[tuple
     "sound-kg-global": ("sound", "fast", (("acquisition", "kg-global"),), ()),
     # EI for the first half of the hour, then the knowledge gradient
     "sound-ei-kg": ("sound", "fast", (("acquisition", "ei-then-kg"),), ()),
+    # the default before the pessimistic prior mean: the GP's mean at the observations' average
+    "sound-mean0": ("sound", "fast", (("prior_mean_sd", 0.0),), ()),
 }
 ABLATION_METHODS: tuple[str, ...] = tuple(m for m in _BO_VARIANTS if m.startswith("sound-"))
 """The default's ablations (``--methods sound-seed,...``)."""

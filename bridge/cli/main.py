@@ -211,10 +211,11 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--out", default="runs/sim", help="output directory (default runs/sim)")
     sim.add_argument("--preset", default="hip_6d", choices=["hip_6d", "hip_ankle_4d"],
                      help="parameter space (default hip_6d)")
-    sim.add_argument("--wearer", default="realistic", choices=["realistic", "legacy"],
+    sim.add_argument("--wearer", default="realistic", choices=["realistic", "noisy", "slow", "legacy"],
                      help="simulated wearer: realistic (default; breath noise and outliers as in "
-                          "real data, tau 30-60 s, slow adaptation, two landscape families) or "
-                          "legacy (the earlier one)")
+                          "real data, tau 14-55 s, drift, slow adaptation, two landscape families), "
+                          "noisy (breath CV 15-25 %%, 3 %% outliers), slow (tau 30-60 s) or legacy "
+                          "(the earlier one)")
     sim.add_argument("--stopping", default="sound", choices=["sound", "sound-floor", "adaptive", "fixed"],
                      help="stopping rule in the optimisation phase: sound (default), sound-floor (it "
                           "on a fixed 60 s clock, the earlier default), adaptive "

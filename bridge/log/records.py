@@ -57,7 +57,7 @@ __all__ = [
     "json_schema",
 ]
 
-FORMAT_VERSION = 7
+FORMAT_VERSION = 8
 """Version of the log format (channels, their records and schemas).
 
 Stored in ``/config`` and the ``hilbo.session`` metadata. Bump it whenever the writer's output
@@ -87,9 +87,12 @@ otherwise, and a golden file of the new version goes to ``tests/data/logs/v<N>/`
   ``drift_corr_s``, ``acquisition`` (``"ei"``, the only one before, or a knowledge gradient) and
   ``kg_from_s``, and its state ``drift_now_w``. Older states read without them (None, "ei", 0):
   as they ran.
+* 8: the optimizer config gains ``prior_mean_sd``, the GP's constant prior mean (0.5 SDs above
+  the observations' average with the sound rules). Older states read with 0, the average: as
+  they ran.
 """
 
-READABLE_VERSIONS = frozenset({1, 2, 3, 4, 5, 6, 7})
+READABLE_VERSIONS = frozenset({1, 2, 3, 4, 5, 6, 7, 8})
 """Format versions the readers open."""
 
 METADATA_NAME = "hilbo.session"

@@ -496,9 +496,10 @@ def stopping_trial(
         n_explore=proto.n_explore, max_breaths=proto.max_breaths, window=proto.window,
         budget_breaths=proto.budget, seed=int(seed), n_candidates=proto.n_candidates,
         n_local=proto.n_local, design=proto.design,
-        # The study's x_t is the GP's estimated minimum among the evaluated points (§III.2), for
-        # every method alike: x_0 is then the same for all of them.
-        **{"recommend": "seed", **dict(meth.options)},
+        # The study's x_t is the GP's estimated minimum among the evaluated points (§III.2), of
+        # Kim et al.'s GP (its prior mean at the observations' average), for every method alike:
+        # x_0 is then the same for all of them, and the methods differ in their stopping only.
+        **{"recommend": "seed", "prior_mean_sd": 0.0, **dict(meth.options)},
     )
     rng = np.random.default_rng([int(seed), _NOISE_STREAM])
     y = np.full(proto.budget + 1, np.nan)

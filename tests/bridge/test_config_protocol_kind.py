@@ -58,3 +58,17 @@ def test_bad_values_name_the_key(extra: str, match: str) -> None:
     text = text.replace("[protocol]", "[protocol]\n" + extra, 1)
     with pytest.raises(BridgeConfigError, match=match):
         parse_config(text)
+
+
+def test_the_gp_prior_mean_follows_the_rule_unless_given() -> None:
+    assert parse_config(example_config_text()).protocol.optimizer_config().prior_mean_sd == 0.5
+    seed_rule = example_config_text().replace('stopping = "sound"', 'stopping = "adaptive"')
+    assert parse_config(seed_rule).protocol.optimizer_config().prior_mean_sd == 0.0
+    assert _cfg("prior_mean_sd = 0\n").protocol.optimizer_config().prior_mean_sd == 0.0
+    assert _cfg("prior_mean_sd = 1.5\n").protocol.optimizer_config().prior_mean_sd == 1.5
+
+
+@pytest.mark.parametrize("bad", ["-0.5", "4", '"high"'])
+def test_a_bad_gp_prior_mean_names_the_key_and_its_range(bad: str) -> None:
+    with pytest.raises(BridgeConfigError, match="prior_mean_sd"):
+        _cfg(f"prior_mean_sd = {bad}\n")

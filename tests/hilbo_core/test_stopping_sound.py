@@ -134,7 +134,8 @@ def _gp_like(opt: HILOptimizer) -> GaussianProcess:
     """The optimizer's GP, rebuilt from its training set with its last hyperparameters."""
     U, y, v = opt._training_set()
     return GaussianProcess(opt.config.kernel).fit(U, y, v, rng=np.random.default_rng(0),
-                                                  init=opt._hyp, optimize=False)
+                                                  init=opt._hyp, optimize=False,
+                                                  prior_mean_sd=float(opt.config.prior_mean_sd or 0.0))
 
 
 def test_incumbent_is_the_gp_posterior_at_the_best_evaluated_setting() -> None:
@@ -188,7 +189,8 @@ def _best_gp(opt: HILOptimizer) -> GaussianProcess:
     """The GP best() fits before any proposal: hyperparameters refitted with its private rng."""
     U, y, v = opt._training_set()
     rng = np.random.default_rng([opt.config.seed, len(opt.evaluations)])
-    return GaussianProcess(opt.config.kernel).fit(U, y, v, rng=rng, optimize=True)
+    return GaussianProcess(opt.config.kernel).fit(U, y, v, rng=rng, optimize=True,
+                                                  prior_mean_sd=float(opt.config.prior_mean_sd or 0.0))
 
 
 def test_best_is_the_posterior_not_the_raw_estimate() -> None:

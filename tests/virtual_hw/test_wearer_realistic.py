@@ -366,7 +366,7 @@ def test_make_wearer_picks_the_kind_and_realistic_is_the_default_choice() -> Non
     assert isinstance(make_wearer(WearerKind.LEGACY, space, 1), SimulatedWearer)
     legacy = make_wearer("legacy", space, 1)
     assert legacy.breaths_until(30.0) == SimulatedWearer(space, 1).breaths_until(30.0)
-    with pytest.raises(ConfigError, match=r"wearer='human'; expected one of realistic, noisy, legacy"):
+    with pytest.raises(ConfigError, match=r"wearer='human'; expected one of realistic, noisy, slow, legacy"):
         make_wearer("human", space, 1)
 
 

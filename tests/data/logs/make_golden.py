@@ -8,7 +8,7 @@ wrote). v1 was written with this script by the writer of main at 41b65f5 (whose 
 v3 when the optimizer state gained ``accept_z``; v4 when it gained the confirmation of the
 recommendation; v5 when its config gained the sound rule's ``boundary_s``; v6 when it gained
 the opt-in trust region; v7 when evaluations gained ``drift_var`` and the config the opt-in
-``drift_corr_s`` and ``acquisition``.
+``drift_corr_s`` and ``acquisition``; v8 when the config gained the GP's ``prior_mean_sd``.
 
 ``tests/bridge/test_log_golden.py`` also writes this session in-process and compares a digest of
 the writer's output (schemas and records) with ``digests.json``, keyed by format version.
