@@ -75,7 +75,8 @@ def _stopping_command(args: argparse.Namespace, campaign: Any) -> str:
             f"--budget {p.budget} --n-explore {p.n_explore} "
             f"--max-breaths {p.max_breaths} --window {p.window} --design {p.design.value} "
             f"--n-candidates {p.n_candidates} "
-            f"--n-local {p.n_local} --seed {campaign.seed} --refit-growth {campaign.refit_growth:g} "
+            f"--n-local {p.n_local} --prior-mean-sd {p.prior_mean_sd:g} --seed {campaign.seed} "
+            f"--refit-growth {campaign.refit_growth:g} "
             f"--grid-step {args.grid_step} --out {args.out}"
             + (" --summarize-only" if args.summarize_only else "")
             + "".join(f" --merge {d}" for d in args.merge or []))
@@ -104,7 +105,8 @@ def _cmd_stopping(args: argparse.Namespace) -> int:
         protocol = StoppingProtocol(n_explore=args.n_explore, max_breaths=args.max_breaths,
                                     window=args.window, budget=args.budget, noise_model=args.noise_model,
                                     noise_estimate=args.noise_estimate, n_candidates=args.n_candidates,
-                                    n_local=args.n_local, design=args.design)
+                                    n_local=args.n_local, design=args.design,
+                                    prior_mean_sd=args.prior_mean_sd)
         campaign = StoppingCampaign(functions=tuple(functions), noises=tuple(noises),
                                     methods=tuple(methods), trials=args.trials, seed=args.seed,
                                     protocol=protocol, refit_growth=args.refit_growth)
@@ -403,6 +405,10 @@ def add_bench_parser(subparsers: Any) -> Any:
     # (docs/results.md, "Stopping benchmarks"; the campaign of 2026-12-05 in its git history).
     st.add_argument("--n-local", type=_int, default=3,
                     help="best candidates refined by SLSQP per proposal, as hilbo run does (3)")
+    st.add_argument("--prior-mean-sd", type=float, default=0.0, metavar="K",
+                    help="the GP's prior mean for every method, K SDs of the observations above "
+                         "their average, 0-3 (0: Kim et al. 2019's GP, default; 0.5: a lab "
+                         "session's with the sound rules)")
     st.add_argument("--seed", type=_int, default=0, help="seed of the first trial (0)")
     # 1.25, not the optimizer's 1.0: the same y_t within noise, expensive adaptive trials ≈ 8×
     # cheaper (docs/results.md, "Stopping benchmarks"; the measurement is in its git history).

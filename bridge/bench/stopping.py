@@ -156,7 +156,8 @@ def peer_trial(function: str, noise: float, method: str, seed: int,
                             max_breaths=proto.max_breaths, window=proto.window,
                             budget_breaths=proto.budget, seed=int(seed),
                             n_candidates=proto.n_candidates, n_local=proto.n_local,
-                            design=proto.design, recommend="seed", prior_mean_sd=0.0)
+                            design=proto.design, recommend="seed",
+                            prior_mean_sd=proto.prior_mean_sd)
     explored: list[tuple[dict[str, float], float, list[float]]] = []
     while len(explorer.evaluations) < proto.n_explore:
         params = explorer.ask()

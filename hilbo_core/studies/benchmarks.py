@@ -45,7 +45,7 @@ import numpy.typing as npt
 
 from hilbo_core.errors import ConfigError, OptimizerStateError
 from hilbo_core.metabolic import GaussianProductEstimator, MeasurementNoisePool, PooledNoiseEstimator
-from hilbo_core.optimizer import HILOptimizer, Phase
+from hilbo_core.optimizer import HILOptimizer, OptimizerConfig, Phase
 from hilbo_core.protocol import DEFAULT_BREATH_INTERVAL_S
 from hilbo_core.space import DesignKind, Parameter, ParameterSpace
 
@@ -380,6 +380,9 @@ class StoppingProtocol:
             every method of a trial: ``sobol_only`` (default: scrambled Sobol points without a
             centre point, as the seed's Fig. 2 study; the domain's centre is Ackley's optimum and
             near Levy's), or a lab session's ``sobol``/``maximin`` (both start at the centre).
+        prior_mean_sd: The GP's prior mean for every method, in SDs of the observations above
+            their average (``OptimizerConfig.prior_mean_sd``): 0 (default) is Kim et al.
+            2019's GP; 0.5 is a lab session's with the sound rules.
     """
 
     n_explore: int = 6
@@ -394,6 +397,7 @@ class StoppingProtocol:
     # time on 2026-12-05: 20 minutes"), so it is an option (--n-local 1), not the default.
     n_local: int = 3
     design: DesignKind = DesignKind.SOBOL_ONLY
+    prior_mean_sd: float = 0.0
 
     def __post_init__(self) -> None:
         choice: type[enum.Enum]
@@ -414,6 +418,9 @@ class StoppingProtocol:
                 f"budget={self.budget} measurements is smaller than one full evaluation "
                 f"(max_breaths N={self.max_breaths}); give budget >= {self.max_breaths}"
             )
+        # The optimizer's own check (a number of SDs in [0, 3]) is the final word.
+        OptimizerConfig(prior_mean_sd=self.prior_mean_sd)
+        object.__setattr__(self, "prior_mean_sd", float(self.prior_mean_sd))
 
     def to_json(self) -> dict[str, Any]:
         """JSON-able form."""
@@ -421,7 +428,9 @@ class StoppingProtocol:
                 "budget": self.budget, "noise_model": self.noise_model.value,
                 "noise_estimate": self.noise_estimate.value,
                 "n_candidates": self.n_candidates, "n_local": self.n_local,
-                "design": self.design.value}
+                "design": self.design.value,
+                # only when set, so the protocols of earlier campaigns read (and resume) as before
+                **({"prior_mean_sd": self.prior_mean_sd} if self.prior_mean_sd else {})}
 
 
 def resolve_function(function: str | TestFunction) -> TestFunction:
@@ -497,9 +506,9 @@ def stopping_trial(
         budget_breaths=proto.budget, seed=int(seed), n_candidates=proto.n_candidates,
         n_local=proto.n_local, design=proto.design,
         # The study's x_t is the GP's estimated minimum among the evaluated points (§III.2), of
-        # Kim et al.'s GP (its prior mean at the observations' average), for every method alike:
-        # x_0 is then the same for all of them, and the methods differ in their stopping only.
-        **{"recommend": "seed", "prior_mean_sd": 0.0, **dict(meth.options)},
+        # one GP (by default Kim et al.'s, its prior mean at the observations' average) for every
+        # method alike: x_0 is then the same for all of them, and they differ in their stopping.
+        **{"recommend": "seed", "prior_mean_sd": proto.prior_mean_sd, **dict(meth.options)},
     )
     rng = np.random.default_rng([int(seed), _NOISE_STREAM])
     y = np.full(proto.budget + 1, np.nan)

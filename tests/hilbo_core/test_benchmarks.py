@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -277,3 +278,16 @@ def test_without_the_time_floor_the_sound_rule_measures_more_settings() -> None:
     # Without it, the same trial measures more settings in the same 450 measurements.
     assert free["early_stops"] >= floored["early_stops"]
     assert free["evaluations"] > floored["evaluations"] + 2
+
+
+def test_the_study_gp_is_kim_et_als_unless_a_prior_mean_is_given(toy_trials: dict[str, dict]) -> None:
+    # Every method of a trial shares one GP: by default the seed's (prior mean at the average),
+    # and the protocol of earlier campaigns reads the same (no key for the default).
+    assert "prior_mean_sd" not in StoppingProtocol().to_json()
+    lab = dataclasses.replace(TOY, prior_mean_sd=0.5)
+    assert lab.to_json()["prior_mean_sd"] == 0.5
+    runs = {m: stopping_trial("hartmann6", 1.0, m, 7, lab) for m in ("fixed", "sound")}
+    assert runs["fixed"]["x0"] == runs["sound"]["x0"]
+    assert stopping_trial("hartmann6", 1.0, "fixed", 7, TOY)["y"] != runs["fixed"]["y"]
+    with pytest.raises(ConfigError, match="prior_mean_sd=4"):
+        StoppingProtocol(prior_mean_sd=4)
