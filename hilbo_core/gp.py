@@ -891,7 +891,8 @@ class GaussianProcess:
 
     def predict_error(self, cross_cov: np.ndarray) -> np.ndarray:
         """Posterior mean of errors correlated with the observations' errors (R&W eq. 2.25
-        with the error's cross-covariance in place of k*): E[e* | y] = C* K_y⁻¹ (y − ȳ).
+        with the error's cross-covariance in place of k*): E[e* | y] = C* K_y⁻¹ (y − m), m the
+        prior mean (:attr:`y_mean`).
 
         Args:
             cross_cov: Covariance of each new error with each observation's error in original

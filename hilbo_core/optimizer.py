@@ -251,7 +251,8 @@ class OptimizerConfig:
             as the settings measured so far and, with the largest posterior SD, EI's best bet:
             in 6-D the search then spends its first proposals at the cube's boundary (the
             known boundary over-exploration of GP-BO with stationary kernels, Siivola et al.
-            2018, IEEE MLSP), where extreme timings and forces are mostly worse. But the
+            2018, IEEE MLSP); on the simulated wearers those proposals were worse than random
+            feasible settings (docs/noisy_wearer.md, "Diagnosis"). But the
             settings measured are not a random sample: the exploration design covers the space
             and every later one was chosen as promising, so an unmeasured setting is expected to
             cost more than their average. Half an SD of the observed costs says so mildly: the
