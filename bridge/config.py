@@ -1318,7 +1318,8 @@ def summarize(cfg: HilboConfig) -> str:
         f"; exploration {pr.explore_points} settings x "
         f"{pr.max_breaths} breaths ({DesignKind(pr.optimizer_config().design).value} design); "
         f"optimisation budget {budget}; {pr.stopping.value} stopping "
-        f"(W = {pr.window}{_sound_text(pr)}); {pr.kernel.value} kernel, xi = {pr.xi:g}, seed {pr.seed}; "
+        f"(W = {pr.window}{_sound_text(pr)}); {pr.kernel.value} kernel, GP prior mean "
+        f"+{pr.optimizer_config().prior_mean_sd:g} SD, xi = {pr.xi:g}, seed {pr.seed}; "
         f"{'pause' if pr.pauses_between_bouts else 'no pause'} between bouts; "
         + (f"the last {pr.session_protocol_config().confirm_s / 60:g} min confirm the recommendation"
            if pr.session_protocol_config().confirm_s else "no confirmation"),
