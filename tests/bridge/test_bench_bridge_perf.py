@@ -89,9 +89,14 @@ def _check(b: dict, cfg: BridgeRtConfig) -> None:
     g = b["gc"]
     assert g["mode"] == cfg.gc
     # FREEZE collects at every applied profile and at the pause between the bouts; AUTOMATIC
-    # leaves it to CPython (none of ours).
+    # leaves it to CPython (none of ours). A pause while a pushed profile waits to be applied (a
+    # loop stall on a busy machine can latch the device's heartbeat fault) abandons that setting
+    # before its collection: at most one push per abandoned setting goes without one.
     ours = b["push_latency_ms"]["n"] + b["events"].get("bout_pause", 0)
-    assert g["quiet_points"] == (ours if cfg.gc == "freeze" else 0)
+    if cfg.gc == "freeze":
+        assert ours - b["events"].get("evaluation_cancelled", 0) <= g["quiet_points"] <= ours
+    else:
+        assert g["quiet_points"] == 0
     assert set(b["met"]) == {"stop_to_ack_p99_ms", "cores", "dropped_frames", "feedback_rate"}
     assert b["events"]["session_end"] == 1
 
