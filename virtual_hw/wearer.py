@@ -638,10 +638,10 @@ def make_wearer(kind: WearerKind | str, space: ParameterSpace, seed: int,
     k = wearer_kind(kind)
     if k is WearerKind.LEGACY:
         return SimulatedWearer(space, seed=seed, body_mass_kg=body_mass_kg)
-    if k is WearerKind.NOISY:
-        noisy = RealisticWearerConfig(noise_cv=NOISY_BREATH_CV, outlier_frac=NOISY_OUTLIER_FRAC)
-        return RealisticWearer(space, seed=seed, config=noisy, body_mass_kg=body_mass_kg)
-    if k is WearerKind.SLOW:
-        slow = RealisticWearerConfig(tau_s=SLOW_TAU_S)
-        return RealisticWearer(space, seed=seed, config=slow, body_mass_kg=body_mass_kg)
-    return RealisticWearer(space, seed=seed, body_mass_kg=body_mass_kg)
+    # The realistic wearer's variants differ from it in their population ranges only.
+    ranges: dict[WearerKind, dict[str, tuple[float, float]]] = {
+        WearerKind.NOISY: {"noise_cv": NOISY_BREATH_CV, "outlier_frac": NOISY_OUTLIER_FRAC},
+        WearerKind.SLOW: {"tau_s": SLOW_TAU_S},
+    }
+    config = RealisticWearerConfig(**ranges.get(k, {}))
+    return RealisticWearer(space, seed=seed, config=config, body_mass_kg=body_mass_kg)

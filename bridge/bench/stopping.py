@@ -45,7 +45,7 @@ import numpy as np
 from bridge.bench.common import blas_threads, markdown_table, round_sig
 from bridge.bench.executors import keep_freed_memory
 from hilbo_core.errors import ConfigError, OptimizerStateError
-from hilbo_core.optimizer import HILOptimizer, OptimizerConfig, Phase
+from hilbo_core.optimizer import OptimizerConfig, Phase
 from hilbo_core.studies.benchmarks import (
     _NOISE_STREAM,  # the trial's measurement stream: peers must measure what the BO methods measure
     FUNCTIONS,
@@ -61,6 +61,7 @@ from hilbo_core.studies.benchmarks import (
     resolve_function,
     resolve_method,
     stopping_trial,
+    study_optimizer,
     y_metric,
 )
 
@@ -152,12 +153,7 @@ def peer_trial(function: str, noise: float, method: str, seed: int,
 
     # Exploration exactly as stopping_trial runs it (same optimizer seed, design, noise stream):
     # the same points, the same measurements, the same x_0.
-    explorer = HILOptimizer(fn.space(), estimator_factory=estimator, n_explore=proto.n_explore,
-                            max_breaths=proto.max_breaths, window=proto.window,
-                            budget_breaths=proto.budget, seed=int(seed),
-                            n_candidates=proto.n_candidates, n_local=proto.n_local,
-                            design=proto.design, recommend="seed",
-                            prior_mean_sd=proto.prior_mean_sd)
+    explorer = study_optimizer(fn, proto, int(seed), estimator)
     explored: list[tuple[dict[str, float], float, list[float]]] = []
     while len(explorer.evaluations) < proto.n_explore:
         params = explorer.ask()

@@ -67,6 +67,7 @@ __all__ = [
     "levy",
     "measure",
     "stopping_trial",
+    "study_optimizer",
     "y_metric",
 ]
 
@@ -460,6 +461,26 @@ def check_noise(noise: float) -> float:
     return value
 
 
+def study_optimizer(fn: TestFunction, proto: StoppingProtocol, seed: int,
+                    estimator: Callable[[], Any],
+                    options: Mapping[str, Any] = MappingProxyType({})) -> HILOptimizer:
+    """The optimizer of one trial of the study, a method's ``options`` on top.
+
+    Every method of a trial, and the exploration the Optuna peers start from, is built here, so
+    they explore the same points with the same GP: the protocol's design, N, W, budget and
+    candidates; as x_t the GP's estimated minimum among the evaluated points (§III.2); one GP
+    for all (by default Kim et al.'s, its prior mean at the observations' average). x_0 is then
+    the same for all of them, and they differ in their stopping.
+    """
+    return HILOptimizer(
+        fn.space(), estimator_factory=estimator,
+        n_explore=proto.n_explore, max_breaths=proto.max_breaths, window=proto.window,
+        budget_breaths=proto.budget, seed=seed, n_candidates=proto.n_candidates,
+        n_local=proto.n_local, design=proto.design,
+        **{"recommend": "seed", "prior_mean_sd": proto.prior_mean_sd, **dict(options)},
+    )
+
+
 def stopping_trial(
     function: str | TestFunction,
     noise: float,
@@ -498,18 +519,8 @@ def stopping_trial(
         raise ConfigError(f"seed={seed!r}; expected an integer >= 0")
     prior_var = fn.prior_std**2
     true_var = level * prior_var if proto.noise_model is NoiseModel.MATCHED else prior_var
-    space = fn.space()
-    opt = HILOptimizer(
-        space,
-        estimator_factory=estimator_factory(fn, level, proto.noise_estimate),
-        n_explore=proto.n_explore, max_breaths=proto.max_breaths, window=proto.window,
-        budget_breaths=proto.budget, seed=int(seed), n_candidates=proto.n_candidates,
-        n_local=proto.n_local, design=proto.design,
-        # The study's x_t is the GP's estimated minimum among the evaluated points (§III.2), of
-        # one GP (by default Kim et al.'s, its prior mean at the observations' average) for every
-        # method alike: x_0 is then the same for all of them, and they differ in their stopping.
-        **{"recommend": "seed", "prior_mean_sd": proto.prior_mean_sd, **dict(meth.options)},
-    )
+    opt = study_optimizer(fn, proto, int(seed), estimator_factory(fn, level, proto.noise_estimate),
+                          meth.options)
     rng = np.random.default_rng([int(seed), _NOISE_STREAM])
     y = np.full(proto.budget + 1, np.nan)
     t = 0  # optimisation-phase measurements so far
