@@ -223,6 +223,14 @@ class OptimizerConfig:
         gp_prior_stopping: With the sound rule, the candidate's estimate for the stop decision
             is the estimator's data-only estimate times the GP's predictive at x_t (the Bayesian
             early decision); the GP is still told the data-only part.
+        gp_prior_max_share: With ``gp_prior_stopping``, the largest share of the decision's
+            precision the GP's predictive may carry, in (0, 1] (default 0.5: at most as much as
+            the setting's own breaths; 1: the plain Gaussian product). Late in a session EI
+            proposes settings the GP already rates well above the incumbent with an SD of
+            30-40 W, and 30 s of noisy breaths carry an SD of 100 W or more: the plain product
+            then rejects at the first look on the GP's word alone, and a noisy wearer saw 20
+            settings in a row, truly better ones among them, cut after 11 breaths that told
+            nothing (docs/noisy_wearer.md). A reject must rest on the setting's own breaths.
         recommend: ``"global"``, ``"posterior"`` or ``"seed"``, see :class:`RecommendKind`;
             None (default) means ``"global"`` with the sound rule and ``"seed"`` with the seed's
             rules.
@@ -327,6 +335,7 @@ class OptimizerConfig:
     a_floor: float = 1.0
     accept_z: float | None = DEFAULT_ACCEPT_Z
     gp_prior_stopping: bool = True
+    gp_prior_max_share: float = 0.5
     recommend: RecommendKind | None = None
     recommend_beta: float = 1.0
     explore_rel_sd: float | None = None
@@ -401,6 +410,11 @@ class OptimizerConfig:
             object.__setattr__(self, "accept_z", float(z))
         if not isinstance(self.gp_prior_stopping, bool):
             raise ConfigError(f"gp_prior_stopping={self.gp_prior_stopping!r}; expected true or false")
+        w = self.gp_prior_max_share
+        if (isinstance(w, bool) or not isinstance(w, int | float | np.integer | np.floating)
+                or not (math.isfinite(w) and 0.0 < w <= 1.0)):
+            raise ConfigError(f"gp_prior_max_share={w!r}; expected a share in (0, 1]")
+        object.__setattr__(self, "gp_prior_max_share", float(w))
         r = self.explore_rel_sd
         if r is not None and (isinstance(r, bool) or not isinstance(r, int | float)
                               or not (math.isfinite(r) and 0 < r < 1)):
@@ -1236,8 +1250,12 @@ class HILOptimizer:
             return mean, var
         d_mean, d_var = self._estimator.data_only()
         p_mean, p_var = cur.prior
-        prec = 1.0 / d_var + 1.0 / p_var
-        return (d_mean / d_var + p_mean / p_var) / prec, 1.0 / prec
+        share = self.config.gp_prior_max_share
+        p_prec = 1.0 / p_var
+        if share < 1.0:
+            p_prec = min(p_prec, share / (1.0 - share) / d_var)
+        prec = 1.0 / d_var + p_prec
+        return (d_mean / d_var + p_mean * p_prec) / prec, 1.0 / prec
 
     def _incumbent_stats(self) -> tuple[float, float]:
         if self._incumbent is None:
@@ -1602,6 +1620,8 @@ class HILOptimizer:
             config_data.setdefault("design", DesignKind.MAXIMIN.value)
             # States written before the GP's prior mean became a choice had it at the average.
             config_data.setdefault("prior_mean_sd", 0.0)
+            # ... and before its share of a stop decision was capped, the plain product.
+            config_data.setdefault("gp_prior_max_share", 1.0)
             # remeasure_best_s never acted (no session gave the optimizer a budget of its own):
             # the confirmation replaced it.
             config_data.pop("remeasure_best_s", None)

@@ -154,6 +154,8 @@ _BO_VARIANTS: dict[str, tuple[str, str, tuple[tuple[str, Any], ...], tuple[tuple
     "sound-ei-kg": ("sound", "fast", (("acquisition", "ei-then-kg"),), ()),
     # the default before the pessimistic prior mean: the GP's mean at the observations' average
     "sound-mean0": ("sound", "fast", (("prior_mean_sd", 0.0),), ()),
+    # The GP's predictive as the plain product in the stop decision (before the cap).
+    "sound-prior-full": ("sound", "fast", (("gp_prior_max_share", 1.0),), ()),
 }
 ABLATION_METHODS: tuple[str, ...] = tuple(m for m in _BO_VARIANTS if m.startswith("sound-"))
 """The default's ablations (``--methods sound-seed,...``)."""

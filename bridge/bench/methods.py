@@ -17,7 +17,8 @@ ABLATION_METHODS: tuple[str, ...] = ("sound-seed", "sound-seed-global", "sound-s
                                      "sound-fast-noconfirm", "sound-e6", "sound-e4",
                                      "sound-explore-sd", "sound-nei", "sound-floor", "sound-tr25",
                                      "sound-tr40", "sound-tr40-alt", "sound-drift", "sound-kg",
-                                     "sound-kg-global", "sound-ei-kg", "sound-mean0")
+                                     "sound-kg-global", "sound-ei-kg", "sound-mean0",
+                                     "sound-prior-full")
 HIL_METHODS: tuple[str, ...] = (*DEFAULT_HIL_METHODS, "adaptive-ahead", *THESIS_METHODS,
                                 *ABLATION_METHODS)
 """Every method ``hilbo bench hil --methods`` accepts."""

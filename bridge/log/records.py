@@ -57,7 +57,7 @@ __all__ = [
     "json_schema",
 ]
 
-FORMAT_VERSION = 8
+FORMAT_VERSION = 9
 """Version of the log format (channels, their records and schemas).
 
 Stored in ``/config`` and the ``hilbo.session`` metadata. Bump it whenever the writer's output
@@ -90,9 +90,11 @@ otherwise, and a golden file of the new version goes to ``tests/data/logs/v<N>/`
 * 8: the optimizer config gains ``prior_mean_sd``, the GP's constant prior mean (0.5 SDs above
   the observations' average with the sound rules). Older states read with 0, the average: as
   they ran.
+* 9: the optimizer config gains ``gp_prior_max_share``, the GP's largest share of the sound
+  rule's stop decision (0.5). Older states read with 1, the plain product: as they ran.
 """
 
-READABLE_VERSIONS = frozenset({1, 2, 3, 4, 5, 6, 7, 8})
+READABLE_VERSIONS = frozenset({1, 2, 3, 4, 5, 6, 7, 8, 9})
 """Format versions the readers open."""
 
 METADATA_NAME = "hilbo.session"
