@@ -13,7 +13,8 @@ Phases (Kim et al. 2019 §II.A, Algorithm 1):
    before ``min_decision_s`` in the setting, and the threshold is floored at ``a_floor`` ≥ 0,
    with sequential reject and accept boundaries that are strict early and reach their late
    levels at ``boundary_s`` (:class:`~hilbo_core.stopping.SoundRule`); the candidate's estimate
-   starts from the GP's predictive at x_t (``gp_prior_stopping``). ``"sound-floor"`` is the same
+   starts from the GP's predictive at x_t (``gp_prior_stopping``), which carries at most half of
+   the decision's weight (``gp_prior_max_share``). ``"sound-floor"`` is the same
    rule on a fixed 60 s clock (the earlier default); ``"adaptive"`` is Kim et al. 2019's rule
    unchanged.
 
@@ -230,7 +231,7 @@ class OptimizerConfig:
             30-40 W, and 30 s of noisy breaths carry an SD of 100 W or more: the plain product
             then rejects at the first look on the GP's word alone, and a noisy wearer saw 20
             settings in a row, truly better ones among them, cut after 11 breaths that told
-            nothing (docs/noisy_wearer.md). A reject must rest on the setting's own breaths.
+            nothing (docs/hour_answer.md). A reject must rest on the setting's own breaths.
         recommend: ``"global"``, ``"posterior"`` or ``"seed"``, see :class:`RecommendKind`;
             None (default) means ``"global"`` with the sound rule and ``"seed"`` with the seed's
             rules.
