@@ -228,7 +228,7 @@ class OptimizerConfig:
             precision the GP's predictive may carry, in (0, 1] (default 0.5: at most as much as
             the setting's own breaths; 1: the plain Gaussian product). Late in a session EI
             proposes settings the GP already rates well above the incumbent with an SD of
-            30-40 W, and 30 s of noisy breaths carry an SD of 100 W or more: the plain product
+            30-40 W, and 30 s of noisy breaths carry an SD of 75-150 W: the plain product
             then rejects at the first look on the GP's word alone, and a noisy wearer saw 20
             settings in a row, truly better ones among them, cut after 11 breaths that told
             nothing (docs/hour_answer.md). A reject must rest on the setting's own breaths.
