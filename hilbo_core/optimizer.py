@@ -383,39 +383,26 @@ class OptimizerConfig:
             object.__setattr__(self, "design", DesignKind.SOBOL if sound else DesignKind.MAXIMIN)
         if self.prior_mean_sd is None:
             object.__setattr__(self, "prior_mean_sd", SOUND_PRIOR_MEAN_SD if sound else 0.0)
-        pm = self.prior_mean_sd
-        if (isinstance(pm, bool) or not isinstance(pm, int | float | np.integer | np.floating)
-                or not (math.isfinite(pm) and 0.0 <= pm <= 3.0)):
-            raise ConfigError(f"prior_mean_sd={pm!r}; expected a number of SDs in [0, 3] or None")
-        object.__setattr__(self, "prior_mean_sd", float(pm))
+        object.__setattr__(self, "prior_mean_sd", _number(
+            "prior_mean_sd", self.prior_mean_sd, lambda v: 0.0 <= v <= 3.0,
+            "a number of SDs in [0, 3] or None"))
         self._enum("design", DesignKind)
         self._enum("recommend", RecommendKind)
         self._enum("ei_best", EIBestKind)
         self._enum("acquisition", AcquisitionKind)
         for name in ("min_decision_s", "a_floor", "recommend_beta"):
-            v = getattr(self, name)
-            if (isinstance(v, bool) or not isinstance(v, int | float | np.integer | np.floating)
-                    or not (math.isfinite(v) and v >= 0.0)):
-                raise ConfigError(f"{name}={v!r}; expected a finite number >= 0")
-            object.__setattr__(self, name, float(v))
-        b = self.boundary_s
-        if (isinstance(b, bool) or not isinstance(b, int | float | np.integer | np.floating)
-                or not (math.isfinite(b) and b > 0.0)):
-            raise ConfigError(f"boundary_s={b!r}; expected a finite number of seconds > 0")
-        object.__setattr__(self, "boundary_s", float(b))
-        z = self.accept_z
-        if z is not None:
-            if (isinstance(z, bool) or not isinstance(z, int | float | np.integer | np.floating)
-                    or not (math.isfinite(z) and z >= 0.0)):
-                raise ConfigError(f"accept_z={z!r}; expected a finite number >= 0 or None")
-            object.__setattr__(self, "accept_z", float(z))
+            object.__setattr__(self, name, _number(name, getattr(self, name), lambda v: v >= 0.0,
+                                                   "a finite number >= 0"))
+        object.__setattr__(self, "boundary_s", _number(
+            "boundary_s", self.boundary_s, lambda v: v > 0.0, "a finite number of seconds > 0"))
+        if self.accept_z is not None:
+            object.__setattr__(self, "accept_z", _number(
+                "accept_z", self.accept_z, lambda v: v >= 0.0, "a finite number >= 0 or None"))
         if not isinstance(self.gp_prior_stopping, bool):
             raise ConfigError(f"gp_prior_stopping={self.gp_prior_stopping!r}; expected true or false")
-        w = self.gp_prior_max_share
-        if (isinstance(w, bool) or not isinstance(w, int | float | np.integer | np.floating)
-                or not (math.isfinite(w) and 0.0 < w <= 1.0)):
-            raise ConfigError(f"gp_prior_max_share={w!r}; expected a share in (0, 1]")
-        object.__setattr__(self, "gp_prior_max_share", float(w))
+        object.__setattr__(self, "gp_prior_max_share", _number(
+            "gp_prior_max_share", self.gp_prior_max_share, lambda v: 0.0 < v <= 1.0,
+            "a share in (0, 1]"))
         r = self.explore_rel_sd
         if r is not None and (isinstance(r, bool) or not isinstance(r, int | float)
                               or not (math.isfinite(r) and 0 < r < 1)):
@@ -485,6 +472,15 @@ class OptimizerConfig:
         if unknown:
             raise ConfigError(f"unknown optimizer option(s) {unknown}; allowed: {sorted(allowed)}")
         return cls(**data)
+
+
+def _number(name: str, value: object, ok: Callable[[float], bool], expected: str) -> float:
+    """``value`` as a float if it is a finite real number (not a bool) for which ``ok`` holds,
+    else ConfigError naming ``name`` and what was ``expected``."""
+    if (isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating)
+            or not (math.isfinite(value) and ok(float(value)))):
+        raise ConfigError(f"{name}={value!r}; expected {expected}")
+    return float(value)
 
 
 def _positive(name: str, value: object, unit: str, *, optional: bool) -> None:
