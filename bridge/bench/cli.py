@@ -225,7 +225,8 @@ def _cmd_hil(args: argparse.Namespace) -> int:
             new = executor.map(run_hil_task, todo, label="HIL sessions", on_result=record)
         wall = time.perf_counter() - t0
         for t, r in zip(todo, new, strict=True):
-            done[t.key()] = r
+            # As sessions.jsonl holds it, so that --summarize-only gives the same numbers.
+            done[t.key()] = round_sig(r, 10)
         results = [done[t.key()] for t in tasks]
         executor_name = executor.name
     entries = summarize_hil(results, spaces, methods, protocol)

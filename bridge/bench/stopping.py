@@ -561,7 +561,9 @@ def run_campaign(campaign: StoppingCampaign, executor: Any, out_dir: Path, *, re
         new = executor.map(run_stopping_task, todo, label="stopping trials", on_result=record)
         wall = time.perf_counter() - t0
     for t, r in zip(todo, new, strict=True):
-        done[t.key()] = r
+        # The summary is computed from what trials.jsonl holds, so that --summarize-only gives
+        # the same numbers to the last digit.
+        done[t.key()] = round_sig(r, 10)
     return [done[t.key()] for t in tasks], wall
 
 

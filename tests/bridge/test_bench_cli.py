@@ -86,6 +86,9 @@ def test_hil_toy_run_writes_the_summary_and_resumes(tmp_path: Path) -> None:
             assert key in e
         assert e["minutes"][-1] == 25.0 and len(e["regret_w_median"]) == 26
     assert (tmp_path / "hil.png").stat().st_size > 1000
+    # --summarize-only rebuilds the same summary, to the last digit, from sessions.jsonl.
+    assert bench_main([*argv, "--summarize-only"]) == 0
+    assert json.loads((tmp_path / "hil.json").read_text())["results"] == doc["results"]
     # One more subject with --resume runs only the two new sessions.
     assert bench_main([*argv[:2], "2", *argv[3:], "--resume"]) == 0
     assert len((tmp_path / "sessions.jsonl").read_text().splitlines()) == 4

@@ -115,6 +115,9 @@ def test_toy_campaign_runs_resumes_and_respects_budgets(tmp_path: Path) -> None:
     assert wall > 0 and len(results) == 4
     lines = (tmp_path / "trials.jsonl").read_text().splitlines()
     assert len(lines) == 4
+    # What the run summarises is what trials.jsonl holds, to the last digit (wall times included),
+    # so --summarize-only reproduces its tables.
+    assert sorted(map(json.dumps, results)) == sorted(lines)
     for r in results:
         assert r["measurements"] == TOY.budget and len(r["y"]) == TOY.budget + 1 and r["y"][0] == 1.0
         assert all(y >= 0 for y in r["y"])
