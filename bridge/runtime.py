@@ -383,10 +383,10 @@ class BridgeSession:
         self.latencies_s: list[float] = []
         self.stop_latencies_s: list[float] = []
         self._t_stop: float | None = None  # wall time of the last stop decision not yet pushed
-        # The supervisor's epoch at that decision: a pause or assistance-off between the decision
-        # and the ack puts the pause's length into the latency, which is then no stop -> ack
-        # latency (the log's analysis, bridge/bench/bridge_perf.py, leaves those out as well).
-        self._t_stop_epoch = 0
+        # The supervisor's pause count at that decision: a pause between the decision and the ack
+        # puts the pause's length into the latency, which is then no stop -> ack latency (the
+        # log's analysis, bridge/bench/bridge_perf.py, leaves those out as well).
+        self._t_stop_pauses = 0
         self._worker = ProposalWorker(self.settings.proposal_worker)
         #: The garbage-collection policy; its ``stats`` hold the collections' pauses.
         self.collector = Collector(self.settings.gc)
@@ -705,7 +705,7 @@ class BridgeSession:
             await self._push(admitted, self._version, index, log_first=log_proposal)
             latency = self._clock() - t_decided
             self.latencies_s.append(latency)
-            if t_stop is not None and self._t_stop_epoch == self.supervisor.epoch:
+            if t_stop is not None and self._t_stop_pauses == self.supervisor.pauses:
                 self.stop_latencies_s.append(latency)
             await self._wait_applied(self._version)
         # The new setting's measurement starts: the next stop decision is breaths away, so a
@@ -771,7 +771,7 @@ class BridgeSession:
         self._setting = None
         nxt = p.on_evaluation_done()
         if nxt.kind is ActionKind.PROPOSE and step.stop and not self.supervisor.paused:
-            self._t_stop, self._t_stop_epoch = self._clock(), self.supervisor.epoch
+            self._t_stop, self._t_stop_pauses = self._clock(), self.supervisor.pauses
         # The hyperparameters fitted ahead are applied here, whatever comes next (a proposal, a
         # warm-up, the pause between the bouts), and the snapshot below records them before
         # the session awaits anything: every state the optimizer is in at an await point can

@@ -115,6 +115,7 @@ class Supervisor:
         self._paused = asyncio.Event()
         self._stopped = asyncio.Event()
         self._epoch = 0
+        self._pauses = 0
         self._assist_on = False
         self._acked_once = False
         #: The reasons of the current pause, oldest first, with their assistance-off reasons.
@@ -183,6 +184,11 @@ class Supervisor:
         """Advances at every pause, stop and assistance-off; a ticket of an older epoch is void."""
         return self._epoch
 
+    @property
+    def pauses(self) -> int:
+        """How many pauses the session has had (each new cause of a pause counts)."""
+        return self._pauses
+
     def describe(self) -> str:
         """The state line of the operator view."""
         st = self.state
@@ -218,6 +224,7 @@ class Supervisor:
             # as the heartbeat loss before it); one resume ends them all.
             self._causes[text] = AssistanceOffReason(reason)
             self._paused.set()
+            self._pauses += 1
             self._on_event("pause", text)
         if ((recovery is FaultRecovery.PERSON or reason == AssistanceOffReason.OPERATOR_STOP)
                 and text not in self._person_causes):

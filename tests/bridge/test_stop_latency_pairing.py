@@ -56,6 +56,7 @@ def test_a_pause_between_a_stop_decision_and_its_push_is_left_out_on_both_sides(
     assert out.summary["n_evaluations"] >= 4
     counts = _log_counts(out.log)
     assert counts["events"].get("pause") == 1 == counts["events"].get("resume")
+    assert out.session.supervisor.pauses == 1
     stop_ms = [1e3 * s for s in out.session.stop_latencies_s]
     pushes = counts["pushes"]
     # Every push but the pause's answers a stop decision; the two sides agree which.
