@@ -821,15 +821,19 @@ class HILOptimizer:
     def best(self) -> tuple[dict[str, float], float, float]:
         """The recommended setting and its estimated cost ``(params, mean_w, var_w2)``.
 
-        ``recommend = "posterior"`` (the default): among the evaluated settings,
-        the one with the lowest GP posterior mean + ``recommend_beta`` posterior SDs, reported
-        with the GP posterior (mean, variance of the latent cost) there. A raw estimate is
-        optimistically biased for the setting that looks best (the winner's curse), and a
-        setting measured for a few breaths has a wide posterior, so it is not recommended on
-        the strength of one lucky estimate. ``recommend = "seed"``: the GP's estimated minimum
-        among the evaluated points (Kim et al. 2019 §III.2: "x_t be the GP's estimated minimum
-        point"), reported with that evaluation's own estimate. Before any GP can be fitted,
-        the lowest estimated mean.
+        Once the confirmed setting is frozen (the first :meth:`ask` after
+        :meth:`begin_confirmation`), that setting with the confirmation's own estimate (its
+        prediction until an evaluation of it completes).
+        Before that, by ``OptimizerConfig.recommend``: ``"global"`` (the default with the sound
+        rule): over the whole feasible set, the setting with the lowest GP posterior mean +
+        ``recommend_beta`` posterior SDs, reported with the GP posterior (mean, variance of the
+        latent cost) there; ``"posterior"``: the same among the evaluated settings. A raw
+        estimate is optimistically biased for the setting that looks best (the winner's curse),
+        and a setting measured for a few breaths, or not at all, has a wide posterior, so it is
+        not recommended on the strength of one lucky estimate. ``"seed"`` (the default with the
+        seed's rules): the GP's estimated minimum among the evaluated points (Kim et al. 2019
+        §III.2: "x_t be the GP's estimated minimum point"), reported with that evaluation's own
+        estimate. Before any GP can be fitted, the lowest estimated mean.
         """
         if not self._evaluations:
             raise OptimizerStateError("no evaluation has completed yet; nothing to recommend")
