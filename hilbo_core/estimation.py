@@ -102,9 +102,10 @@ after large steps). The grid mixture carries that trade-off into the reported va
   (Poole & Jones 2012), all in proportion to the step: c's variance adds
   (transition_error_rel·|c − b0|·e^{−t/transition_error_s})², 0.25 and 60 s, mixed over τ: at
   60 s ≈ 9 % of the step (3–7 % of the level for the steps of the shared running recording,
-  whose 60-s estimates were up to 14 % off, mostly low), < 1 % of the step after 3 minutes, and
-  small for the small steps of an assistance change. (With the timing term above, which carries
-  the phase-I misfit into the fit's own variance, 0.15 avoids counting it twice.)
+  whose 60-s estimates were up to 14 % off, mostly low), ≈ 1.2 % of the step at 3 minutes
+  (< 1 % after ≈ 3.2 min), and small for the small steps of an assistance change. (With the
+  timing term above, which carries the phase-I misfit into the fit's own variance, 0.15 avoids
+  counting it twice.)
   ``delays_s`` can marginalise a time delay as well (default none: on the shared recordings it
   helped the off-steps and cost the on-steps, whose phase I is a fast rise, not a delay; on the
   simulated wearer it raised the 60-s error from 4.5 to 5.4 %, and a delay for down-steps only,
@@ -227,7 +228,7 @@ class TransitionConfig:
         noise_cv: Prior median of the breath noise CV (median 11 % on real breaths).
         noise_prior_breaths: Weight ν0 of that prior in pseudo-breaths.
         t_dof: Degrees of freedom ν of the Student-t breath noise (4: heavy enough that a swallow
-            at 5 SD gets a fifth of a normal breath's weight).
+            at 5 SD gets about an eighth of an average breath's weight).
         c_rel_sd: Prior SD of c relative to its centre (weak for a 5× step; divided out for the GP).
         start_rel_sd: SD of b0 relative to its centre when no starting level is given.
         start_inflation_rel: Added SD of b0 relative to the starting level when one is given:
@@ -343,7 +344,7 @@ class TransitionEstimator:
 
     Create one per setting; call :meth:`start_from` before the first breath to start the
     transition from the level the previous setting left the body at (without it, b0 gets a
-    weak prior around the first breath). ``t_s`` is the time since the setting began.
+    weak prior centred on the median of the first five breaths). ``t_s`` is the time since the setting began.
 
     Args:
         config: Priors and numerics; ``TransitionConfig()`` when omitted.

@@ -527,9 +527,11 @@ class Evaluation:
         breaths: Breaths measured.
         duration_s: Breath time from the setting's start to its last breath (s).
         phase: ``"exploration"`` or ``"optimization"``.
-        stopped_early: True when the σ-scaled rule stopped it before N breaths.
+        stopped_early: True when the stopping rule rejected it before N breaths (reason
+            ``"threshold"``); an accept stop, a ``"precise"`` or a ``"budget"`` end is False.
         reason: ``"threshold"``, ``"max_measurements"``, ``"decided"`` (the sound rule's accept
-            stop), ``"budget"`` or ``"told"``.
+            stop), ``"precise"`` (an exploration setting ended by ``explore_rel_sd``),
+            ``"budget"`` or ``"told"``.
         obs_mean: The data-only mean the GP is told (W): the posterior with the estimator's
             prior on c divided out; None means ``mean`` (estimators without ``data_only()``,
             :meth:`HILOptimizer.tell`, states written before the data-only observations existed).
@@ -1092,8 +1094,9 @@ class HILOptimizer:
 
     @property
     def flagged_breaths(self) -> int:
-        """Breaths the estimators left out as physiologically implausible for the level (a
-        0.1x or 3x breath; hilbo_core/estimation.py), counted over this process's settings."""
+        """Breaths the estimators left out as physiologically implausible for the level (below
+        0.4x or above 2.2x the running median of their neighbours; hilbo_core/estimation.py),
+        counted over this process's settings."""
         return self._flagged_done + _flagged(self._estimator)
 
     @property
@@ -1450,8 +1453,9 @@ class HILOptimizer:
 
     def _propose(self) -> np.ndarray:
         gp = self._fit_gp(self._rng, store=True)
-        # x* for the stopping rule: the GP's best evaluated setting with its own estimate
-        # (Kim et al. 2019 §II.D: "the best parameter setting found thus far as defined by the GP").
+        # x* for the stopping rule: with the sound rules the GP posterior at the evaluated setting
+        # of lowest posterior mean; with Kim et al.'s rules the GP's best evaluated setting with
+        # its own estimate (§II.D: "the best parameter setting found thus far as defined by the GP").
         sound = self.config.stopping.is_sound
         self._incumbent = self._gp_incumbent(gp) if sound else self._gp_best(gp)
         # The candidate is measured now, with today's drift in its breaths: the stop decision

@@ -30,8 +30,9 @@ whatever the session is doing (warm-ups, setting changes, measurements, pauses):
 
 * ``session_s`` — the whole session from its start (both bouts, both warm-ups and the pause
   between them): what ``hilbo sim --minutes`` means.
-* ``budget_s`` — the optimisation bout from the moment its first warm-up ends (where Algorithm 1's
-  optimisation phase, and the old breath-time counter, start) to the end: setting changes, pushes,
+* ``budget_s`` — the optimisation bout from its start (the end of its first warm-up, where Algorithm
+  1's optimisation phase and the old breath-time counter start; or, when no warm-up separates the
+  bouts, the end of the exploration bout) to the end: setting changes, pushes,
   pauses and the warm-ups after a pause all count. ``budget_breaths`` counts every breath of the
   same span.
 
@@ -178,7 +179,8 @@ class SessionProtocolConfig:
         n_explore: Evaluations of the exploration bout (E, >= 0; the optimizer's ``n_explore``).
         max_breaths: The optimizer's N; used only to estimate the exploration bout's length.
         session_s: The whole session, from its start, in seconds of walking; or None.
-        budget_s: The optimisation bout, from the end of its first warm-up, in seconds of walking
+        budget_s: The optimisation bout, from its start (the end of its first warm-up, or of the
+            exploration bout when no warm-up separates them), in seconds of walking
             (default: Kim et al. 2019's 40-minute bout); or None.
         budget_breaths: The optimisation bout in breaths (all of them, from the same moment); or
             None. At least one of the three budgets is set; the first spent ends the session.
@@ -428,7 +430,8 @@ class SessionProtocol:
 
     @property
     def optimization_started(self) -> bool:
-        """The optimisation bout has begun (its first warm-up is over, or it was resumed)."""
+        """The optimisation bout has begun (its first warm-up is over, or the exploration bout when
+        no warm-up separates them, or it was resumed)."""
         return self._opt_begun
 
     @property
