@@ -283,3 +283,23 @@ def test_every_documented_can_remote_server_binds_loopback(name: str) -> None:
 def test_the_process_sim_starts_can_remote_on_loopback() -> None:
     source = (ROOT / "bridge" / "sim" / "processes.py").read_text(encoding="utf-8")
     assert '"--host", _LOOPBACK' in source and '_LOOPBACK = "127.0.0.1"' in source
+
+
+# --- a bus-error policy that is not implemented ----------------------------------------------
+
+
+def test_bus_error_pause_loads_but_is_warned_as_not_implemented(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    text = EXAMPLE.replace('bus_error = "stop"', 'bus_error = "pause"', 1)
+    assert 'bus_error = "pause"' in text
+    path = tmp_path / "session.toml"
+    path.write_text(text, encoding="utf-8")
+    assert cli.main(["config", "check", "--samples", "0", str(path)]) == 0
+    out, err = capsys.readouterr()
+    assert "hilbo config check: warning: watchdog.bus_error = 'pause' is not implemented yet: a CAN " \
+           "bus failure commands assistance-off and ends the session" in err
+    # What the session will do, not what was asked for.
+    assert "bus error -> assistance-off and the session ends" in out
+    # The example (and the default) asks for what is implemented: no warning.
+    assert config_warnings(parse_config(EXAMPLE, source="t")) == []

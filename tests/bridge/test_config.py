@@ -398,7 +398,7 @@ def test_load_config_file_errors(tmp_path):
 def test_summary_mentions_every_table():
     text = summarize(parse_config(GOLDEN))
     for word in ("subject S07", "F_p [60, 200] N", "500 breaths", "udp", "virtual:bench",
-                 "hip: force <= 210 N", "bus error -> assistance-off and stop"):
+                 "hip: force <= 210 N", "bus error -> assistance-off and the session ends"):
         assert word in text, word
 
 
