@@ -347,8 +347,8 @@ class ProtocolConfig(msgspec.Struct, **_STRUCT):
             (fast: no, one continuous walk; seed: yes).
         protocol: The walking protocol by name (:class:`hilbo_core.protocol.ProtocolKind`):
             ``fast`` (default: the first optimisation proposal at about minute 10, one warm-up
-            when no pause separates the bouts, exploration settings ended once their estimate
-            is precise, the recommendation confirmed in the last minutes) or ``seed`` (Kim et
+            when no pause separates the bouts, the recommendation confirmed in the last
+            minutes) or ``seed`` (Kim et
             al. 2019 §IV.A.3: a warm-up before each bout, N breaths per exploration setting);
             absent: ``fast`` with the sound rule, ``seed`` with the seed's rules (like ``design``).
         confirm_min: Minutes at the session's end reserved to measure the recommended setting

@@ -8,8 +8,9 @@ Data flow (shared/DESIGN.md "One breath through the system")::
 
 Ownership: the optimizer, the current setting and the protocol phase belong to the *main* task
 alone; the cart task only enqueues breaths; the CAN tasks only update the device view
-(:class:`DeviceView`); the watchdog reads both views and is the only task that may command
-assistance-off on its own. Every task runs in one ``asyncio.TaskGroup`` so an error in any of
+(:class:`DeviceView`); every task that turns assistance off (the watchdogs, the resume policy,
+the bus-failure task, the main task) asks the :class:`~bridge.supervisor.Supervisor`, the one
+owner of pause, stop and assistance-off. Every task runs in one ``asyncio.TaskGroup`` so an error in any of
 them surfaces and stops the session (after assistance-off) instead of dying silently.
 
 Time: estimation, stopping and budgets use the cart's breath time. A new setting's clock starts
@@ -134,7 +135,8 @@ class RuntimeSettings:
         push_timeout_s, push_retries, pace_s: Profile push (see CanEndpoint.push_profile).
         heartbeat_period_s: Bridge heartbeat period (s).
         feedback_log_period_s: Force feedback is logged in batches this long (s).
-        status_log_period_s: Device status is logged at most this often per actuator (s).
+        status_log_period_s: Device status is logged at every change, and an unchanged one again
+            every this many seconds per actuator (s).
         n_actuators: Actuators whose status must be alive.
         proposal_worker: Where proposals and hyperparameter fits run (bridge/proposals.py).
         gc: When full garbage collections may stop the event loop (bridge/collector.py).

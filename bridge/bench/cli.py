@@ -1,4 +1,5 @@
-"""The ``hilbo bench`` subcommands: ``stopping``, ``hil``, ``perf``, ``estimator``, ``tutor`` and ``pairs``.
+"""The ``hilbo bench`` subcommands: ``stopping``, ``hil``, ``perf``, ``estimator``, ``pairs`` and
+``watchdog`` (``tutor`` joins them in ``hilbo bench`` only, bridge/cli/main.py).
 
 :func:`add_bench_parser` registers them on the main ``hilbo`` parser; :func:`bench_main` is a
 standalone entry point (``python -m bridge.bench ...``) with the same exit codes as ``hilbo``:
@@ -363,7 +364,8 @@ def _cmd_perf(args: argparse.Namespace) -> int:
 
 # ------------------------------------------------------------------------------------ parser
 def add_bench_parser(subparsers: Any) -> Any:
-    """Register ``bench`` with ``stopping``, ``hil`` and ``perf`` on a subparsers object.
+    """Register ``bench`` with ``estimator``, ``hil``, ``pairs``, ``perf``, ``stopping`` and
+    ``watchdog`` on a subparsers object.
 
     Returns:
         The ``bench`` command's own subparsers, so other benchmarks can join it, e.g.
@@ -451,7 +453,9 @@ def add_bench_parser(subparsers: Any) -> Any:
     hil.add_argument("--methods", default=None,
                      help=f"comma-separated, from {defaults} (the default) and {others}")
     hil.add_argument("--minutes", type=float, default=60.0, help="session length incl. warm-ups (60)")
-    hil.add_argument("--warmup-s", type=float, default=180.0, help="each of the two warm-ups (180 s)")
+    hil.add_argument("--warmup-s", type=float, default=180.0,
+                     help="warm-up length (180 s; two warm-ups with the seed protocol and "
+                          "CMA-ES/random, one with the fast protocol of sound)")
     hil.add_argument("--condition-s", type=float, default=120.0,
                      help="CMA-ES/random condition length (120 s)")
     hil.add_argument("--popsize", type=_int, default=8, help="CMA-ES generation size (8)")
@@ -491,7 +495,7 @@ def add_bench_parser(subparsers: Any) -> Any:
                                      "With --bridge-minutes M > 0 also the bridge at real time: an "
                                      "M-minute hilbo-sim session at speed 1 (hip_6d, 2 actuators × 1 kHz "
                                      "force feedback; --bridge-protocol quick: 2 exploration points, N = 10, "
-                                     "20 s warm-ups, or lab: 6, N = 45, 180 s) reporting "
+                                     "20 s warm-ups, or lab: 3, N = 45, 180 s) reporting "
                                      "stop decision → device ack latency, feedback frames sent / received / "
                                      "lost / logged, the achieved feedback rate and the process's CPU in "
                                      "cores (devices included: an upper bound); also written to "
@@ -503,7 +507,7 @@ def add_bench_parser(subparsers: Any) -> Any:
     pf.add_argument("--sessions", type=_int, default=3, help="60-minute sessions to time (3)")
     pf.add_argument("--seed", type=_int, default=1, help="first seed (1)")
     pf.add_argument("--bridge-minutes", type=float, default=0.0, metavar="M",
-                    help="also run the bridge at real time for M minutes of wall time (at least 2.7; "
+                    help="also run the bridge at real time for M minutes of wall time (at least 2.4; "
                          "5 gives ~10 profile pushes; default 0 = skip)")
     pf.add_argument("--bridge-speed", type=float, default=1.0,
                     help="real-time factor of that session (1 = real time, where the latency targets hold; "
@@ -519,8 +523,8 @@ def add_bench_parser(subparsers: Any) -> Any:
     pf.add_argument("--bridge-protocol", choices=[p.value for p in BridgeProtocol],
                     default=BridgeProtocol.QUICK.value,
                     help="that session's protocol: quick (2 exploration points, N = 10, 20 s warm-ups: "
-                         "many stop decisions per minute; the default) or lab (the lab's own: 6, "
-                         "N = 45, 180 s warm-ups; needs --bridge-minutes of at least 20.5)")
+                         "many stop decisions per minute; the default) or lab (the lab's own: 3, "
+                         "N = 45, 180 s warm-ups; needs --bridge-minutes of at least 11)")
     pf.add_argument("--out", default="runs/bench/perf", help="output directory")
     pf.set_defaults(func=_cmd_perf)
 

@@ -22,7 +22,8 @@ def seconds(text: str) -> float:
 
 #: ``hilbo run``'s exit status for a session that ended without a completed evaluation.
 EXIT_NOTHING_MEASURED = 3
-#: Exit statuses of a session stopped by a signal (128 + the signal's number, as shells report).
+#: Exit status of a session stopped by SIGINT or SIGTERM: 130 (128 + SIGINT, as shells report
+#: Ctrl-C) for both.
 EXIT_INTERRUPTED = 130
 
 RUN_EXIT_STATUS = """\

@@ -73,7 +73,7 @@ class VirtualSimConfig:
         gc: The bridge's ``[protocol] gc`` (``freeze`` or ``automatic``, bridge/collector.py).
         proposal_worker: The bridge's ``[protocol] proposal_worker`` (``process`` or ``thread``).
         wearer: The simulated wearer (:class:`virtual_hw.wearer.WearerKind` value): ``realistic``
-            (default) or ``legacy``.
+            (default), ``noisy``, ``slow`` or ``legacy``.
     """
 
     minutes: float = 60.0
