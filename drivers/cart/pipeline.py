@@ -105,7 +105,8 @@ class LeadingRejectGuard:
 #: Breaths whose spacing is checked at a stream's start.
 SPACING_BREATHS = 8
 #: Plausible median breath spacing (s). Walking adults breathe every 2-5 s (15-30 breaths a
-#: minute; the simulated population, virtual_hw/wearer.py, 2.5-3.5 s), at rest up to ~10 s;
+#: minute; the simulated populations: 2.7-3.3 s mean in virtual_hw/wearer.py, 2.0-3.5 s in
+#: virtual_hw/wearer_realistic.py), at rest up to ~10 s;
 #: averaged exports (10-30 s bins) stay inside. A time column read in the wrong unit is 60x off
 #: (seconds read as minutes: 3 s becomes 180 s; minutes read as seconds: 0.05 s), far outside.
 PLAUSIBLE_SPACING_S = (0.25, 60.0)

@@ -131,8 +131,9 @@ after ``cart_data_timeout_s``) and far shorter than the jump of a clock set to a
 
 DEFAULT_CONFIRM_BREATHS = 2
 """Consecutive breaths that must continue a new cart clock before the validator re-anchors:
-one breath with an absurd time costs only itself, a real reset costs this many breaths plus
-its first one."""
+one breath with an absurd time costs only itself, a real reset costs this many breaths (its
+first one on the new clock and the next ones until this many; the breath after them, which
+confirms it, is accepted)."""
 
 _TYPICAL_INTERVAL_S = 3.0  # walking adults breathe ~20/min; used only with no interval history
 _INTERVAL_HISTORY = 16

@@ -144,8 +144,9 @@ INTERFACE_OPTIONS: Mapping[str, frozenset[str]] = types.MappingProxyType({
     "remote": frozenset({"can_filters", "receive_own_messages", "ssl_context"}),
 })
 
-# Interfaces whose bitrate is set outside python-can (``ip link ... bitrate``, the server) or is
-# meaningless; the configured bitrate is then not passed to ``can.Bus``.
+# Interfaces whose bitrate is set outside python-can (socketcan: ``ip link ... bitrate``) or is
+# meaningless (virtual); the configured bitrate is then not passed to ``can.Bus`` (``remote``
+# gets it and passes it on to its server).
 _NO_BITRATE = frozenset({"socketcan", "virtual"})
 
 
