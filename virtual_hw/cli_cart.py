@@ -96,6 +96,14 @@ def _minutes_arg(text: str) -> float:
     return value
 
 
+def _seed_arg(text: str) -> int:
+    # Checked here, not by make_wearer, so the error names --seed (the wearer's own ConfigError
+    # is reported as a --body-mass-kg error, the only other value it checks).
+    if not text.strip().isdigit():
+        raise argparse.ArgumentTypeError(f"seed must be a non-negative integer, got {text!r}")
+    return int(text)
+
+
 def configure_parser(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """Add the virtual cart's options to ``parser`` (shared by the subcommand and ``main``)."""
     parser.add_argument("--transport", choices=[k.value for k in LinkKind], default=LinkKind.TCP.value,
@@ -110,7 +118,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> argparse.ArgumentParser
                              "(virtual_hw.cart.VIRTUAL_CSV_MAPPING)")
     parser.add_argument("--preset", choices=sorted(PRESETS), default="hip_6d",
                         help="parameter space of the wearer's assistance (default hip_6d)")
-    parser.add_argument("--seed", type=int, default=1, help="wearer (subject) seed (default 1)")
+    parser.add_argument("--seed", type=_seed_arg, default=1, help="wearer (subject) seed (default 1)")
     parser.add_argument("--wearer", choices=WEARER_CHOICES, default=WearerKind.REALISTIC.value,
                         help="realistic (default: breath noise and outliers as in real data, "
                              "tau 14-55 s, drift, slow adaptation, two landscape families), noisy "

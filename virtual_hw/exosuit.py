@@ -357,7 +357,8 @@ class GaitModel:
 
     Reference boundaries ``b_k`` (maximum hip flexion of the reference leg) are generated lazily
     and kept, so any time at or after the start can be queried, and the sequence depends only on
-    Kim et al. 2019. Actuator ``a`` with stride fraction ``o_a`` has its boundaries at
+    the seeded stream and the gait config, not on when it is queried. Actuator ``a`` with
+    stride fraction ``o_a`` has its boundaries at
     ``β_k = b_k + o_a·(b_{k+1} − b_k)``; its phase runs linearly from 0 to 100 % between
     consecutive boundaries.
 
@@ -803,7 +804,9 @@ class VirtualExosuit:
 
         Raises:
             TransportError: the bus could not be opened.
-            DriverVirtualConfigError: python-can rejects the interface or its options.
+            DriverConfigError: python-can rejects the interface or its options
+                (:class:`drivers.errors.DriverConfigError`).
+            VirtualConfigError: already open.
         """
         if self._endpoint is not None:
             raise VirtualConfigError("the virtual exosuit is already open")
@@ -907,9 +910,9 @@ class VirtualExosuit:
     def stats(self) -> Mapping[str, int]:
         """Counts of what the device did: ``commits``, ``acks``, ``nack_<reason>``,
         ``switches``, ``assistance_off``, ``assistance_off_received``, ``heartbeat_lost``,
-        ``clear_requests``, ``cleared_<fault>``, ``held_<fault>``, ``hardware_fault``,
-        ``bus_off_dropped``, ``status_sent``, ``feedback_sent``, ``malformed_sent`` and
-        ``malformed_<kind>``."""
+        ``liveness_lost``, ``watchdog_deferred``, ``clear_requests``, ``cleared_<fault>``,
+        ``held_<fault>``, ``hardware_fault``, ``bus_off_dropped``, ``bus_off_recovered``,
+        ``status_sent``, ``feedback_sent``, ``malformed_sent`` and ``malformed_<kind>``."""
         return types.MappingProxyType(self._stats)
 
     @property

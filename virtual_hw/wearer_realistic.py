@@ -29,8 +29,8 @@ to one shape:
 
   ``G_k`` a correlated (rotated) 2-D Gaussian in (μ, σ), ``m(r) = r·e^{1-r}`` (0 without force,
   1 at the bump's ideal effective force ``F_k``, a gentle decline above it rather than the
-  window's quadratic), a primary bump (``a_1 = 1``) and a weaker secondary bump 7-12 %GC earlier
-  or later, so there are two local optima, the best one may sit on a force bound (``F_1`` can
+  window's quadratic), a primary bump (``a_1 = 1``) and a weaker secondary bump 7-12 %GC (hip; ankle 4-7 %GC)
+  earlier or later, so there are two local optima, the best one may sit on a force bound (``F_1`` can
   exceed the largest force the space allows), and timing and duration trade off along a tilted
   ridge (the correlation). The last term is the cost of force at the wrong time (as the window
   family's negative scores; Kim et al. 2019's generic profile cost one subject 4 %). The bump priors
@@ -111,8 +111,8 @@ Breaths
   ``BreathRecord.watts`` is exactly ``P``.
 
 Determinism: the same seed and config give the same subject, landscape family and, for the same
-calls, the same breaths (``np.random.default_rng`` on three spawned streams: subject, breaths,
-optimum search); every breath draws the same numbers whatever happens.
+calls, the same breaths (``np.random.default_rng`` on four spawned streams: subject, breaths,
+optimum search and the first-breath draws); every breath draws the same numbers whatever happens.
 """
 
 from __future__ import annotations
@@ -352,7 +352,8 @@ ANKLE_WINDOW = ActuatorPrior("ankle", ANKLE_PRIOR.centre_pct, ANKLE_PRIOR.width_
 class RealisticWearerConfig:
     """Population constants of the realistic wearer (sources in the module docstring).
 
-    Pairs are ``(low, high)`` ranges drawn uniformly per subject; equal ends fix the value.
+    Pairs are ``(low, high)`` ranges drawn uniformly per subject (``tau_s`` and
+    ``drift_period_s`` log-uniformly); equal ends fix the value.
 
     Raises:
         ConfigError: A value outside its physiological or numerical range, naming the field.

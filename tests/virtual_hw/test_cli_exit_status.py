@@ -26,6 +26,17 @@ def test_cart_bad_body_mass_is_a_usage_error(capsys: pytest.CaptureFixture[str])
     assert "--body-mass-kg 5: body_mass_kg=5.0 must be a number in [20, 250] kg" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("seed", ["-1", "two"])
+def test_cart_bad_seed_is_a_usage_error_naming_the_seed(
+        seed: str, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        cli_cart.main(["--seed", seed, "--minutes", "0.01", "--speed", "max"])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    (line,) = [line for line in err.splitlines() if "error:" in line]
+    assert line.endswith(f"argument --seed: seed must be a non-negative integer, got {seed!r}")
+
+
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="socketcan is Linux-only")
 def test_exosuit_on_a_bus_that_cannot_be_opened_exits_1(capsys: pytest.CaptureFixture[str]) -> None:
     code = cli_exosuit.main(["--interface", "socketcan", "--channel", "hilbo-nosuch0", "--lifetime", "1"])
