@@ -99,7 +99,7 @@ def _minutes_arg(text: str) -> float:
 def _seed_arg(text: str) -> int:
     # Checked here, not by make_wearer, so the error names --seed (the wearer's own ConfigError
     # is reported as a --body-mass-kg error, the only other value it checks).
-    if not text.strip().isdigit():
+    if not text.strip().isdecimal():
         raise argparse.ArgumentTypeError(f"seed must be a non-negative integer, got {text!r}")
     return int(text)
 

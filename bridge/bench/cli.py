@@ -217,17 +217,19 @@ def _cmd_hil(args: argparse.Namespace) -> int:
         if not args.resume and (out / "sessions.jsonl").exists():
             (out / "sessions.jsonl").unlink()
         t0 = time.perf_counter()
+        # Summarised as sessions.jsonl holds it, so that --summarize-only gives the same numbers.
+        written: dict[int, dict[str, Any]] = {}
         with (out / "sessions.jsonl").open("a") as fh:
 
             def record(i: int, result: dict[str, Any]) -> None:
-                fh.write(json.dumps(round_sig(result | {"protocol": protocol.to_json()}, 10)) + "\n")
+                written[i] = round_sig(result | {"protocol": protocol.to_json()}, 10)
+                fh.write(json.dumps(written[i]) + "\n")
                 fh.flush()
 
-            new = executor.map(run_hil_task, todo, label="HIL sessions", on_result=record)
+            executor.map(run_hil_task, todo, label="HIL sessions", on_result=record)
         wall = time.perf_counter() - t0
-        for t, r in zip(todo, new, strict=True):
-            # As sessions.jsonl holds it, so that --summarize-only gives the same numbers.
-            done[t.key()] = round_sig(r, 10)
+        for i, t in enumerate(todo):
+            done[t.key()] = written[i]
         results = [done[t.key()] for t in tasks]
         executor_name = executor.name
     entries = summarize_hil(results, spaces, methods, protocol)

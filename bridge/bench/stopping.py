@@ -549,21 +549,23 @@ def run_campaign(campaign: StoppingCampaign, executor: Any, out_dir: Path, *, re
     todo = [t for t in tasks if t.key() not in done]
     logger.info("stopping campaign: %d trials, %d already done, %d to run on %s",
                 len(tasks), len(tasks) - len(todo), len(todo), getattr(executor, "name", executor))
+    # The summary is computed from what trials.jsonl holds, so that --summarize-only gives the
+    # same numbers to the last digit.
+    written: dict[int, dict[str, Any]] = {}
     with path.open("a") as fh:
 
         def record(i: int, result: dict[str, Any]) -> None:
-            fh.write(json.dumps(round_sig(result, 10)) + "\n")
+            written[i] = round_sig(result, 10)
+            fh.write(json.dumps(written[i]) + "\n")
             fh.flush()
             if on_result is not None:
                 on_result(i, result)
 
         t0 = time.perf_counter()
-        new = executor.map(run_stopping_task, todo, label="stopping trials", on_result=record)
+        executor.map(run_stopping_task, todo, label="stopping trials", on_result=record)
         wall = time.perf_counter() - t0
-    for t, r in zip(todo, new, strict=True):
-        # The summary is computed from what trials.jsonl holds, so that --summarize-only gives
-        # the same numbers to the last digit.
-        done[t.key()] = round_sig(r, 10)
+    for i, t in enumerate(todo):
+        done[t.key()] = written[i]
     return [done[t.key()] for t in tasks], wall
 
 
