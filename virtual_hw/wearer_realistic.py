@@ -75,6 +75,14 @@ breath of the first run of the shared ZAN recording, 92 W after standing at ≈ 
 The probability and factor range are model choices; the draws come from a stream of their own,
 so every other breath is what it was without them.
 
+**Standing.** :meth:`RealisticWearer.stand` stops the walking: the rate relaxes, with the
+person's τ, to ``standing_w_per_kg`` × body mass (1.5 W/kg: quiet standing is 1.3 MET in the
+Compendium of Physical Activities, Ainsworth et al. 2011, Med Sci Sports Exerc 43:1575, code
+07040, and 1 MET ≈ 3.5 ml O2/kg/min ≈ 1.17 W/kg), and the next setting walks from there: the
+large steps (≈ 3-4× up, as a rest-to-walking transition, and down) of the recordings' rests and
+starts, which assistance changes never make. The standing level adapts like every level (at most
+3 %, a simplification).
+
 **Slow adaptation.** The steady-state cost of every setting (unassisted walking included) falls
 with time on the breath clock, ``c(x, t) = c(x)·D(t)``,
 ``D(t) = 1 - α·(1 - e^{-t/T}) / (1 - e^{-3600/T})``: by exactly ``α`` after one hour, fastest at
@@ -382,6 +390,7 @@ class RealisticWearerConfig:
     hr_rest_bpm: tuple[float, float] = (60.0, 75.0)
     hr_gain_bpm_per_w: float = 0.15
     resting_w_per_kg: float = 1.3
+    standing_w_per_kg: float = 1.5
     hr_sd_bpm: float = 2.0
     windows: tuple[ActuatorPrior, ...] = (HIP_PRIOR, ANKLE_WINDOW)
     bumps: tuple[BumpPrior, ...] = (HIP_BUMPS, ANKLE_BUMPS)
@@ -413,6 +422,7 @@ class RealisticWearerConfig:
         _check_range(o, "hr_rest_bpm", self.hr_rest_bpm, 30.0, 120.0)
         _check_value(o, "hr_gain_bpm_per_w", self.hr_gain_bpm_per_w, 0.0, 2.0)
         _check_value(o, "resting_w_per_kg", self.resting_w_per_kg, 0.5, 3.0)
+        _check_value(o, "standing_w_per_kg", self.standing_w_per_kg, 0.5, 3.0)
         _check_value(o, "hr_sd_bpm", self.hr_sd_bpm, 0.0, 30.0)
         _check_value(o, "penalty_cap", self.penalty_cap, 1e-3, 5.0)
         for name in ("report_ve", "report_hr"):
@@ -774,6 +784,41 @@ class RealisticWearer:
             MeasurementError: ``t_s`` is not finite or goes backwards.
             ConfigError: Bad profiles.
         """
+        t = self._check_change_time(t_s)
+        profs = check_profiles(profiles, self._windows)
+        target = self.cost_of_profiles(profs)
+        self._applied = profs
+        self._change_target(t, target)
+        return target
+
+    def apply_params(self, params: Mapping[str, float], t_s: float) -> float:
+        """Apply the tables of a feasible setting (see :meth:`apply_profiles`)."""
+        return self.apply_profiles(self.profiles_for(params), t_s)
+
+    @property
+    def standing_cost_w(self) -> float:
+        """The unadapted cost of standing still on the treadmill, in W
+        (``standing_w_per_kg`` × body mass; module docstring, "Standing")."""
+        return self.config.standing_w_per_kg * self.body_mass_kg
+
+    def stand(self, t_s: float) -> float:
+        """The person stops walking and stands from breath-clock time ``t_s`` on (the exosuit
+        applies nothing): the rate relaxes to :attr:`standing_cost_w`, and the next
+        :meth:`apply_profiles` walks again from wherever the body is (large steps, as the
+        recordings' rests and starts).
+
+        Returns:
+            The standing cost in W.
+
+        Raises:
+            MeasurementError: ``t_s`` is not finite or goes backwards.
+        """
+        t = self._check_change_time(t_s)
+        self._applied = ()
+        self._change_target(t, self.standing_cost_w)
+        return self.standing_cost_w
+
+    def _check_change_time(self, t_s: float) -> float:
         t = check_time("t_s", t_s)
         latest = max(self._t_last_s, self._segments[-1][0])
         if t < latest:
@@ -781,9 +826,9 @@ class RealisticWearer:
                 f"apply time t_s={t!r} goes backwards; expected >= {latest!r} (the last breath "
                 "or change)"
             )
-        profs = check_profiles(profiles, self._windows)
-        target = self.cost_of_profiles(profs)
-        self._applied = profs
+        return t
+
+    def _change_target(self, t: float, target: float) -> None:
         t_c, m_c, old_target = self._segments[-1]
         if t == t_c:
             self._segments[-1] = (t_c, m_c, target)
@@ -791,11 +836,6 @@ class RealisticWearer:
             # The new transition starts from the rate the body is at now (module docstring).
             self._segments.append((t, self._first_order_w(t), target))
             self._first_pending = True
-        return target
-
-    def apply_params(self, params: Mapping[str, float], t_s: float) -> float:
-        """Apply the tables of a feasible setting (see :meth:`apply_profiles`)."""
-        return self.apply_profiles(self.profiles_for(params), t_s)
 
     # ------------------------------------------------------------------ breaths
     def _draw_interval(self) -> float:

@@ -28,7 +28,9 @@ Data:
 
 * synthetic (default): :func:`synthetic_people` — a small pure generator of breath trajectories
   (documented there). ``--wearer NAME`` picks a registered wearer (:data:`WEARERS`):
-  ``synthetic`` or ``realistic`` (the simulated wearer of the virtual devices).
+  ``synthetic`` or ``realistic`` (the simulated wearer of the virtual devices; it stands for a
+  bout before the first setting and after every ``--rest-every`` settings, 3 by default, so
+  that its large steps are scored beside the small steps of assistance changes).
 * ``--replay FILE --transitions t1,t2,...`` (or ``--events FILE``, a CSV ``t_s,label`` of the
   changes): a recorded breath file (hilbo-line, a vendor export ``hilbo cart inspect``
   recognises, or a CSV with ``--csv-columns TIME,VO2,VCO2``) read with the cart driver's parsers
@@ -90,6 +92,8 @@ _FULL_TAU_GRID_S = np.geomspace(5.0, 300.0, 80)
 _TRUTH_WINDOW_S = 180.0  # a replay's truth: the mean of at most the bout's last 3 minutes...
 _TRUTH_MIN_SPAN_S = 60.0  # ...after the last horizon, spanning at least a minute to be scored
 _POOLED = (60.0, 180.0)  # the horizons pooled into one calibration figure
+# The realistic wearer stands after every 3 settings: of 8 bouts, 3 large steps and 4 small scored.
+_REST_EVERY = 3
 
 
 @dataclass(frozen=True)
@@ -199,33 +203,50 @@ def synthetic_people(n: int, seed: int, *, bouts: int = 5, bout_s: float | None 
     return people
 
 
-def realistic_people(n: int, seed: int, *, bouts: int = 6, bout_s: float | None = None) -> list[list[Bout]]:
+def realistic_people(n: int, seed: int, *, bouts: int = 6, bout_s: float | None = None,
+                     rest_every: int = 0) -> list[list[Bout]]:
     """The realistic simulated wearer (bridge.sim.devices) walked through settings.
 
-    Person k is the wearer of seed ``1000·seed + k`` in the ``hip_6d`` space; each bout applies a
-    random feasible setting at the breath clock's current time and lasts as the synthetic
-    bouts do (45–120 s or 200–300 s), so its transition starts wherever the previous one left
-    the body; ``bout_s`` makes every bout last that long instead (``hilbo bench pairs`` needs
-    full-length evaluations). The truth of a bout is the setting's steady-state cost at the
+    Person k is the wearer of seed ``1000·seed + k`` in the ``hip_6d`` space; each of ``bouts``
+    bouts applies a random feasible setting at the breath clock's current time and lasts as the
+    synthetic bouts do (45–120 s or 200–300 s), so its transition starts wherever the previous
+    one left the body; ``bout_s`` makes every bout last that long instead (``hilbo bench pairs``
+    needs full-length evaluations). The truth of a bout is the setting's steady-state cost at the
     bout's end (the wearer adapts, 0–3 % over the hour), not the breaths' level: the wearer's
     steady state drifts (1.5–3.5 % SD), an error every estimate has, as on people; the first bout
     only starts the chained estimator.
     Steps between hip settings are small (5–25 % of the cost at most), unlike the walking /
-    running transitions of the real recordings.
+    running transitions of the real recordings. ``rest_every`` K > 0 adds them: the person
+    stands (:meth:`~virtual_hw.wearer_realistic.RealisticWearer.stand`, ≈ 3-4× below walking)
+    for one bout before the first setting and after every K settings, so each rest is a large
+    step down and the setting after it a large step up, both scored (the first rest only starts
+    the chained estimator); its truth is the standing cost at the bout's end.
 
-    Pure given (n, seed, bouts, bout_s): the same people every time.
+    Pure given (n, seed, bouts, bout_s, rest_every): the same people every time; with
+    ``rest_every`` 0 the settings and breaths are those of earlier versions.
     """
     _check_bout_s(bout_s)
+    if isinstance(rest_every, bool) or not isinstance(rest_every, int) or rest_every < 0:
+        raise ConfigError(f"rest_every={rest_every!r}; expected an integer >= 0 (0: no rests)")
     space = hip_6d()
     rng = np.random.default_rng([int(seed), 0x5EA])
     people: list[list[Bout]] = []
     for k in range(n):
         wearer = make_wearer(WearerKind.REALISTIC, space, seed=1000 * int(seed) + k)
         person: list[Bout] = []
+        plan: list[int | None] = []  # None: a standing bout
         for b in range(bouts):
-            params = space.to_dict(space.from_unit(space.sample_unit(1, rng))[0])
+            if rest_every and b % rest_every == 0:
+                plan.append(None)
+            plan.append(b)
+        for b in plan:
             t0 = wearer.t_s
-            wearer.apply_params(params, t0)
+            if b is None:
+                params = None
+                wearer.stand(t0)
+            else:
+                params = space.to_dict(space.from_unit(space.sample_unit(1, rng))[0])
+                wearer.apply_params(params, t0)
             dur = _duration(rng, bout_s)
             first_level = wearer.metabolic_rate_w(t0)
             ts: list[float] = []
@@ -236,9 +257,12 @@ def realistic_people(n: int, seed: int, *, bouts: int = 6, bout_s: float | None 
                     break
                 ts.append(rec.t_s - t0)
                 ys.append(brockway_watts(rec.vo2_ml_min, rec.vco2_ml_min))
-            truth = wearer.true_cost_w(params, t0 + dur)
+            if params is None:
+                truth = wearer.standing_cost_w * wearer.adaptation_factor(t0 + dur)
+            else:
+                truth = wearer.true_cost_w(params, t0 + dur)
             person.append(Bout(np.array(ts), np.array(ys), truth, abs(first_level - truth) / truth,
-                               evaluate=b > 0))
+                               evaluate=bool(person), label="standing" if params is None else ""))
         people.append(person)
     return people
 
@@ -690,6 +714,12 @@ def _cmd_estimator(args: argparse.Namespace) -> int:
             raise ConfigError(f"--n {args.n}; expected an integer >= 1")
         if args.replay is None and args.seed < 0:
             raise ConfigError(f"--seed {args.seed}; expected an integer >= 0")
+        if args.rest_every is not None and (args.replay is not None or args.wearer != "realistic"):
+            raise ConfigError("--rest-every goes with --wearer realistic (the other data have their "
+                              "own large steps)")
+        if args.rest_every is not None and args.rest_every < 0:
+            raise ConfigError(f"--rest-every {args.rest_every}; expected an integer >= 0 (0: no rests)")
+        rest_every = _REST_EVERY if args.rest_every is None else args.rest_every
         if args.transitions is not None:
             trans = parse_transitions(args.transitions)
         score = [x for x in args.score.split(",") if x] if args.score is not None else None
@@ -705,9 +735,11 @@ def _cmd_estimator(args: argparse.Namespace) -> int:
             f" --score {args.score}" if args.score is not None else "") + (
             f" --csv-columns {args.csv_columns}" if args.csv_columns else "")
     else:
-        people = WEARERS[args.wearer](args.n, args.seed, bout_s=args.bout_s)
+        rests = {"rest_every": rest_every} if args.wearer == "realistic" else {}
+        people = WEARERS[args.wearer](args.n, args.seed, bout_s=args.bout_s, **rests)
         source = f"--wearer {args.wearer} --n {args.n} --seed {args.seed}" + (
-            f" --bout-s {args.bout_s:g}" if args.bout_s is not None else "")
+            f" --bout-s {args.bout_s:g}" if args.bout_s is not None else "") + (
+            f" --rest-every {rest_every}" if rests else "")
     n_people = len(people)
     step = max(1, n_people // 10)
 
@@ -768,6 +800,11 @@ def add_estimator_bench_parser(bench_subparsers: Any) -> argparse.ArgumentParser
     p.add_argument("--bout-s", type=float, default=None,
                    help="synthetic data: every bout this long in s (default: 45-120 s or 200-300 s, "
                         "half each; 300 scores every horizon)")
+    p.add_argument("--rest-every", type=int, default=None, metavar="K",
+                   help=f"--wearer realistic: the person stands for one bout before the first "
+                        f"setting and after every K settings, large steps down and up that "
+                        f"assistance changes never make (default {_REST_EVERY}; 0: no rests, "
+                        f"small steps only)")
     p.add_argument("--csv-columns", default=None, metavar="TIME,VO2,VCO2",
                    help="with --replay: the file is a CSV with these header names (s, ml/min)")
     p.add_argument("--estimators", default=None,

@@ -55,6 +55,24 @@ def test_realistic_people_walk_the_wearer_through_settings_in_a_row() -> None:
     assert a[0][0].truth_w != a[1][0].truth_w
 
 
+def test_realistic_people_stand_between_settings_for_large_steps() -> None:
+    base = realistic_people(2, 3, bouts=4)
+    rested = realistic_people(2, 3, bouts=4, rest_every=2)
+    # Without rests (the default, and what bench pairs uses), the people of earlier versions:
+    # reference values from the version before the rests existed.
+    assert base[1][3].watts[:2] == pytest.approx([287.60354972, 348.49644039], rel=1e-9)
+    assert base[1][3].truth_w == pytest.approx(340.6157516889224, rel=1e-12)
+    for person in rested:
+        # Stand, 2 settings, stand, 2 settings: the first rest starts the chain, the rest scored.
+        assert [b.label for b in person] == ["standing", "", "", "standing", "", ""]
+        assert [b.evaluate for b in person] == [False, True, True, True, True, True]
+        large = [b.first_distance >= 0.5 for b in person[1:]]
+        assert large == [True, False, True, True, False]  # up from rest, down to rest, up again
+        assert 80.0 < person[3].truth_w < 160.0 < person[1].truth_w
+    with pytest.raises(ConfigError, match="rest_every=-1"):
+        realistic_people(1, 0, rest_every=-1)
+
+
 def test_evaluate_and_summarize_toy() -> None:
     people = synthetic_people(3, 1)
     rows = evaluate(people)
@@ -201,6 +219,8 @@ def test_cli_synthetic_and_replay(tmp_path: Path, capsys: pytest.CaptureFixture[
     (["--bout-s", "-5"], "--bout-s -5"),
     (["--n", "0"], "--n 0"),
     (["--wearer", "nobody"], "--wearer 'nobody'"),
+    (["--rest-every", "2"], "--rest-every goes with --wearer realistic"),
+    (["--wearer", "realistic", "--rest-every", "-1"], "--rest-every -1"),
     (["--estimators", "kalman"], "kalman"),
     (["--transition-config", "timing=10"], "timing=10"),
     (["--transition-config", "timing_sd_s=ten"], "'ten' is not a number"),

@@ -250,6 +250,31 @@ def test_a_quick_switch_starts_mid_transition() -> None:
     assert w.metabolic_rate_w(t1 + w.tau_s) == pytest.approx(expected, rel=1e-9)
 
 
+def test_standing_relaxes_to_the_standing_level_and_walking_starts_from_there() -> None:
+    space = hip_6d()
+    w = RealisticWearer(space, 5, RealisticWearerConfig.noiseless(), body_mass_kg=80.0)
+    x = space.to_dict(space.from_unit(np.full(6, 0.5)))
+    w.apply_params(x, 0.0)
+    t1 = 600.0
+    w.breaths_until(t1)
+    walking = w.metabolic_rate_w(t1)
+    assert w.stand(t1) == w.standing_cost_w == pytest.approx(1.5 * 80.0)
+    assert w.applied_profiles == () and w.steady_state_cost_w == w.standing_cost_w
+    assert w.metabolic_rate_w(t1) == pytest.approx(walking, rel=1e-12)  # no jump
+    expected = w.standing_cost_w + (walking - w.standing_cost_w) * math.exp(-1.0)
+    assert w.metabolic_rate_w(t1 + w.tau_s) == pytest.approx(expected, rel=1e-9)
+    # Standing is a large step: walking costs 3-4x more.
+    assert 3.0 < w.true_cost_w(x) / w.standing_cost_w < 4.5
+    t2 = t1 + 10.0 * w.tau_s
+    w.breaths_until(t2)
+    assert w.metabolic_rate_w(t2) == pytest.approx(w.standing_cost_w, rel=1e-3)
+    w.apply_params(x, t2)
+    assert w.metabolic_rate_w(t2 + w.tau_s) == pytest.approx(
+        w.true_cost_w(x) + (w.metabolic_rate_w(t2) - w.true_cost_w(x)) * math.exp(-1.0), rel=1e-9)
+    with pytest.raises(MeasurementError, match="goes backwards"):
+        w.stand(t1)
+
+
 # ---------------------------------------------------------------------------- adaptation
 def test_adaptation_factor_is_1_at_0_and_1_minus_alpha_after_an_hour() -> None:
     assert adaptation_factor(0.0, 0.02, 1500.0) == 1.0
