@@ -608,6 +608,8 @@ _LimitsTable = msgspec.defstruct("_LimitsTable", [
     ("max_consecutive_rejections", Annotated[int, Meta(ge=1, le=100)],
      _LIMIT_DEFAULTS.max_consecutive_rejections),
     ("actuators", dict[str, Any], {}),
+    ("rated_force_n", Annotated[float, Meta(gt=0.0, le=ACTUATOR_LIMIT_RANGES["max_force_n"][1])],
+     RATED_FORCE_N),
 ], **_STRUCT)
 
 
@@ -615,14 +617,29 @@ def _parse_limits(data: object) -> ProfileLimits:
     t: Any = decode(_LimitsTable, data, "limits", BridgeConfigError)
     base = {k: getattr(t, k) for k in ACTUATOR_LIMIT_RANGES}
     base_limits = make_actuator_limits("limits", **base)  # checks the window is not empty
+    _check_rating("limits", base_limits.max_force_n, t.rated_force_n)
     overrides = {}
     for name, entry in t.actuators.items():
         where = f"limits.actuators.{name}"
         o = decode(_ActuatorTable, entry, where, BridgeConfigError)
         given = {k: v for k in ACTUATOR_LIMIT_RANGES if (v := getattr(o, k)) is not None}
         overrides[name] = make_actuator_limits(where, **{**base_limits.to_json(), **given})
+        _check_rating(where, overrides[name].max_force_n, t.rated_force_n)
     return ProfileLimits(**base, n_points=t.n_points, max_consecutive_rejections=t.max_consecutive_rejections,
                          actuators=overrides)
+
+
+def _check_rating(where: str, max_force_n: float, rated_force_n: float) -> None:
+    """A session's force limit never exceeds what the exosuit is rated for: the limit is the
+    lab's to lower, the rating the device's (a stronger device raises ``rated_force_n``, once,
+    knowingly), so a typo such as 5000 N cannot drive a person's actuators beyond it."""
+    if max_force_n > rated_force_n:
+        default = " (the default: drivers/exosuit/rating.py)" if rated_force_n == RATED_FORCE_N else ""
+        raise BridgeConfigError(
+            f"{where}.max_force_n = {max_force_n:g} N is above the exosuit's rated force, "
+            f"limits.rated_force_n = {rated_force_n:g} N{default}; expected at most that. Lower "
+            f"max_force_n, or, if your device is rated higher, set [limits] rated_force_n to its rating"
+        )
 
 
 # --------------------------------------------------------------------------------------------
@@ -1236,10 +1253,10 @@ def check_out_dir(path: str | Path, what: str = "session.out_dir") -> Path:
 def config_warnings(cfg: HilboConfig) -> list[str]:
     """What is valid but probably wrong: one line each (``hilbo config check``, ``hilbo run``).
 
-    Today: a force limit above the exosuit's rated force
-    (:data:`drivers.exosuit.rating.RATED_FORCE_N`), a live view bound to an address other
-    machines can reach (its stream is not authenticated and carries health data), and
-    ``watchdog.bus_error = "pause"``, which is not implemented (:class:`BusErrorPolicy`).
+    Today: a live view bound to an address other machines can reach (its stream is not
+    authenticated and carries health data), and ``watchdog.bus_error = "pause"``, which is not
+    implemented (:class:`BusErrorPolicy`). A force limit above the exosuit's rated force is an
+    error, not a warning (``[limits] rated_force_n``).
     """
     out: list[str] = []
     if cfg.watchdog.bus_error is BusErrorPolicy.PAUSE:
@@ -1250,13 +1267,6 @@ def config_warnings(cfg: HilboConfig) -> list[str]:
         out.append(f"live.host = {cfg.live.host!r} is not this machine only (127.0.0.1): with the live "
                    "view on, anyone on that network can watch the session's stream (VO2, heart rate, "
                    "forces; no authentication). Keep 127.0.0.1 unless the lab's network is trusted")
-    for name, lim in [("limits", cfg.limits.default),
-                      *((f"limits.actuators.{k}", v) for k, v in cfg.limits.actuators.items()
-                        if v.max_force_n != cfg.limits.default.max_force_n)]:
-        if lim.max_force_n > RATED_FORCE_N:
-            out.append(f"{name}.max_force_n = {lim.max_force_n:g} N is above the exosuit's rated "
-                       f"force, {RATED_FORCE_N:g} N (drivers/exosuit/rating.py): the device may "
-                       "refuse such profiles, or be driven beyond its rating")
     return out
 
 

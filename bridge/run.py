@@ -78,7 +78,7 @@ def runtime_settings(cfg: HilboConfig, *, auto_resume_s: float | None = None,
 def _headless_line(session: BridgeSession) -> Callable[[str], None]:
     """A printer of the session's event lines on stderr, with the session's breath time and
     state, for runs without the live view."""
-    console = Console(stderr=True, highlight=False, soft_wrap=True)
+    console = Console(stderr=True, markup=False, highlight=False, soft_wrap=True)
 
     def line(text: str) -> None:
         st = session.status
@@ -170,7 +170,9 @@ async def run_session(
         auto_resume_s: The resume policy (``[watchdog] auto_resume_s``, which this overrides):
             end a pause the operator did not ask for after this long of a healthy device and
             cart (wall s; simulations, and ``hilbo run --auto-resume`` without a keyboard).
-        operator_view: Show the live terminal view (when stderr is a terminal).
+        operator_view: Show the live terminal view when stdin and stderr are terminals (it
+            reads the keys there); otherwise, or when False, one line per evaluation and per
+            pause on stderr.
         n_actuators: Actuators whose heartbeat the watchdog requires.
         on_session: Called with the session before it runs (tests, simulation wiring).
         validation: Measure this validation walk (``hilbo validate``, bridge/validate.py)
@@ -261,15 +263,19 @@ async def run_session(
                     live.on_sdk_log = _sdk_lines_to(log, loop)
                 if on_session is not None:
                     on_session(session)
+                # The live view needs a terminal to draw on and a keyboard to read: without
+                # either (--no-view, output to a file, stdin not a terminal) the session prints
+                # one line per evaluation and per pause, resume or refusal instead, so that a
+                # run without a terminal is never silent (docs/config.md, "Pauses").
                 view = asyncio.create_task(run_operator_view(session), name="operator-view") \
-                    if operator_view else None
-                if not operator_view:
-                    # Headless (no keyboard): one line per evaluation and per pause, resume or refusal.
+                    if operator_present else None
+                if not operator_present:
                     session.status.listeners.append(_headless_line(session))
                 try:
                     summary = await session.run()
                     if validation is not None:
                         summary["validation"] = validation.results(session)
+                        validation.label_summary(summary)
                 finally:
                     if view is not None:
                         view.cancel()

@@ -408,8 +408,12 @@ class BridgeSession:
         self._t_session0: float | None = None
         #: Why the session ended (the first cause wins); None while it runs.
         self.end_reason: SessionEnd | None = None
-        #: Called with every breath the protocol accounts (hilbo validate's conditions).
+        #: Called with every breath the protocol accounts.
         self.breath_listeners: list[Callable[[BreathRecord], None]] = []
+        #: ``(n, reason)``: end the session with ``reason`` as soon as ``n`` evaluations are
+        #: complete, before anything else is asked or pushed (hilbo validate: its conditions are
+        #: the only settings the walk may apply).
+        self.end_after: tuple[int, SessionEnd] | None = None
 
     @property
     def proposal_worker(self) -> ProposalWorker:
@@ -582,7 +586,10 @@ class BridgeSession:
         self.opt.cancel_current()  # a setting proposed but never measured
         if p.end_reason is not None:
             self._ended_by(session_end(p.end_reason))
-        reason = p.end_reason.value if p.end_reason is not None else "stopped"
+        if self.end_after is not None and self.end_reason is self.end_after[1]:
+            reason = self.end_reason.text  # the walk's own end (hilbo validate), not a stop
+        else:
+            reason = p.end_reason.value if p.end_reason is not None else "stopped"
         self._event("budget_spent", f"session time spent ({reason}): "
                     f"{p.walking.session_s / 60:.1f} min walked")
 
@@ -772,6 +779,10 @@ class BridgeSession:
             return act
         self._setting = None
         nxt = p.on_evaluation_done()
+        if (self.end_after is not None and nxt.kind is not ActionKind.END
+                and len(self.opt.evaluations) >= self.end_after[0]):
+            self._ended_by(self.end_after[1])
+            nxt = p.stop()
         if nxt.kind is ActionKind.PROPOSE and step.stop and not self.supervisor.paused:
             self._t_stop, self._t_stop_pauses = self._clock(), self.supervisor.pauses
         # The hyperparameters fitted ahead are applied here, whatever comes next (a proposal, a

@@ -209,7 +209,7 @@ def _protocol(cfg: HilboConfig, n: int, *, resumed_evaluations: int | None = Non
     config = dataclasses.replace(
         cfg.protocol.session_protocol_config(), n_explore=n, max_breaths=v.condition_breaths,
         session_s=cfg.protocol.warmup_s + 3 * n * v.condition_min * 60.0 + 1800.0,
-        budget_s=None, budget_breaths=1, pause_between_bouts=False)
+        budget_s=None, budget_breaths=1, pause_between_bouts=False, confirm_s=None)
     if resumed_evaluations is None:
         return SessionProtocol(config)
     return SessionProtocol.resumed(config, n_explored=resumed_evaluations)
@@ -333,13 +333,24 @@ class ValidationPlan:
         session.log.log_event("validation_plan", "validation walk: " + ", ".join(
             f"{k + 1}. {c.name}" for k, c in enumerate(self.conditions)),
             conditions=[c.to_json() for c in self.conditions], source_log=self.source_log)
-        n = len(self.conditions)
+        # The session ends the moment the last condition's evaluation completes: nothing is
+        # asked or pushed after it (an optimisation proposal must never reach the wearer here).
+        session.end_after = (len(self.conditions), SessionEnd.CONDITIONS_DONE)
 
-        def after_breath(_rec: object) -> None:
-            if len(session.opt.evaluations) >= n and session.end_reason is None:
-                session.finish(SessionEnd.CONDITIONS_DONE)
-
-        session.breath_listeners.append(after_breath)
+    def label_summary(self, summary: dict[str, Any]) -> None:
+        """A walk's ``summary.json``: each evaluation names the condition it measured (and, for
+        unassisted and zero-force walking, carries no setting: the optimizer records OPT's for
+        them, :class:`Condition`), and there is no recommendation (a GP over fixed conditions
+        recommends nothing; OPT is the source session's)."""
+        for r in summary.get("evaluations") or ():
+            k = int(r["index"])
+            if 0 <= k < len(self.conditions):
+                c = self.conditions[k]
+                r["condition"] = c.name
+                if c.kind in _WITHOUT_SETTING:
+                    r["params"], r["setting"] = None, _WITHOUT_SETTING[c.kind]
+        summary.update(best_params=None, best_mean=None, best_var=None, recommendation=None,
+                       confirmation=None)
 
     def results(self, session: BridgeSession) -> list[dict[str, Any]]:
         """The per-condition results; logged as the ``validation_result`` event."""

@@ -64,7 +64,7 @@ def _executor(args: argparse.Namespace) -> Any:
 
 
 def _console() -> Console:
-    return Console(highlight=False, soft_wrap=True)
+    return Console(markup=False, highlight=False, soft_wrap=True)
 
 
 # ------------------------------------------------------------------------------------ stopping

@@ -694,7 +694,7 @@ def _cmd_estimator(args: argparse.Namespace) -> int:
 
     from bridge.bench.common import choices, options
 
-    console = Console(highlight=False, soft_wrap=True)
+    console = Console(markup=False, highlight=False, soft_wrap=True)
     with options():  # the command line's values (exit status 2); the replay file's are 1
         estimators = choices(args.estimators, ESTIMATORS, "estimator", list(ESTIMATORS))
         if args.replay is not None and (args.transitions is None) == (args.events is None):

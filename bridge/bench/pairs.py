@@ -400,7 +400,7 @@ def _cmd_pairs(args: argparse.Namespace) -> int:
 
     from bridge.bench.common import options
 
-    console = Console(highlight=False, soft_wrap=True)
+    console = Console(markup=False, highlight=False, soft_wrap=True)
     replays = args.replay or []
     transitions = args.transitions or []
     with options():  # the command line's values (exit status 2); the files' are 1

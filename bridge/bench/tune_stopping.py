@@ -343,7 +343,7 @@ def _n_max_from(evs: Iterable[Evaluation]) -> int | None:
 def _cmd_tune_stopping(args: argparse.Namespace) -> int:
     from rich.console import Console
 
-    console = Console(stderr=True)
+    console = Console(stderr=True, markup=False, highlight=False, soft_wrap=True)
     trajs: list[np.ndarray] = []
     sources: list[str] = []
     evs: list[Evaluation] = []

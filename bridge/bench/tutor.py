@@ -284,7 +284,7 @@ def _cmd_bench_tutor(args: argparse.Namespace) -> int:
 
     from bridge.bench.common import options
 
-    console = Console(stderr=True)
+    console = Console(stderr=True, markup=False, highlight=False, soft_wrap=True)
     with options():  # a bad value on the command line: exit status 2
         cfg = TutorBenchConfig(figures=tuple(args.figures), students=args.students,
                                repetitions=args.reps, resamples=args.resamples,

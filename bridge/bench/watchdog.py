@@ -284,7 +284,7 @@ def _cmd_watchdog(args: argparse.Namespace) -> int:
 
     from bridge.bench.common import options
 
-    console = Console(stderr=True, highlight=False)
+    console = Console(stderr=True, markup=False, highlight=False, soft_wrap=True)
     with options():  # the command line's values are checked before any work (exit status 2)
         try:
             loads = [int(v) for v in str(args.burners).split(",")]

@@ -65,7 +65,7 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     from bridge.config import LiveConfig, check_out_dir
     from bridge.sim.virtual import MAX_SPEED, VirtualSimConfig, run_virtual_sim
 
-    console = Console(stderr=True)
+    console = Console(stderr=True, markup=False, highlight=False, soft_wrap=True)
     cfg = VirtualSimConfig(minutes=args.minutes, seed=args.seed, speed=args.speed,
                            preset=args.preset, stopping=args.stopping, wearer=args.wearer)
     out = check_out_dir(args.out, "--out")
@@ -111,7 +111,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from bridge.config import check_out_dir, config_warnings, load_config
     from bridge.run import run_session
 
-    console = Console(stderr=True)
+    console = Console(stderr=True, markup=False, highlight=False, soft_wrap=True)
     cfg = load_config(args.config)
     for warning in config_warnings(cfg):
         print(f"hilbo run: warning: {warning}", file=sys.stderr)
@@ -147,7 +147,7 @@ def _cmd_sim_core(args: argparse.Namespace) -> int:
     from bridge.sim.core import SimConfig, SimEvaluation, run_insim
     from hilbo_core import HILOptimizer
 
-    console = Console(stderr=True)
+    console = Console(stderr=True, markup=False, highlight=False, soft_wrap=True)
     cfg = SimConfig(minutes=args.minutes, seed=args.seed, speed=args.speed, preset=args.preset,
                     stopping=args.stopping, wearer=args.wearer)
     from bridge.config import check_out_dir

@@ -27,7 +27,7 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     if (args.source is None) == (args.resume is None):
         raise UsageError("give --from LOG (the optimisation session to validate) or --resume LOG "
                          "(a validation walk to continue), not both")
-    console = Console(stderr=True)
+    console = Console(stderr=True, markup=False, highlight=False, soft_wrap=True)
     cfg = load_config(args.config)
     check_out_dir(args.out or cfg.session.out_dir, "--out" if args.out else "[session] out_dir")
     if args.live:

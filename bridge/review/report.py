@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 from drivers.files import create_private_file
 
 if TYPE_CHECKING:
-    from bridge.review.session import Session
+    from bridge.review.session import EvaluationRow, Session
 
 __all__ = [
     "BREATH_COLUMNS",
@@ -298,15 +298,28 @@ def _names(session: Session) -> list[str]:
     return sorted(session.evaluations[0].params) if session.evaluations else []
 
 
+def _phase_of(session: Session, e: EvaluationRow) -> tuple[str, bool]:
+    """An evaluation's phase for the tables, and whether its setting was applied: in a
+    validation walk the condition it measured (unassisted and zero-force walking apply no
+    setting; the optimizer records OPT's for them, bridge/validate.py)."""
+    cond = session.condition_of(e.index)
+    if cond is None:
+        return e.phase, True
+    return f"validation: {cond.get('name', '?')}", cond.get("kind") in ("recommended", "generic")
+
+
 def _evaluation_rows(session: Session) -> tuple[tuple[str, ...], list[tuple[str, ...]]]:
     names = _names(session)
     headers = ("#", "phase", *names, "mean (W)", "σ (W)", "breaths", "early stop", "reason",
                "start (min)", "end (min)", "log")
-    rows = [(str(e.index + 1), e.phase, *(_num(e.params.get(n), ".4g") for n in names), _num(e.mean_w),
-             _num(e.sd_w), str(e.breaths), "yes" if e.stopped_early else "", e.reason, _min(e.t_start_s),
-             _min(e.t_end_s),
-             session.files[e.file].name + ("" if e.source == "observation" else " (snapshot)"))
-            for e in session.evaluations]
+    rows = []
+    for e in session.evaluations:
+        phase, shown = _phase_of(session, e)
+        rows.append((str(e.index + 1), phase,
+                     *((_num(e.params.get(n), ".4g") if shown else "–") for n in names),
+                     _num(e.mean_w), _num(e.sd_w), str(e.breaths), "yes" if e.stopped_early else "", e.reason,
+                     _min(e.t_start_s), _min(e.t_end_s),
+                     session.files[e.file].name + ("" if e.source == "observation" else " (snapshot)")))
     return headers, rows
 
 
@@ -343,7 +356,13 @@ def write_report(session: Session, out: Path, plots: Mapping[str, Path],
     ]))
     if session.validation is not None:
         blocks += [_h(2, "Validation walk"), *_validation_blocks(session)]
-    blocks += [_h(2, "Recommended setting"), *_recommended_blocks(session)]
+    if session.validation_plan is not None:
+        blocks += [_h(2, "Recommended setting"),
+                   _p("A validation walk recommends nothing: it measures fixed conditions, and its OPT "
+                      "is the recommendation of the session it validates (its validation_plan event "
+                      "names that log).")]
+    else:
+        blocks += [_h(2, "Recommended setting"), *_recommended_blocks(session)]
     blocks.append(_h(2, "Plots"))
     for name, title_ in _TITLES.items():
         if name in plots:
@@ -401,8 +420,10 @@ def write_evaluations_csv(session: Session, path: Path) -> Path:
         w = csv.writer(f)
         w.writerow(cols)
         for e in session.evaluations:
+            phase, shown = _phase_of(session, e)
             w.writerow([_cell(v) for v in (
-                e.index + 1, e.phase, *(e.params.get(n) for n in names), e.mean_w, e.var_w2, e.sd_w,
+                e.index + 1, phase, *((e.params.get(n) if shown else None) for n in names),
+                e.mean_w, e.var_w2, e.sd_w,
                 e.breaths, e.duration_s, e.stopped_early, e.reason, e.t_start_s, e.t_end_s,
                 session.files[e.file].name, e.source, e.index)])
     return path

@@ -352,6 +352,9 @@ class Session:
         walked_s: The session's own minutes walked (its end event's ``walking``), s; None when
             the log does not say (then the last breath's session time stands in).
         validation: A validation walk's result per condition (``hilbo validate``), or None.
+        validation_plan: A validation walk's conditions in measuring order (``name``, ``kind``,
+            ``params``; evaluation k measured condition k), or None for an optimisation session;
+            a walk has no ``recommended`` setting.
     """
 
     files: tuple[LogFile, ...]
@@ -373,6 +376,12 @@ class Session:
     pauses: tuple[tuple[float, float | None], ...] = ()
     walked_s: float | None = None
     validation: tuple[Mapping[str, Any], ...] | None = None
+    validation_plan: tuple[Mapping[str, Any], ...] | None = None
+
+    def condition_of(self, index: int) -> Mapping[str, Any] | None:
+        """The validation condition evaluation ``index`` measured, or None (not a walk)."""
+        plan = self.validation_plan
+        return plan[index] if plan is not None and 0 <= index < len(plan) else None
 
     @property
     def file_mode(self) -> int:
@@ -632,6 +641,8 @@ class _FileScan:
     walked_s: float | None = None
     #: A validation walk's per-condition results (its ``validation_result`` event), or None.
     validation: list[Mapping[str, Any]] | None = None
+    #: A validation walk's conditions in measuring order (its ``validation_plan`` event), or None.
+    validation_plan: list[Mapping[str, Any]] | None = None
 
 
 def _scan_file(c: LogContents, fi: int, offset: float) -> _FileScan:
@@ -721,6 +732,8 @@ def _scan_file(c: LogContents, fi: int, offset: float) -> _FileScan:
                 scan.walked_s = float(walking["session_s"])
             if r.kind == "validation_result" and isinstance((r.details or {}).get("conditions"), list):
                 scan.validation = [c for c in r.details["conditions"] if isinstance(c, Mapping)]
+            if r.kind == "validation_plan" and isinstance((r.details or {}).get("conditions"), list):
+                scan.validation_plan = [c for c in r.details["conditions"] if isinstance(c, Mapping)]
             scan.events.append(TimelineEvent(session_time(r.t_s, last), fi, _level_name(r.level), r.kind,
                                              r.message))
         elif topic == Topic.ACKS:
@@ -901,7 +914,13 @@ def load_session(paths: Sequence[str | os.PathLike[str]]) -> Session:
                 acc[reason] = acc.get(reason, 0) + n
     z_traces = {k: v for s in scans for k, v in s.z_runs.items()}
     thresholds = _thresholds(scans, traces, evaluations, config, snapshot, z_traces, notes)
-    recommended = _recommend(contents, snapshot, evaluations, notes)
+    plan = next((s.validation_plan for s in reversed(scans) if s.validation_plan is not None), None)
+    if plan is None:
+        recommended = _recommend(contents, snapshot, evaluations, notes)
+    else:
+        # A validation walk measures fixed conditions (its unassisted one with no setting
+        # applied): a GP over them recommends nothing; OPT is its source session's recommendation.
+        recommended = None
     feedback = None
     if recommended is not None:
         # Every logged evaluation of the recommended setting (a confirmation measures it several
@@ -938,6 +957,7 @@ def load_session(paths: Sequence[str | os.PathLike[str]]) -> Session:
         optimizer_config=opt_config if isinstance(opt_config, Mapping) else {},
         pauses=_pauses(events), walked_s=scans[-1].walked_s,
         validation=next((tuple(s.validation) for s in reversed(scans) if s.validation is not None), None),
+        validation_plan=None if plan is None else tuple(plan),
     )
 
 

@@ -1,8 +1,9 @@
 """The exosuit's rated force: what its actuators are built to deliver.
 
-A ``[limits] max_force_n`` above it is not refused by the bridge (the limits are the lab's to
-set), but ``hilbo config check`` and ``hilbo run`` warn: the device refuses such tables
-(nack ``out_of_limits``) or, worse, is driven beyond its rating.
+It is the default of the config's ``[limits] rated_force_n``, and a ``max_force_n`` above the
+rating is refused when the config loads (the device would refuse such tables, nack
+``out_of_limits``, or, worse, be driven beyond its rating): a lab lowers the limit freely and
+raises the rating only to its own device's.
 """
 
 from __future__ import annotations

@@ -103,29 +103,46 @@ def test_rated_force_matches_the_virtual_device() -> None:
     assert RATED_FORCE_N == DeviceLimits().max_force_n == 600.0
 
 
-def test_max_force_above_the_rating_is_warned_by_config_check(
+def test_max_force_above_the_rating_is_refused_by_config_check(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    assert cli.main(["config", "check", "--samples", "0", str(_config(tmp_path, max_force_n=2500.0))]) == 0
-    err = capsys.readouterr().err
-    assert "hilbo config check: warning: limits.max_force_n = 2500 N is above the exosuit's rated " \
-           "force, 600 N" in err
+    assert cli.main(["config", "check", "--samples", "0", str(_config(tmp_path, max_force_n=2500.0))]) == 1
+    line = _one_error_line(capsys.readouterr().err, "hilbo config check: invalid config:")
+    assert "limits.max_force_n = 2500 N is above the exosuit's rated force, limits.rated_force_n = " \
+           "600 N" in line and "set [limits] rated_force_n" in line
 
 
-def test_max_force_within_the_rating_is_not_warned(tmp_path: Path) -> None:
+def test_max_force_up_to_the_rating_loads_without_a_warning(tmp_path: Path) -> None:
     cfg = parse_config(_config(tmp_path, max_force_n=600.0).read_text(), source="t")
-    assert config_warnings(cfg) == []
+    assert config_warnings(cfg) == [] and cfg.limits.default.max_force_n == 600.0
 
 
-def test_max_force_above_the_rating_is_warned_at_run_start(
+@pytest.mark.parametrize("rated, hip_max, ok", [
+    (900.0, None, True),  # a device rated higher: the lab says so
+    (700.0, None, False),
+    (900.0, 950.0, False),  # every actuator's limit too
+])
+def test_the_rating_is_the_labs_to_raise_and_bounds_every_actuator(
+        tmp_path: Path, rated: float, hip_max: float | None, ok: bool) -> None:
+    text = _config(tmp_path, max_force_n=800.0).read_text()
+    text = text.replace("rated_force_n = 600.0", f"rated_force_n = {rated}", 1)
+    if hip_max is not None:
+        hip = f"[limits.actuators.hip]\nmax_force_n = {hip_max}"
+        text = text.replace("# [limits.actuators.ankle]", hip, 1)
+    if ok:
+        assert parse_config(text, source="t").limits.default.max_force_n == 800.0
+    else:
+        with pytest.raises(BridgeConfigError, match=rf"max_force_n = {hip_max or 800:g} N is above .*"
+                                                     rf"limits.rated_force_n = {rated:g} N"):
+            parse_config(text, source="t")
+
+
+def test_max_force_above_the_rating_stops_hilbo_run_before_anything_starts(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    # The out_dir error stops the run right after the start-up warnings: no devices needed.
-    blocker = tmp_path / "f"
-    blocker.write_text("x")
-    assert cli.main(["run", "--no-view", str(_config(tmp_path, out_dir=blocker, max_force_n=2500.0))]) == 1
-    err = capsys.readouterr().err
-    assert "hilbo run: warning: limits.max_force_n = 2500 N is above the exosuit's rated force" in err
+    assert cli.main(["run", "--no-view", str(_config(tmp_path, max_force_n=2500.0))]) == 1
+    _one_error_line(capsys.readouterr().err, "hilbo run: error:")
+    assert not (tmp_path / "sessions").exists()
 
 
 # --- exit status and --version ---------------------------------------------------------------

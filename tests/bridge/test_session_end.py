@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import io
 import os
+import re
 import signal
 import uuid
 from pathlib import Path
@@ -61,7 +63,8 @@ def replay_config(tmp: Path, recording: Path) -> tuple[HilboConfig, str]:
 
 
 def run_replay(tmp: Path, n_breaths: int, *, on_session: Any = None, auto_resume_s: float = 0.0,
-               resume: Path | None = None, name: str = "s") -> tuple[RunResult, BridgeSession]:
+               resume: Path | None = None, name: str = "s",
+               operator_view: bool = False) -> tuple[RunResult, BridgeSession]:
     cfg, channel = replay_config(tmp, write_recording(tmp / "breaths.hbr", n_breaths))
     sessions: list[BridgeSession] = []
 
@@ -75,7 +78,8 @@ def run_replay(tmp: Path, n_breaths: int, *, on_session: Any = None, auto_resume
                                   joints=SUIT_JOINTS[SIM.preset], seed=1):
             return await run_session(cfg, log_path=tmp / f"{name}.mcap", auto_resume_s=auto_resume_s,
                                      resume=resume,
-                                     operator_view=False, n_actuators=len(SUIT_JOINTS[SIM.preset]),
+                                     operator_view=operator_view,
+                                     n_actuators=len(SUIT_JOINTS[SIM.preset]),
                                      on_session=hook)
 
     return asyncio.run(run()), sessions[0]
@@ -133,3 +137,17 @@ def test_resuming_a_finished_session_is_refused_clearly(tmp_path: Path) -> None:
     with pytest.raises(ResumeError, match=r"is a finished session .*nothing to resume.*hilbo validate"):
         run_replay(tmp_path, 40, resume=result.log_path, name="again")
     assert not (tmp_path / "again.mcap").exists()
+
+
+@pytest.mark.parametrize("operator_view", [False, True])
+def test_without_a_terminal_the_session_prints_a_line_per_evaluation(
+        tmp_path: Path, operator_view: bool, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    # Output to a file or a pipe and no keyboard: with or without --no-view, a run is never
+    # silent (the live view has nowhere to draw and no keys to read).
+    monkeypatch.setattr("sys.stdin", io.StringIO(""))
+    result, _ = run_replay(tmp_path, 100, operator_view=operator_view)
+    err = capsys.readouterr().err
+    n_evals = result.summary["n_evaluations"]
+    assert n_evals >= 2
+    assert len(re.findall(r"^\[ *\d+\.\d min \| \w+\] eval \d+", err, flags=re.M)) == n_evals, err

@@ -166,6 +166,21 @@ def test_validate_on_the_virtual_devices_matches_the_wearers_truth(tmp_path: Pat
     (row,) = [line for line in section.splitlines() if "| zero-force |" in line]
     assert "zero force" in row and f"{100 * zero['reduction']:.1f}" in row
     assert "zero-force: the suit actuated" in section
+    # The walk applies its conditions and nothing else: no setting is asked or pushed after
+    # the last one, and nothing is recommended from a GP over fixed conditions.
+    log = read_log(tmp_path / "validate.mcap")
+    assert summary["n_evaluations"] == len(plan.conditions)
+    assert {p.index for p in log.records("/profiles_sent")} <= set(range(len(plan.conditions)))
+    assert [p.index for p in log.records("/proposals")] == list(range(len(plan.conditions)))
+    assert "confirmation" not in kinds
+    assert summary["recommendation"] is None and summary["best_params"] is None
+    for ev, c in zip(summary["evaluations"], plan.conditions, strict=True):
+        assert ev["condition"] == c.name
+        assert (ev["params"] is None) == (c.name in ("unassisted", "zero-force"))
+    assert "A validation walk recommends nothing" in md and s.recommended is None
+    evaluations_md = md.split("## Evaluations")[1].splitlines()
+    (ev_row,) = [line for line in evaluations_md if "| validation: unassisted |" in line]
+    assert "| – |" in ev_row
 
 
 def test_validate_needs_one_source(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
