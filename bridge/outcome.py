@@ -21,6 +21,7 @@ __all__ = [
     "format_params",
     "format_value",
     "recommendation",
+    "recommendation_method_text",
     "recommendation_text",
     "session_end",
 ]
@@ -136,11 +137,16 @@ _METHOD_TEXT = {
 }
 
 
+def recommendation_method_text(method: str, n_evaluations: int) -> str:
+    """How a recommendation of ``OptimizerConfig.recommend`` = ``method`` was chosen, in words."""
+    return _METHOD_TEXT.get(method, method + " ({n} evaluations)").format(n=n_evaluations)
+
+
 def recommendation_text(rec: Mapping[str, Any]) -> str:
     """The recommended setting in one line: parameters with units, estimate with its labelled
     interval, and how it was measured."""
     lo, hi = rec["ci95_w"]
-    how = _METHOD_TEXT.get(rec["method"], rec["method"] + " ({n} evaluations)").format(n=rec["n_evaluations"])
+    how = recommendation_method_text(rec["method"], rec["n_evaluations"])
     n_ev, n_br = rec["n_evaluations_at_setting"], rec["n_breaths_at_setting"]
     return (f"recommended setting: {format_params(rec['params'], rec['units'])}; estimated "
             f"{rec['mean_w']:.1f} W (95 % CI {lo:.1f} to {hi:.1f} W; {how}; this setting measured "

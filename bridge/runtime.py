@@ -1123,8 +1123,15 @@ class BridgeSession:
             self.status.device = "LOST"
             if healthy or not self.supervisor.paused:
                 text = ("no device status since the session started" if math.isinf(silent)
-                        else f"device heartbeat lost for {silent * 1e3:.0f} ms")
-                await self.supervisor.pause(AssistanceOffReason.DEVICE_HEARTBEAT_LOST, text)
+                        else f"device heartbeat lost: no status for {silent * 1e3:.0f} ms (assistance "
+                             f"off from {s.device_silence_limit_s * 1e3:.0f} ms, so that it is on the "
+                             f"bus within the {s.device_timeout_s * 1e3:.0f} ms timeout)")
+                if self.supervisor.has_reason(AssistanceOffReason.DEVICE_HEARTBEAT_LOST):
+                    # Lost again during the pause it caused: assistance-off once more, and the
+                    # pause keeps its one heartbeat cause (the operator's line does not grow).
+                    await self.supervisor.assistance_off(AssistanceOffReason.DEVICE_HEARTBEAT_LOST, text)
+                else:
+                    await self.supervisor.pause(AssistanceOffReason.DEVICE_HEARTBEAT_LOST, text)
             await asyncio.sleep(s.watchdog_period_s)
 
     async def _watchdog_task(self) -> None:

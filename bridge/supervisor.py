@@ -174,6 +174,10 @@ class Supervisor:
         """True while the current pause (or the stop) has ``text`` among its causes."""
         return text in self._causes
 
+    def has_reason(self, reason: AssistanceOffReason) -> bool:
+        """True while the current pause (or the stop) has a cause of this ``reason``."""
+        return AssistanceOffReason(reason) in self._causes.values()
+
     @property
     def person_causes(self) -> tuple[str, ...]:
         """The causes of the current pause that need a person, oldest first."""

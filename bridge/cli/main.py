@@ -36,6 +36,38 @@ def _speed(text: str) -> float | None:
     return value
 
 
+def _minutes(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(f"expected minutes in (0, 600], got {text!r}") from err
+    if not 0 < value <= 600:
+        raise argparse.ArgumentTypeError(f"expected minutes in (0, 600], got {text!r}")
+    return value
+
+
+def _seed(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from err
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}")
+    return value
+
+
+def _check_sim_minutes(args: argparse.Namespace, cfg: Any) -> None:
+    """A session too short for the protocol is a wrong command line: said before anything
+    starts or any directory is made."""
+    from bridge.errors import UsageError
+    from hilbo_core.errors import ConfigError
+
+    try:
+        cfg.budget_min  # noqa: B018 - the property checks that the minutes leave an optimisation
+    except ConfigError as err:
+        raise UsageError(f"--minutes {args.minutes:g}: {err}") from err
+
+
 def _version() -> str:
     from importlib import metadata
 
@@ -68,6 +100,7 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     console = Console(stderr=True, markup=False, highlight=False, soft_wrap=True)
     cfg = VirtualSimConfig(minutes=args.minutes, seed=args.seed, speed=args.speed,
                            preset=args.preset, stopping=args.stopping, wearer=args.wearer)
+    _check_sim_minutes(args, cfg)
     out = check_out_dir(args.out, "--out")
     speed = cfg.speed or MAX_SPEED
     where = "the virtual exosuit and cart"
@@ -76,9 +109,10 @@ def _cmd_sim(args: argparse.Namespace) -> int:
 
         bus = resolve_bus(args.bus or "auto")
         where += f" as processes ({'SocketCAN vcan0' if bus == 'vcan' else 'python-can-remote'})"
+    # At most: the session ends early when the simulated clock outruns the breaths' pacing.
     console.print(f"hilbo sim: {cfg.minutes:g}-minute {cfg.preset} session on {where}, {cfg.wearer} "
                   f"wearer seed {cfg.seed}, "
-                  f"{speed:g}x real time (about {cfg.minutes * 60 / speed:.0f} s)")
+                  f"{speed:g}x real time (at most {cfg.minutes * 60 / speed:.0f} s)")
     if args.processes:
         summary = asyncio.run(run_process_sim(cfg, out, bus=bus, operator_view=console.is_terminal))
     else:
@@ -94,11 +128,13 @@ def _cmd_sim(args: argparse.Namespace) -> int:
 
 def _print_done(console: Any, summary: dict[str, Any]) -> None:
     best = summary.get("best_mean")
+    if "end_reason" in summary:  # the bridge's session: the same last lines as hilbo run's
+        console.print(ended_text(summary))
     line = (f"done: {summary['n_evaluations']} evaluations ({summary['n_early_stops']} early stops) "
             f"in {summary['wall_time_s']:.1f} s wall")
     if best is not None and "true_cost_of_best" in summary:
-        line += (f"; best {best:.1f} W estimated, {summary['true_cost_of_best']:.1f} W true vs optimum "
-                 f"{summary['true_optimum']['cost_w']:.1f} W (regret {summary['regret_w']:.1f} W)")
+        line += (f"; recommended {best:.1f} W estimated, {summary['true_cost_of_best']:.1f} W true vs "
+                 f"optimum {summary['true_optimum']['cost_w']:.1f} W (regret {summary['regret_w']:.1f} W)")
     console.print(line)
 
 
@@ -203,11 +239,15 @@ def build_parser() -> argparse.ArgumentParser:
                                      "of their own (SocketCAN vcan0 or python-can-remote, see --bus). "
                                      "--engine core runs the optimizer against the "
                                      "wearer directly, without devices or log (fastest).")
-    sim.add_argument("--minutes", type=float, default=60.0, help="session length in minutes (default 60)")
+    sim.add_argument("--minutes", type=_minutes, default=60.0,
+                     help="session length in minutes of walking, up to 600 (default 60); it must leave "
+                          "at least a minute of optimisation after the warm-up and the exploration "
+                          "bout, which take about 10 minutes with the default rule (20 with "
+                          "--stopping adaptive or fixed, the seed's protocol)")
     sim.add_argument("--speed", type=_speed, default=None,
                      help="'max' (default; 100x with the devices, unlimited with --engine core) "
                           "or a real-time factor such as 1 or 10")
-    sim.add_argument("--seed", type=int, default=1, help="subject and optimizer seed (default 1)")
+    sim.add_argument("--seed", type=_seed, default=1, help="subject and optimizer seed, >= 0 (default 1)")
     sim.add_argument("--out", default="runs/sim", help="output directory (default runs/sim)")
     sim.add_argument("--preset", default="hip_6d", choices=["hip_6d", "hip_ankle_4d"],
                      help="parameter space (default hip_6d)")
@@ -301,6 +341,17 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _innermost_parser(parser: argparse.ArgumentParser, argv: Sequence[str]) -> argparse.ArgumentParser:
+    """The (sub)parser the command line names: ``hilbo bench stopping ...`` -> its parser."""
+    for token in argv:
+        sub = next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
+        if sub is None:
+            break
+        if token in sub.choices:
+            parser = sub.choices[token]
+    return parser
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``hilbo`` console script."""
     from bridge.errors import BridgeError, UsageError
@@ -308,7 +359,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     from hilbo_core.errors import HilboError
 
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra:
+        # Said by the subcommand's own parser, with its usage (argparse's top parser would
+        # print the top-level usage for `hilbo sim --bogus`).
+        _innermost_parser(parser, sys.argv[1:] if argv is None else argv).error(
+            f"unrecognized arguments: {' '.join(extra)}")
     logging.basicConfig(level=logging.WARNING - 10 * min(args.verbose, 2),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:

@@ -32,10 +32,13 @@ files of a resumed session are laid end to end (the new process's cart clock doe
 the old one). Messages without a breath time (events, acks, device status) are placed at the
 last breath logged before them.
 
-The recommended setting is what the session itself recommends: ``HILOptimizer.best()`` (the
-GP's estimated minimum among the evaluated points, with that evaluation's estimate) of the last
-``/optimizer_state`` snapshot, or of the optimizer rebuilt by :func:`bridge.log.resume.rebuild_optimizer`
-when evaluations completed after that snapshot; failing both, the lowest estimated mean.
+The recommended setting is what the session itself recommends: ``HILOptimizer.best()`` (by the
+optimizer's ``recommend``: with the default sound rule the lowest GP posterior mean + 1 SD over
+the whole feasible set, or the confirmation's own measurement of it once the session's last
+minutes measured it; with the seed's rules the GP's estimated minimum among the evaluated
+settings, with that evaluation's estimate) of the last ``/optimizer_state`` snapshot, or of the
+optimizer rebuilt by :func:`bridge.log.resume.rebuild_optimizer` when evaluations completed after
+that snapshot; failing both, the lowest estimated mean.
 
 A log damaged *inside* the file (garbage over a chunk, a bad CRC: not the cut-off tail a crash
 leaves) is read around the damage (:mod:`bridge.log.reader` restarts at the next intact record);
@@ -66,6 +69,7 @@ from bridge.errors import ReviewError
 from bridge.log import EventLevel, LogError, LogFormatError, Topic
 from bridge.log import records as rec
 from bridge.log.reader import LogContents, config_file_mode, read_log
+from bridge.outcome import recommendation_method_text
 
 __all__ = [
     "Breath",
@@ -1063,8 +1067,7 @@ def _recommend(contents: Sequence[LogContents], snapshot: rec.OptimizerState | N
     if snapshot is not None and len(_snapshot_evaluations(snapshot)) == len(evaluations):
         try:
             opt = HILOptimizer.from_json(snapshot.state)
-            method = "HILOptimizer.best() of the last optimizer snapshot (the GP's estimated minimum among " \
-                     "the evaluated settings, with that evaluation's own estimate)"
+            method = "HILOptimizer.best() of the last optimizer snapshot"
         except (HilboError, KeyError, TypeError, ValueError) as err:
             notes.append(f"the last optimizer snapshot cannot be loaded ({err})")
     if opt is None:
@@ -1072,8 +1075,7 @@ def _recommend(contents: Sequence[LogContents], snapshot: rec.OptimizerState | N
 
         try:
             opt, _ = rebuild_optimizer(contents[-1])
-            method = ("HILOptimizer.best() of the optimizer rebuilt from the log (the GP's estimated "
-                      "minimum among the evaluated settings)")
+            method = "HILOptimizer.best() of the optimizer rebuilt from the log"
         except (LogError, HilboError) as err:
             logger.info("rebuilding the optimizer for the recommendation failed: %s", err)
             opt = None
@@ -1084,6 +1086,8 @@ def _recommend(contents: Sequence[LogContents], snapshot: rec.OptimizerState | N
         except (HilboError, ValueError, np.linalg.LinAlgError) as err:
             notes.append(f"the optimizer's recommendation failed ({err}); showing the lowest estimate")
             opt = None
+        if opt is not None:
+            method += f" ({recommendation_method_text(opt.config.recommend.value, len(evaluations))})"
         conf = None if opt is None else opt.confirmation
         if conf is not None and conf.mean_w is not None and conf.sd_w is not None:
             # Measured in full at the session's end: its estimate is that measurement.

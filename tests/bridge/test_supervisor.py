@@ -131,6 +131,16 @@ async def test_a_pause_during_a_pause_adds_its_reason_and_one_resume_ends_both()
     assert sup.pause_reason == "device heartbeat lost for 260 ms; between bouts; operator pause"
 
 
+async def test_has_reason_answers_for_the_current_pause_only() -> None:
+    sup, _, _, _ = make()
+    assert not sup.has_reason(AssistanceOffReason.DEVICE_HEARTBEAT_LOST)
+    await sup.pause(AssistanceOffReason.DEVICE_HEARTBEAT_LOST, "device heartbeat lost: no status for 80 ms")
+    assert sup.has_reason(AssistanceOffReason.DEVICE_HEARTBEAT_LOST)
+    assert not sup.has_reason(AssistanceOffReason.OPERATOR_STOP)
+    assert sup.resume("resume policy") is None and not sup.paused
+    assert not sup.has_reason(AssistanceOffReason.DEVICE_HEARTBEAT_LOST)
+
+
 @pytest.mark.parametrize("recovery", list(FaultRecovery))
 async def test_each_recovery_class_decides_who_may_end_the_pause(recovery: FaultRecovery) -> None:
     sup, ep, _, events = make()
