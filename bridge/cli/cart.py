@@ -6,6 +6,8 @@ import argparse
 import sys
 from typing import Any, TextIO
 
+from bridge.cli.argtypes import positive_int
+
 __all__ = ["add_cart_parser"]
 
 
@@ -29,16 +31,6 @@ def _cmd_inspect(args: argparse.Namespace, out: TextIO | None = None, err: TextI
         err.write(f"hilbo cart inspect: every record of {args.file} is rejected as {report.format}\n")
         return 1
     return 0
-
-
-def _positive(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}") from exc
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}")
-    return value
 
 
 def add_cart_parser(subparsers: Any) -> argparse.ArgumentParser:
@@ -69,7 +61,7 @@ def add_cart_parser(subparsers: Any) -> argparse.ArgumentParser:
     inspect.add_argument("file", help="the export or recording")
     inspect.add_argument("--format", choices=[f.value for f in CartFormat if f is not CartFormat.CSV],
                          default=None, help="read as this format instead of detecting it")
-    inspect.add_argument("--show", type=_positive, default=3, metavar="N",
+    inspect.add_argument("--show", type=positive_int, default=3, metavar="N",
                          help="breaths to show at the start and at the end (default 3)")
     inspect.set_defaults(func=_cmd_inspect)
     return parser

@@ -13,7 +13,8 @@ from typing import Any
 
 import msgspec
 
-from bridge.cli.session_end import EXIT_INTERRUPTED, RUN_EXIT_STATUS, ended_text, run_exit_status, seconds
+from bridge.cli.argtypes import minutes, nonnegative_int, seconds
+from bridge.cli.session_end import EXIT_INTERRUPTED, RUN_EXIT_STATUS, ended_text, run_exit_status
 
 # The GP's matrices are small (tens to a few hundred rows): multi-threaded BLAS only adds
 # contention there (measured: proposal p95 61 ms threaded vs 28 ms single-threaded on 2 cores).
@@ -33,26 +34,6 @@ def _speed(text: str) -> float | None:
         raise argparse.ArgumentTypeError(f"speed must be 'max' or a positive number, got {text!r}") from err
     if not value > 0:
         raise argparse.ArgumentTypeError(f"speed must be 'max' or a positive number, got {text!r}")
-    return value
-
-
-def _minutes(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError as err:
-        raise argparse.ArgumentTypeError(f"expected minutes in (0, 600], got {text!r}") from err
-    if not 0 < value <= 600:
-        raise argparse.ArgumentTypeError(f"expected minutes in (0, 600], got {text!r}")
-    return value
-
-
-def _seed(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError as err:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from err
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}")
     return value
 
 
@@ -239,7 +220,7 @@ def build_parser() -> argparse.ArgumentParser:
                                      "of their own (SocketCAN vcan0 or python-can-remote, see --bus). "
                                      "--engine core runs the optimizer against the "
                                      "wearer directly, without devices or log (fastest).")
-    sim.add_argument("--minutes", type=_minutes, default=60.0,
+    sim.add_argument("--minutes", type=minutes, default=60.0,
                      help="session length in minutes of walking, up to 600 (default 60); it must leave "
                           "at least a minute of optimisation after the warm-up and the exploration "
                           "bout, which take about 10 minutes with the default rule (20 with "
@@ -247,7 +228,8 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--speed", type=_speed, default=None,
                      help="'max' (default; 100x with the devices, unlimited with --engine core) "
                           "or a real-time factor such as 1 or 10")
-    sim.add_argument("--seed", type=_seed, default=1, help="subject and optimizer seed, >= 0 (default 1)")
+    sim.add_argument("--seed", type=nonnegative_int, default=1,
+                     help="subject and optimizer seed, >= 0 (default 1)")
     sim.add_argument("--out", default="runs/sim", help="output directory (default runs/sim)")
     sim.add_argument("--preset", default="hip_6d", choices=["hip_6d", "hip_ankle_4d"],
                      help="parameter space (default hip_6d)")

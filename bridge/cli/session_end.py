@@ -1,23 +1,12 @@
 """What ``hilbo run`` and ``hilbo validate`` share at a session's end: the last lines, the exit
-status and its help text, and the seconds type of their options."""
+status and its help text."""
 
 from __future__ import annotations
 
-import argparse
 from typing import Any
 
 __all__ = ["EXIT_INTERRUPTED", "EXIT_NOTHING_MEASURED", "RUN_EXIT_STATUS", "ended_text",
-           "run_exit_status", "seconds"]
-
-
-def seconds(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError as err:
-        raise argparse.ArgumentTypeError(f"expected seconds >= 0, got {text!r}") from err
-    if not 0 <= value < float("inf"):
-        raise argparse.ArgumentTypeError(f"expected seconds >= 0, got {text!r}")
-    return value
+           "run_exit_status"]
 
 
 #: ``hilbo run``'s exit status for a session that ended without a completed evaluation.

@@ -62,7 +62,8 @@ def _cmd_validate(args: argparse.Namespace) -> int:
 
 def add_validate_parser(subparsers: Any) -> argparse.ArgumentParser:
     """Register ``hilbo validate`` on the top-level ``add_subparsers()`` object."""
-    from bridge.cli.session_end import RUN_EXIT_STATUS, seconds
+    from bridge.cli.argtypes import seconds
+    from bridge.cli.session_end import RUN_EXIT_STATUS
 
     p = subparsers.add_parser(
         "validate", help="the validation walk: the recommended setting vs a generic one vs unassisted",
