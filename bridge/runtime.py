@@ -1271,7 +1271,11 @@ class BridgeSession:
                 await self._resume("operator", by_person=True)
             elif cmd is Command.STOP:
                 self._ended_by(SessionEnd.OPERATOR_STOP)
-                await self.supervisor.stop(AssistanceOffReason.OPERATOR_STOP, "operator stop")
+                # The stop's cause as the log and the view say it: the operator's q, a signal,
+                # or the session's own end (finish()); the frame's reason is the operator's.
+                why = "operator stop" if self.end_reason is SessionEnd.OPERATOR_STOP else (
+                    self.end_reason.text if self.end_reason is not None else "operator stop")
+                await self.supervisor.stop(AssistanceOffReason.OPERATOR_STOP, why)
                 raise _Stopped
 
     # ------------------------------------------------------------------ helpers

@@ -114,13 +114,17 @@ def test_a_replay_at_max_speed_is_paced_by_the_session_and_measures(tmp_path: Pa
 def test_a_signal_stops_the_session_as_interrupted(tmp_path: Path) -> None:
     def on_session(session: BridgeSession) -> None:
         def fire(rec: Any) -> None:
-            if session.status.breath_time_s > 20 and session.end_reason is None:
+            if session.supervisor.assisting and session.end_reason is None:
                 os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C: the handler of run_session
         session.breath_listeners.append(fire)
 
     result, _ = run_replay(tmp_path, 400, on_session=on_session)
     assert result.summary["end_reason"] == "interrupted"
     assert result.summary["n_breaths"] < 400
+    # The log says what stopped it: the signal, not the operator.
+    offs = [e.message for e in read_log(result.log_path).records("/events") if e.kind == "assistance_off"]
+    assert "assistance off: interrupted (Ctrl-C or SIGTERM)" in offs
+    assert not any("operator stop" in m for m in offs)
 
 
 def test_the_logged_config_is_the_one_the_session_ran_with(tmp_path: Path) -> None:
