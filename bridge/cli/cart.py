@@ -21,14 +21,14 @@ def _cmd_inspect(args: argparse.Namespace, out: TextIO | None = None, err: TextI
     try:
         report = inspect_file(args.file, CartFormat(args.format) if args.format else None)
     except DriverError as exc:
-        err.write(f"hilbo cart inspect: {exc}\n")
+        err.write(f"hilbo cart inspect: error: {exc}\n")
         return 1
     except OSError as exc:
-        err.write(f"hilbo cart inspect: cannot read {args.file}: {exc.strerror or exc}\n")
+        err.write(f"hilbo cart inspect: error: cannot read {args.file}: {exc.strerror or exc}\n")
         return 1
     out.write(report.render(n=args.show) + "\n")
     if report.n_rejected and not report.records:
-        err.write(f"hilbo cart inspect: every record of {args.file} is rejected as {report.format}\n")
+        err.write(f"hilbo cart inspect: error: every record of {args.file} is rejected as {report.format}\n")
         return 1
     return 0
 

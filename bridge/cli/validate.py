@@ -25,8 +25,9 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     from bridge.validate import ValidationPlan, result_lines
 
     if (args.source is None) == (args.resume is None):
+        given = "both were given" if args.source is not None else "neither was given"
         raise UsageError("give --from LOG (the optimisation session to validate) or --resume LOG "
-                         "(a validation walk to continue), not both")
+                         f"(a validation walk to continue): one of them; {given}")
     console = Console(stderr=True, markup=False, highlight=False, soft_wrap=True)
     cfg = load_config(args.config)
     check_out_dir(args.out or cfg.session.out_dir, "--out" if args.out else "[session] out_dir")

@@ -189,7 +189,10 @@ def test_validate_needs_one_source(tmp_path: Path, capsys: pytest.CaptureFixture
     config = tmp_path / "s.toml"
     config.write_text(sim_config_text(VirtualSimConfig(minutes=30.0), tmp_path))
     assert main(["validate", str(config)]) == 2
-    assert "give --from LOG" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "give --from LOG" in err and "neither was given" in err
+    assert main(["validate", str(config), "--from", "a.mcap", "--resume", "b.mcap"]) == 2
+    assert "both were given" in capsys.readouterr().err
     source = harness_session(tmp_path, n_evaluations=4).log
     # An optimisation log is not a validation walk to resume.
     assert main(["validate", str(config), "--resume", str(source)]) == 1

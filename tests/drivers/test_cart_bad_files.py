@@ -118,7 +118,7 @@ def test_cart_inspect_and_config_check_exit_1_with_one_line(
     bad = rewrite_member(workbook, tmp_path / "cut.xlsx", SHEET, sheet[: len(sheet) // 2])
     assert cli.main(["cart", "inspect", str(bad)]) == 1
     err = capsys.readouterr().err
-    one_line_error(err, "hilbo cart inspect: ", "cut.xlsx", "not a readable xlsx workbook")
+    one_line_error(err, "hilbo cart inspect: error: ", "cut.xlsx", "not a readable xlsx workbook")
     config = tmp_path / "c.toml"
     config.write_text(_replay_config(tmp_path, bad, "cosmed"))
     assert cli.main(["config", "check", str(config), "--samples", "0"]) == 1
