@@ -174,10 +174,14 @@ def _write_both(out: Path, stem: str, title: str, blocks: Sequence[_Block], mode
 
 
 # ---------------------------------------------------------------------------------- formatting
+# Round-off of the unit-cube mapping (6e-16 for a bound at 0): shown as the 0 it is.
+_ROUND_OFF = 1e-9
+
+
 def _num(value: float | None, fmt: str = ".1f") -> str:
     if value is None or (isinstance(value, float) and not math.isfinite(value)):
         return "–"
-    return format(value, fmt)
+    return format(0.0 if abs(value) < _ROUND_OFF else value, fmt)
 
 
 def _min(t_s: float | None) -> str:
@@ -185,7 +189,7 @@ def _min(t_s: float | None) -> str:
 
 
 def _param(value: float) -> str:
-    return format(value, ".6g")
+    return _num(value, ".6g")
 
 
 def _file_line(session: Session, k: int) -> str:
@@ -245,8 +249,9 @@ def _recommended_blocks(session: Session) -> list[_Block]:
     lowest = min(session.evaluations, key=lambda e: e.mean_w)
     if not math.isclose(lowest.mean_w, rec.mean_w, rel_tol=1e-9):
         blocks.append(_p(
-            f"The best so far (the lowest raw estimate, {lowest.mean_w:.1f} W at evaluation "
-            f"{lowest.index + 1}) differs from the recommendation: the recommendation weighs every "
+            f"The best so far (the lowest raw estimate, {lowest.mean_w:.1f} ± {lowest.sd_w:.1f} W at "
+            f"evaluation {lowest.index + 1}, from {lowest.breaths} breaths, ended by {lowest.reason}) "
+            "differs from the recommendation: the recommendation weighs every "
             "evaluation through the GP, and the lowest of many noisy estimates is biased low (the "
             "winner's curse)."))
     return blocks

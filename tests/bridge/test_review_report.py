@@ -63,3 +63,11 @@ def test_plots_without_evaluations_are_skipped_with_the_reason(tmp_path: Path) -
     assert set(result.skipped) == {"best_so_far", "parameters", "thresholds", "force_tracking"}
     assert [p.name for p in result.files][:1] == ["timeline.png"]
     assert load_session([tmp_path / "a.mcap"]).recommended is None
+
+
+def test_setting_values_show_round_off_as_zero_and_keep_real_values() -> None:
+    from bridge.review.report import _num, _param
+
+    assert _param(6.117e-16) == "0" and _param(-3e-12) == "0"
+    assert _param(54.99999999999885) == "55" and _param(0.00123) == "0.00123"
+    assert _num(float("nan")) == "–" and _num(None) == "–" and _num(323.25) == "323.2"
