@@ -85,23 +85,27 @@ def _best(st: SessionStatus) -> str:
 
 
 def render_status(st: SessionStatus, now_unix_s: float | None = None) -> Panel:
-    """One frame of the operator view (``now_unix_s``: the wall clock, for the expected end)."""
+    """One frame of the operator view (``now_unix_s``: the wall clock, for the expected end).
+
+    Every cell is a :class:`~rich.text.Text`: the session's texts are shown as they are (a
+    plain string would be read as Rich markup, and "check [limits] against [space]" would lose
+    its brackets on the screen the operator reads during a pause)."""
     t = Table.grid(padding=(0, 2))
     t.add_column(style="bold")
     t.add_column()
     budget = "" if st.budget_s is None else f" / {st.budget_s / 60:.1f} min"
-    t.add_row("state", st.state)
-    t.add_row("bout", st.bout)
-    t.add_row("elapsed", f"{st.breath_time_s / 60:.1f} min walked; optimisation "
-                         f"{st.budget_used_s / 60:.1f} min{budget}")
-    t.add_row("expected end", _expected_end(st, time.time() if now_unix_s is None else now_unix_s))
-    t.add_row("evaluation", str(st.evaluation))
+    t.add_row("state", Text(st.state))
+    t.add_row("bout", Text(st.bout))
+    t.add_row("elapsed", Text(f"{st.breath_time_s / 60:.1f} min walked; optimisation "
+                              f"{st.budget_used_s / 60:.1f} min{budget}"))
+    t.add_row("expected end", Text(_expected_end(st, time.time() if now_unix_s is None else now_unix_s)))
+    t.add_row("evaluation", Text(str(st.evaluation)))
     if st.params:
-        t.add_row("setting", format_params(st.params, st.units))
+        t.add_row("setting", Text(format_params(st.params, st.units)))
     estimate = "—" if st.mean_w is None else f"{st.mean_w:.0f} ± {1.96 * (st.sd_w or 0):.0f} W (95 %)"
-    t.add_row("estimate", f"{estimate}  after {st.breaths_in_setting} breaths")
-    t.add_row("decision", st.last_decision or "—")
-    t.add_row("best so far", _best(st))
+    t.add_row("estimate", Text(f"{estimate}  after {st.breaths_in_setting} breaths"))
+    t.add_row("decision", Text(st.last_decision or "—"))
+    t.add_row("best so far", Text(_best(st)))
     dev_style = "green" if st.device == "ok" else "bold red"
     cart_style = "green" if st.cart == "ok" else "bold red"
     faults = describe_faults(st.device_faults)

@@ -37,7 +37,8 @@ from drivers.signals import stop_signal_handlers
 from hilbo_core import Evaluation, HILOptimizer
 from hilbo_core.protocol import SessionProtocol
 
-__all__ = ["RunResult", "finished_session", "run_session", "runtime_settings", "write_json_atomic"]
+__all__ = ["RunResult", "finished_session", "keyboard_present", "run_session", "runtime_settings",
+           "write_json_atomic"]
 
 if TYPE_CHECKING:
     from bridge.validate import ValidationPlan
@@ -73,6 +74,13 @@ def runtime_settings(cfg: HilboConfig, *, auto_resume_s: float | None = None,
         proposal_worker=cfg.protocol.proposal_worker,
         gc=cfg.protocol.gc,
     )
+
+
+def keyboard_present(operator_view: bool = True) -> bool:
+    """A person can press p, r and q: the live view is wanted and stdin and stderr are terminals
+    (the view reads the keys on stdin and draws on stderr). Otherwise the session prints one
+    line per evaluation and per pause instead, and only the resume policy ends a pause."""
+    return operator_view and sys.stdin.isatty() and sys.stderr.isatty()
 
 
 def _headless_line(session: BridgeSession) -> Callable[[str], None]:
@@ -220,7 +228,7 @@ async def run_session(
     path = Path(log_path) if log_path is not None else _log_path(cfg, out_dir)
     summary_path = path.with_suffix(".summary.json")
     # A person can press r only where the operator view reads the keyboard (bridge/operator_view.py).
-    operator_present = operator_view and sys.stdin.isatty() and sys.stderr.isatty()
+    operator_present = keyboard_present(operator_view)
     settings = runtime_settings(cfg, auto_resume_s=auto_resume_s, n_actuators=n_actuators,
                                 operator_present=operator_present)
     loop = asyncio.get_running_loop()

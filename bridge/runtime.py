@@ -235,7 +235,7 @@ class SessionStatus:
     """
 
     supervisor: Supervisor | None = field(default=None, repr=False)
-    #: Called with every event line as it happens (``hilbo run --no-view`` prints them).
+    #: Called with every event line as it happens (a run without the live view prints them).
     listeners: list[Callable[[str], None]] = field(default_factory=list, repr=False)
     bout: str = "warm-up"
     evaluation: int = 0
@@ -432,7 +432,7 @@ class BridgeSession:
 
     def finish(self, reason: SessionEnd) -> None:
         """Stop the session as the operator's stop does (assistance off, the log closed), with
-        ``reason`` as its end reason (``hilbo validate``: every condition measured)."""
+        ``reason`` as its end reason (:meth:`interrupt`: a signal)."""
         self._ended_by(reason)
         self._commands.put_nowait(Command.STOP)
 
@@ -1272,7 +1272,7 @@ class BridgeSession:
             elif cmd is Command.STOP:
                 self._ended_by(SessionEnd.OPERATOR_STOP)
                 # The stop's cause as the log and the view say it: the operator's q, a signal,
-                # or the session's own end (finish()); the frame's reason is the operator's.
+                # or another cause given to finish(); the frame's reason is the operator's.
                 why = "operator stop" if self.end_reason is SessionEnd.OPERATOR_STOP else (
                     self.end_reason.text if self.end_reason is not None else "operator stop")
                 await self.supervisor.stop(AssistanceOffReason.OPERATOR_STOP, why)

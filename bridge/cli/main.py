@@ -90,10 +90,11 @@ def _cmd_sim(args: argparse.Namespace) -> int:
 
         bus = resolve_bus(args.bus or "auto")
         where += f" as processes ({'SocketCAN vcan0' if bus == 'vcan' else 'python-can-remote'})"
-    # At most: the session ends early when the simulated clock outruns the breaths' pacing.
+    # The clock skips the waits for breaths, so the session takes less than minutes/speed, plus
+    # the proposal worker's start (seconds; more on a busy PC).
     console.print(f"hilbo sim: {cfg.minutes:g}-minute {cfg.preset} session on {where}, {cfg.wearer} "
                   f"wearer seed {cfg.seed}, "
-                  f"{speed:g}x real time (at most {cfg.minutes * 60 / speed:.0f} s)")
+                  f"{speed:g}x real time (under {cfg.minutes * 60 / speed:.0f} s of session time)")
     if args.processes:
         summary = asyncio.run(run_process_sim(cfg, out, bus=bus, operator_view=console.is_terminal))
     else:
@@ -109,7 +110,7 @@ def _cmd_sim(args: argparse.Namespace) -> int:
 
 def _print_done(console: Any, summary: dict[str, Any]) -> None:
     best = summary.get("best_mean")
-    if "end_reason" in summary:  # the bridge's session: the same last lines as hilbo run's
+    if "recommendation" in summary:  # the bridge's session: the same last lines as hilbo run's
         console.print(ended_text(summary))
     line = (f"done: {summary['n_evaluations']} evaluations ({summary['n_early_stops']} early stops) "
             f"in {summary['wall_time_s']:.1f} s wall")
@@ -126,7 +127,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from rich.console import Console
 
     from bridge.config import check_out_dir, config_warnings, load_config
-    from bridge.run import run_session
+    from bridge.run import keyboard_present, run_session
 
     console = Console(stderr=True, markup=False, highlight=False, soft_wrap=True)
     cfg = load_config(args.config)
@@ -145,9 +146,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
     console.print(f"hilbo run: {cfg.source} (subject {cfg.session.subject})"
                   + (f", resuming {resume}" if resume else ""))
     if (args.auto_resume is None and cfg.watchdog.auto_resume_s is None
-            and (args.no_view or not sys.stdin.isatty())):
-        console.print("hilbo run: note: no keyboard (--no-view, or stdin is not a terminal): any pause "
-                      "(the one between the bouts too) lasts until SIGTERM/Ctrl-C; give "
+            and not keyboard_present(not args.no_view)):
+        console.print("hilbo run: note: no keyboard (--no-view, or stdin or stderr not a terminal): "
+                      "any pause (the one between the bouts too) lasts until SIGTERM/Ctrl-C; give "
                       "--auto-resume S or set [watchdog] auto_resume_s")
     result = asyncio.run(run_session(cfg, resume=resume, out_dir=Path(args.out) if args.out else None,
                                      operator_view=not args.no_view, auto_resume_s=args.auto_resume))
@@ -167,6 +168,7 @@ def _cmd_sim_core(args: argparse.Namespace) -> int:
     console = Console(stderr=True, markup=False, highlight=False, soft_wrap=True)
     cfg = SimConfig(minutes=args.minutes, seed=args.seed, speed=args.speed, preset=args.preset,
                     stopping=args.stopping, wearer=args.wearer)
+    _check_sim_minutes(args, cfg)
     from bridge.config import check_out_dir
 
     out = check_out_dir(args.out, "--out")

@@ -1,5 +1,5 @@
-"""What ``hilbo run`` and ``hilbo validate`` share at a session's end: the last lines, the exit
-status and its help text."""
+"""What ``hilbo run``, ``hilbo validate`` and ``hilbo sim`` share at a session's end: the last
+lines, the exit status and its help text."""
 
 from __future__ import annotations
 

@@ -14,14 +14,13 @@ __all__ = ["add_validate_parser"]
 def _cmd_validate(args: argparse.Namespace) -> int:
     import asyncio
     import dataclasses
-    import sys
 
     from rich.console import Console
 
     from bridge.cli.session_end import ended_text, run_exit_status
     from bridge.config import check_out_dir, load_config
     from bridge.errors import UsageError
-    from bridge.run import run_session
+    from bridge.run import keyboard_present, run_session
     from bridge.validate import ValidationPlan, result_lines
 
     if (args.source is None) == (args.resume is None):
@@ -45,7 +44,7 @@ def _cmd_validate(args: argparse.Namespace) -> int:
         console.print("hilbo validate: note: no [validation] generic setting: OPT against unassisted"
                       + (" and zero-force walking" if v.zero_force else " only"))
     if (args.auto_resume is None and cfg.watchdog.auto_resume_s is None
-            and (args.no_view or not sys.stdin.isatty())):
+            and not keyboard_present(not args.no_view)):
         console.print("hilbo validate: note: no keyboard: a pause lasts until SIGTERM/Ctrl-C; give "
                       "--auto-resume S or set [watchdog] auto_resume_s")
     result = asyncio.run(run_session(cfg, resume=resume, out_dir=Path(args.out) if args.out else None,

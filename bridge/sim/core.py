@@ -107,6 +107,12 @@ class SimConfig:
         return ProtocolKind.FAST if self.stopping in ("sound", "sound-floor") else ProtocolKind.SEED
 
     @property
+    def budget_min(self) -> float:
+        """The minutes the session leaves for optimisation (:func:`optimisation_minutes`)."""
+        return optimisation_minutes(self.minutes, self.walking_protocol, self.explore_points,
+                                    self.max_breaths, self.warmup_s)
+
+    @property
     def explore_points(self) -> int:
         """``n_explore``, else the protocol's."""
         if self.n_explore is not None:
@@ -155,6 +161,30 @@ class _Clock:
         delay = due - time.monotonic()
         if delay > 0:
             time.sleep(delay)
+
+
+_MEAN_BREATH_S = 3.0  # the simulated wearers' mean breath interval, for the estimate below
+
+
+def optimisation_minutes(minutes: float, protocol: ProtocolKind, n_explore: int, max_breaths: int,
+                         warmup_s: float) -> float:
+    """What a simulated session of ``minutes`` leaves for optimisation after its warm-ups and its
+    exploration bout (about ``n_explore``·N breaths of ~3 s), in minutes; checked before a
+    simulation starts (:func:`check_optimisation_ran` says it afterwards, exactly).
+
+    Raises:
+        ConfigError: Less than a minute is left.
+    """
+    named, _ = protocol_preset(protocol)
+    explore_s = n_explore * max_breaths * _MEAN_BREATH_S
+    warm_ups = 2 if named["pause_between_bouts"] or named["warmup_without_pause"] else 1
+    left_s = minutes * 60.0 - warm_ups * warmup_s - explore_s
+    if left_s < 60.0:
+        raise ConfigError(
+            f"minutes={minutes:g} leaves {max(left_s, 0) / 60:.1f} min for optimisation after "
+            f"the warm-ups and the exploration bout (~{explore_s / 60:.0f} min); give more minutes"
+        )
+    return left_s / 60.0
 
 
 def check_optimisation_ran(protocol: SessionProtocol, minutes: float) -> None:

@@ -33,6 +33,7 @@ from bridge.collector import GcMode
 from bridge.config import HilboConfig, LiveConfig, parse_config
 from bridge.run import RunResult, run_session, write_json_atomic
 from bridge.runtime import BridgeSession
+from bridge.sim.core import optimisation_minutes
 from drivers.exosuit import CanBusConfig
 from hilbo_core.errors import ConfigError
 from hilbo_core.presets import preset
@@ -49,7 +50,6 @@ logger = logging.getLogger(__name__)
 #: The factor ``--speed max`` stands for (see the module docstring).
 MAX_SPEED = 100.0
 _GC_MODES = frozenset(m.value for m in GcMode)
-_MEAN_BREATH_S = 3.0  # the simulated wearer's mean breath interval, for the budget estimate
 
 
 @dataclasses.dataclass(frozen=True)
@@ -105,19 +105,11 @@ class VirtualSimConfig:
     @property
     def budget_min(self) -> float:
         """The optimisation bout's budget: what the minutes leave after the warm-ups and the
-        exploration bout (which takes about n_explore·N breaths of ~3 s)."""
+        exploration bout (:func:`bridge.sim.core.optimisation_minutes`)."""
         sound = self.stopping in ("sound", "sound-floor")
-        named_proto, named_opt = protocol_preset(ProtocolKind.FAST if sound else ProtocolKind.SEED)
-        n_explore = self.n_explore if self.n_explore is not None else named_opt["n_explore"]
-        explore_s = n_explore * self.max_breaths * _MEAN_BREATH_S
-        warm_ups = 2 if named_proto["pause_between_bouts"] or named_proto["warmup_without_pause"] else 1
-        left_s = self.minutes * 60.0 - warm_ups * self.warmup_s - explore_s
-        if left_s < 60.0:
-            raise ConfigError(
-                f"minutes={self.minutes:g} leaves {max(left_s, 0) / 60:.1f} min for optimisation after "
-                f"the warm-ups and the exploration bout (~{explore_s / 60:.0f} min); give more minutes"
-            )
-        return left_s / 60.0
+        kind = ProtocolKind.FAST if sound else ProtocolKind.SEED
+        n_explore = self.n_explore if self.n_explore is not None else protocol_preset(kind)[1]["n_explore"]
+        return optimisation_minutes(self.minutes, kind, int(n_explore), self.max_breaths, self.warmup_s)
 
 
 def sim_config_text(cfg: VirtualSimConfig, out_dir: Path, *, device_timeout_ms: float = 250.0) -> str:

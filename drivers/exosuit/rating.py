@@ -15,5 +15,6 @@ RATED_FORCE_N = 600.0
 
 Source: the device this protocol was written for has no published rating in this repository;
 600 N is the hardware limit the virtual exosuit enforces (``virtual_hw.exosuit.DeviceLimits``:
-≈ 60 % of the body weight of a 100 kg wearer, Kim et al. 2019's largest ankle assistance). Change it
-here for another device: the warnings follow."""
+≈ 60 % of the body weight of a 100 kg wearer, Kim et al. 2019's largest ankle assistance). It is
+the default of the config's ``[limits] rated_force_n``: a lab with another device sets that key to
+its device's rating."""

@@ -82,8 +82,41 @@ def test_run_with_out_dir_a_file_is_rc_1_before_anything_starts(
 def test_sim_out_naming_a_file_is_rc_1(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     blocker = tmp_path / "f"
     blocker.write_text("x")
-    assert cli.main(["sim", "--engine", "core", "--minutes", "1", "--out", str(blocker)]) == 1
+    assert cli.main(["sim", "--engine", "core", "--minutes", "20", "--out", str(blocker)]) == 1
     assert "--out" in _one_error_line(capsys.readouterr().err, "hilbo sim: error:")
+
+
+@pytest.mark.parametrize("engine", ["core", "bridge"])
+def test_a_sim_too_short_for_the_protocol_is_a_usage_error_before_anything_starts(
+        tmp_path: Path, engine: str, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "out"
+    assert cli.main(["sim", "--engine", engine, "--minutes", "5", "--out", str(out)]) == 2
+    line = _one_error_line(capsys.readouterr().err, "hilbo sim: error: --minutes 5: ")
+    assert "leaves 0.0 min for optimisation" in line and not out.exists()
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["sim", "--minutes", "-5"], "argument --minutes: expected minutes in (0, 600], got '-5'"),
+    (["sim", "--seed", "-1"], "argument --seed: expected an integer >= 0, got '-1'"),
+])
+def test_sim_option_values_are_usage_errors_naming_the_option(
+        argv: list[str], message: str, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        cli.main(argv)
+    assert exc.value.code == 2 and message in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, usage", [
+    (["sim", "--bogus"], "usage: hilbo sim "),
+    (["config", "check", "x.toml", "--bogus"], "usage: hilbo config check "),
+    (["--bogus", "sim"], "usage: hilbo "),
+])
+def test_an_unknown_option_shows_the_usage_of_the_command_it_was_given_to(
+        argv: list[str], usage: str, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        cli.main(argv)
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and err.startswith(usage) and "unrecognized arguments: --bogus" in err
 
 
 def test_check_out_dir_accepts_new_and_existing_directories(tmp_path: Path) -> None:

@@ -64,6 +64,29 @@ def test_the_last_lines_of_hilbo_run_give_the_confirmed_recommendation() -> None
     assert "confirmed" not in session_end.ended_text(summary)
 
 
+def test_hilbo_sim_ends_with_the_last_lines_of_hilbo_run(capsys: pytest.CaptureFixture[str]) -> None:
+    from rich.console import Console
+
+    from bridge.cli.main import _print_done
+    from bridge.outcome import recommendation
+
+    rec = recommendation({"F_p": 200.0}, 323.2, 25.0, evaluations=[{"params": {"F_p": 200.0}, "breaths": 45}],
+                         method="global", units={"F_p": "N"})
+    summary = {"n_evaluations": 24, "n_early_stops": 6, "end_reason": "session", "recommendation": rec,
+               "confirmation": {"mean_w": 323.2, "sd_w": 11.6}, "walking": {"session_s": 3600.0},
+               "wall_time_s": 15.8, "best_mean": 323.2, "true_cost_of_best": 347.8,
+               "true_optimum": {"cost_w": 345.4}, "regret_w": 2.4}
+    _print_done(Console(stderr=True, markup=False, soft_wrap=True), summary)
+    lines = capsys.readouterr().err.splitlines()
+    assert lines[0].startswith("session ended: ") and lines[1].startswith("recommended setting: F_p = 200")
+    assert lines[2] == "recommended, confirmed at 323.2 ± 11.6 W (SD)"
+    assert lines[3].startswith("done: 24 evaluations") and "regret 2.4 W" in lines[3]
+    # The core engine's summary has no recommendation record: only the done line.
+    del summary["recommendation"]
+    _print_done(Console(stderr=True, markup=False, soft_wrap=True), summary)
+    assert capsys.readouterr().err.startswith("done: ")
+
+
 def test_hilbo_run_help_documents_its_exit_statuses(capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit):
         cli.main(["run", "--help"])

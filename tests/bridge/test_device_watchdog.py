@@ -4,8 +4,11 @@ harness's device model)."""
 
 from __future__ import annotations
 
+import asyncio
 import bisect
+import itertools
 from pathlib import Path
+from typing import Any
 
 import pytest
 from supervision_harness import BREATH_S, run_session
@@ -42,3 +45,29 @@ def test_no_status_at_all_pauses_at_the_limit_after_the_start(tmp_path: Path) ->
     offs = out.device.times_of("assistance_off", AssistanceOffReason.DEVICE_HEARTBEAT_LOST)
     assert offs and offs[0] < RuntimeSettings(device_timeout_s=0.35).device_timeout_s
     assert any("no device status since the session started" in e for e in out.events)
+
+
+def test_a_heartbeat_lost_again_during_its_own_pause_sends_off_again_without_a_new_cause(
+        tmp_path: Path) -> None:
+    # Lost at 5 breaths, back 1 s later; the pause holds (the operator's r comes at +30 s), and
+    # the device goes silent once more at +4 s: a second AssistanceOff, but one pause cause (the
+    # operator's line does not grow with every loss).
+    t0 = 5 * BREATH_S + 0.3
+
+    def flap_again(session: Any) -> None:
+        loop = asyncio.get_running_loop()
+        loop.call_at(t0 + 4.0, setattr, session.endpoint, "silent", True)
+        loop.call_at(t0 + 5.0, setattr, session.endpoint, "silent", False)
+        # On a real PC each loss is noticed after a slightly different silence (78 ms, 85 ms,
+        # ...); this loop's time is exact, so add a different millisecond to each reading.
+        silent_for, calls = session.device.silent_for, itertools.count(1)
+        session.device.silent_for = lambda *a: silent_for(*a) + 1e-3 * (next(calls) % 7)
+
+    out = run_session(tmp_path, at_time_s=t0, fault="heartbeat_loss", n_evaluations=4,
+                      resume_after_s=30.0, on_session=flap_again)
+    offs = out.device.times_of("assistance_off", AssistanceOffReason.DEVICE_HEARTBEAT_LOST)
+    assert len([t for t in offs if t0 < t < t0 + 2.0]) >= 1
+    assert len([t for t in offs if t0 + 4.0 < t < t0 + 6.0]) >= 1
+    pauses = [e for e in out.events if e.startswith("device heartbeat lost")]
+    assert len(pauses) == 1, out.events
+    assert out.summary["n_evaluations"] >= 1  # the session resumed and went on

@@ -117,6 +117,19 @@ def test_an_ended_session_says_so_and_why() -> None:
     assert row(text_of(st), "state").startswith("ended: the optimisation bout's budget")
 
 
+def test_bracketed_texts_reach_the_screen_as_they_are() -> None:
+    # A pause cause names config tables in brackets; Rich markup would eat them.
+    from bridge.outcome import SessionEnd
+
+    pause = "paused: a proposal outside the limits; check [limits] against [space]"
+    st = SessionStatus(supervisor=SimpleNamespace(describe=lambda: pause),  # type: ignore[arg-type]
+                       last_decision="[bold]reject[/bold]")
+    text = text_of(st)
+    assert row(text, "state") == pause and row(text, "decision") == "[bold]reject[/bold]"
+    st.ended = SessionEnd.RESUME_BUDGET
+    assert "[watchdog] max_auto_resumes" in row(text_of(st), "state")
+
+
 async def test_the_last_frame_is_drawn_when_the_view_ends() -> None:
     from bridge.outcome import SessionEnd
 

@@ -165,6 +165,15 @@ def test_a_log_cut_off_at_60_percent_still_reviews(sims: dict[int, Path], tmp_pa
         assert len(list(csv.DictReader(f))) == len(log.data("/breaths"))
     md = (result.out_dir / "report.md").read_text()
     assert "CUT OFF by a crash" in md and "| log_cut_off |" in md
+    # Before its confirmation, the recommendation is said as the optimizer chose it (where the
+    # cut leaves an optimizer to ask; the cut's place varies with the simulated session).
+    how = re.search(r"Chosen by (.*)\.$", md, flags=re.M)
+    assert how is not None
+    other = ("the lowest estimated mean", "the session: recommended, confirmed at")
+    assert how.group(1).startswith(other) or (
+        how.group(1).startswith("HILOptimizer.best() of ")
+        and "(lowest GP posterior mean + 1 SD over the whole feasible set, from all " in how.group(1)), how
+    assert "The best so far (the lowest raw estimate, " not in md or " breaths, ended by " in md
 
 
 def test_compare_puts_two_sessions_side_by_side(sims: dict[int, Path], tmp_path: Path,
