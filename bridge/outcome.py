@@ -41,6 +41,7 @@ class SessionEnd(enum.Enum):
     INTERRUPTED = "interrupted"  # Ctrl-C (SIGINT) or SIGTERM
     CART_ENDED = "cart_ended"  # the cart's stream ended (a replay's file, a closed link)
     RESUME_BUDGET = "resume_budget"  # [watchdog] max_auto_resumes used; stopped, not waiting
+    PERSON_REQUIRED = "person_required"  # a fault only a person may resume from, and no keyboard
     BUS_FAILED = "bus_failed"  # the CAN bus failed
     ERROR = "error"  # an error ended the session (its message is in the log's events)
 
@@ -56,6 +57,8 @@ _END_TEXT = {
     SessionEnd.BUDGET_BREATHS: "the optimisation bout's budget in breaths was spent",
     SessionEnd.CONDITIONS_DONE: "every validation condition was measured",
     SessionEnd.OPERATOR_STOP: "stopped by the operator",
+    SessionEnd.PERSON_REQUIRED: ("a fault only a person may resume from (an emergency stop), and no "
+                                 "operator keyboard in this run; hilbo run --resume continues"),
     SessionEnd.INTERRUPTED: "interrupted (Ctrl-C or SIGTERM)",
     SessionEnd.CART_ENDED: "the cart's data ended",
     SessionEnd.RESUME_BUDGET: "the automatic resumes ([watchdog] max_auto_resumes) were used up",

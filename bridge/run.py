@@ -16,7 +16,7 @@ import json
 import logging
 import os
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -26,7 +26,7 @@ from rich.console import Console
 
 from bridge.config import HilboConfig
 from bridge.live import LiveServer
-from bridge.log import DEFAULT_FILE_MODE, EventLevel, SessionLog, new_session_id
+from bridge.log import DEFAULT_FILE_MODE, EventLevel, LogError, SessionLog, new_session_id
 from bridge.log.reader import read_log
 from bridge.log.resume import ResumeError, rebuild_optimizer
 from bridge.operator_view import run_operator_view
@@ -156,6 +156,41 @@ def finished_session(path: Path) -> str | None:
     return None
 
 
+def _log_stem(path: str | Path) -> str:
+    """A log's file name without ``.mcap`` and without the ``.recovered`` of ``hilbo log recover``."""
+    name = Path(path).name.removesuffix(".mcap")
+    return name.removesuffix(".recovered")
+
+
+def continued_by(resume: Path, directories: Iterable[Path]) -> Path | None:
+    """A log in ``directories`` that already continues the session of ``resume`` from it (same
+    session id, its ``previous_log`` naming ``resume`` or the copy ``hilbo log recover`` made of
+    it), or None.
+
+    Resuming such a log again would fork one session into two branches; the newer log holds
+    everything and is the one to resume. Unreadable files are passed over.
+    """
+    info = read_log(resume, topics=["/config"])
+    sid, stem = info.session_id, _log_stem(resume)
+    if sid is None:
+        return None
+    seen: set[Path] = set()
+    for d in directories:
+        for p in sorted(Path(d).glob("*.mcap")):
+            rp = p.resolve()
+            if rp in seen or rp == resume.resolve() or _log_stem(p) == stem:
+                continue
+            seen.add(rp)
+            try:
+                other = read_log(p, topics=["/config"])
+            except LogError:
+                continue
+            prev = other.previous_log
+            if other.session_id == sid and prev is not None and _log_stem(prev) == stem:
+                return p
+    return None
+
+
 async def run_session(
     cfg: HilboConfig,
     *,
@@ -205,6 +240,11 @@ async def run_session(
             raise ResumeError(f"{resume} is a finished session ({done}); there is nothing to resume. "
                               "Start a new session, or measure its recommendation with "
                               f"hilbo validate CONFIG --from {resume}")
+        later = continued_by(resume, {resume.parent, Path(out_dir or cfg.session.out_dir)})
+        if later is not None:
+            raise ResumeError(f"{resume} was already continued by {later}; resuming it again would fork "
+                              f"the session. Resume the newest log of the session: hilbo run CONFIG "
+                              f"--resume {later}")
         opt, info = rebuild_optimizer(resume)
         session_id, previous = info.session_id, str(resume)
         # What the crashed session walked of its optimisation bout is known as the measured

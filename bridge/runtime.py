@@ -414,6 +414,8 @@ class BridgeSession:
         #: complete, before anything else is asked or pushed (hilbo validate: its conditions are
         #: the only settings the walk may apply).
         self.end_after: tuple[int, SessionEnd] | None = None
+        #: Names an evaluation by its index in the event lines (hilbo validate: its condition).
+        self.evaluation_name: Callable[[int], str] | None = None
 
     @property
     def proposal_worker(self) -> ProposalWorker:
@@ -807,7 +809,8 @@ class BridgeSession:
         self.status.best_params, self.status.best_mean_w, best_var = self.opt.best()
         self.status.best_sd_w = math.sqrt(best_var)
         self.status.expected_end_s = self._expected_end_s()
-        self.status.event(f"eval {ev.index + 1}: {ev.mean:.0f} W, {ev.breaths} breaths, {ev.reason}")
+        name = "" if self.evaluation_name is None else f" ({self.evaluation_name(ev.index)})"
+        self.status.event(f"eval {ev.index + 1}{name}: {ev.mean:.0f} W, {ev.breaths} breaths, {ev.reason}")
         return nxt
 
     # ------------------------------------------------------------------ hyperparameters ahead
@@ -1213,6 +1216,7 @@ class BridgeSession:
                         text = (f"only a person at the PC may resume after {causes}, and this run "
                                 "has no operator keyboard: stopping (hilbo run --resume continues)")
                         self._event("person_required", text)
+                        self._ended_by(SessionEnd.PERSON_REQUIRED)
                         await sup.stop(AssistanceOffReason.SESSION_END, text)
                         return
                     if not told_person:

@@ -336,12 +336,13 @@ class ValidationPlan:
         # The session ends the moment the last condition's evaluation completes: nothing is
         # asked or pushed after it (an optimisation proposal must never reach the wearer here).
         session.end_after = (len(self.conditions), SessionEnd.CONDITIONS_DONE)
+        session.evaluation_name = lambda k: self.conditions[k].name if 0 <= k < len(self.conditions) else "?"
 
     def label_summary(self, summary: dict[str, Any]) -> None:
         """A walk's ``summary.json``: each evaluation names the condition it measured (and, for
         unassisted and zero-force walking, carries no setting: the optimizer records OPT's for
         them, :class:`Condition`), and there is no recommendation (a GP over fixed conditions
-        recommends nothing; OPT is the source session's)."""
+        recommends nothing; OPT is the recommendation of ``validated_log``)."""
         for r in summary.get("evaluations") or ():
             k = int(r["index"])
             if 0 <= k < len(self.conditions):
@@ -350,7 +351,7 @@ class ValidationPlan:
                 if c.kind in _WITHOUT_SETTING:
                     r["params"], r["setting"] = None, _WITHOUT_SETTING[c.kind]
         summary.update(best_params=None, best_mean=None, best_var=None, recommendation=None,
-                       confirmation=None)
+                       confirmation=None, validated_log=self.source_log)
 
     def results(self, session: BridgeSession) -> list[dict[str, Any]]:
         """The per-condition results; logged as the ``validation_result`` event."""

@@ -306,6 +306,49 @@ def evaluations_from_log(path: str | os.PathLike[str]) -> list[dict[str, Any]]:
     return [msgspec.to_builtins(r) for r in records]
 
 
+def collect_trajectories(paths: Sequence[str | os.PathLike[str]]
+                         ) -> tuple[list[np.ndarray], list[Evaluation], list[str], list[str]]:
+    """Every completed evaluation of the given logs, each once.
+
+    A session's evaluation is counted once however many files hold it: a resumed session's logs
+    share its id, and ``hilbo log recover`` writes a copy beside the cut log (a shell glob
+    catches both). A validation walk (``hilbo validate``) is left out: its conditions are no
+    optimisation's candidates, and its unassisted one applies no setting.
+
+    Returns:
+        (trajectories, their ``/observations`` records, their sources ``file:evaluation k``,
+        notes on what was left out).
+    """
+    from bridge.log import Topic
+    from bridge.log.reader import read_log
+
+    trajs: list[np.ndarray] = []
+    evs: list[Evaluation] = []
+    sources: list[str] = []
+    notes: list[str] = []
+    seen: set[tuple[str, int]] = set()
+    for path in paths:
+        head = read_log(path, topics=[Topic.EVENTS])
+        if any(e.kind == "validation_plan" for e in head.records(Topic.EVENTS)):
+            notes.append(f"{Path(path).name}: a validation walk, left out")
+            continue
+        sid = head.session_id or str(path)
+        t, e = trajectories_from_log(path)
+        dup = 0
+        for traj, ev in zip(t, e, strict=True):
+            if (sid, ev.index) in seen:
+                dup += 1
+                continue
+            seen.add((sid, ev.index))
+            trajs.append(traj)
+            evs.append(ev)
+            sources.append(f"{Path(path).name}:evaluation {ev.index}")
+        if dup:
+            notes.append(f"{Path(path).name}: {dup} evaluation(s) of session {sid} already read from "
+                         "another file (a recovered copy or a second listing), counted once")
+    return trajs, evs, sources, notes
+
+
 def trajectories_from_log(path: str | os.PathLike[str]) -> tuple[list[np.ndarray], list[Evaluation]]:
     """Breath trajectories ``(t_setting_s, watts)`` of every completed evaluation of a log.
 
@@ -344,14 +387,9 @@ def _cmd_tune_stopping(args: argparse.Namespace) -> int:
     from rich.console import Console
 
     console = Console(stderr=True, markup=False, highlight=False, soft_wrap=True)
-    trajs: list[np.ndarray] = []
-    sources: list[str] = []
-    evs: list[Evaluation] = []
-    for path in args.logs:
-        t, e = trajectories_from_log(path)
-        trajs += t
-        evs += e
-        sources += [f"{Path(path).name}:evaluation {ev.index}" for ev in e]
+    trajs, evs, sources, notes = collect_trajectories(args.logs)
+    for note in notes:
+        console.print(f"hilbo tune-stopping: note: {note}")
     n_max = args.n_max if args.n_max is not None else (_n_max_from(evs) or 45)
     if args.family == SOUND_FAMILY:
         return _tune_sound_cmd(args, console, trajs, n_max)
@@ -371,6 +409,11 @@ def _cmd_tune_stopping(args: argparse.Namespace) -> int:
                      (f"Algorithm 2 (W = {alg2['window']})", alg2)):
         console.print(f"{label}: cost {r['cost']:.3f} (breaths {100 * r['breath_fraction']:.0f} %, "
                       f"wrong stops {100 * r['wrong_stop_rate']:.1f} % of pairs)")
+    if rec["cost"] > alg2["cost"]:
+        console.print(f"hilbo tune-stopping: warning: the recommendation's cost on these data "
+                      f"({rec['cost']:.3f}) is above Algorithm 2's ({alg2['cost']:.3f}): BO-RESAMPLE's "
+                      f"episodes did not find better constants in {result['n_trajectories']} "
+                      "trajectories; keep the current rule or give more sessions")
     _write_result(args, result)
     return 0
 

@@ -72,6 +72,9 @@ def _mark_resumes(ax: Any, session: Session, minutes: bool = True) -> None:
                     xytext=(3, -12), textcoords="offset points", color="tab:red", fontsize=8)
 
 
+_OPTIMISATION_PLOTS = frozenset({"best_so_far", "parameters", "thresholds"})
+
+
 def session_plots(session: Session, out: Path) -> tuple[dict[str, Path], dict[str, str]]:
     """Draw every plot of a session review into ``out``.
 
@@ -91,7 +94,13 @@ def session_plots(session: Session, out: Path) -> tuple[dict[str, Path], dict[st
     }
     for name, make in makers.items():
         path = out / PLOT_FILES[name]
-        why = make(session, path)
+        if session.validation_plan is not None and name in _OPTIMISATION_PLOTS:
+            # A validation walk's conditions are not an optimisation's settings (its unassisted
+            # one applies no setting at all): best-so-far, parameters and thresholds mean nothing.
+            why: str | None = ("a validation walk measures fixed conditions, not an optimisation "
+                               "(their results are in the Validation walk section)")
+        else:
+            why = make(session, path)
         if why is None:
             drawn[name] = path
         else:

@@ -103,6 +103,8 @@ def test_a_person_fault_with_nobody_at_the_keyboard_stops_the_session(tmp_path: 
     assert _clears_of(out, DeviceFault.EMERGENCY_STOP) == []
     end = [e["message"] for e in read_log(out.log).data("/events") if e["kind"] == "person_required"]
     assert end and "only a person at the PC may resume" in end[0]
+    # Nobody stopped it: the summary says why it ended.
+    assert out.summary["end_reason"] == "person_required"
 
 
 @pytest.mark.parametrize("name", ["overtemperature", "heartbeat_lost", "bus_error"])

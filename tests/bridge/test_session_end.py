@@ -156,3 +156,18 @@ def test_without_a_terminal_the_session_prints_a_line_per_evaluation(
     n_evals = result.summary["n_evaluations"]
     assert n_evals >= 2
     assert len(re.findall(r"^\[ *\d+\.\d min \| [^\]]+\] eval \d+", err, flags=re.M)) == n_evals, err
+
+
+def test_a_log_already_continued_is_not_resumed_again(tmp_path: Path) -> None:
+    # A stops early (its cart ends); B continues it. Resuming A again would fork the session.
+    first, _ = run_replay(tmp_path, 60, name="a")
+    assert first.summary["end_reason"] == "cart_ended"
+    run_replay(tmp_path, 40, resume=first.log_path, name="b")
+    with pytest.raises(ResumeError, match=r"a\.mcap was already continued by .*b\.mcap.*--resume .*b\.mcap"):
+        run_replay(tmp_path, 40, resume=first.log_path, name="c")
+    assert not (tmp_path / "c.mcap").exists()
+    # The copy `hilbo log recover` makes of A is the same point of the same session.
+    copy = tmp_path / "a.recovered.mcap"
+    copy.write_bytes(first.log_path.read_bytes())
+    with pytest.raises(ResumeError, match="already continued by"):
+        run_replay(tmp_path, 40, resume=copy, name="d")

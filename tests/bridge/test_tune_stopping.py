@@ -98,13 +98,16 @@ def test_tune_stopping_needs_enough_trajectories() -> None:
         TuneStoppingConfig(error_weight=-1.0)
 
 
-def _write_log(path: Path) -> None:
-    """A tiny session (N = 4) written the way the bridge writes it."""
+def _write_log(path: Path, session_id: str = "t", validation: bool = False) -> None:
+    """A tiny session (N = 4) written the way the bridge writes it (``validation``: with a
+    validation walk's plan event)."""
     opt = HILOptimizer(presets.hip_6d(), n_explore=3, max_breaths=4, window=1, budget_breaths=8,
                        seed=1, n_candidates=32, n_local=0,
                        estimator_factory=lambda: GaussianProductEstimator(400.0, 1e4, 1600.0))
     rng = np.random.default_rng(3)
-    with SessionLog(path, session_id="t", config_json={}, flush_interval_s=None) as log:
+    with SessionLog(path, session_id=session_id, config_json={}, flush_interval_s=None) as log:
+        if validation:
+            log.log_event("validation_plan", "validation walk", conditions=[], source_log=None)
         k = 0
         while not opt.done:
             opt.ask()
@@ -137,6 +140,22 @@ def test_trajectories_from_log_and_cli(tmp_path: Path) -> None:
     res = json.loads(out.read_text())
     assert res["config"]["n_max"] == 4  # taken from the log's full-length evaluations
     assert res["n_trajectories"] >= 3
+
+
+def test_each_evaluation_is_counted_once_and_validation_walks_are_left_out(tmp_path: Path) -> None:
+    from bridge.bench.tune_stopping import collect_trajectories
+
+    a, copy, other, walk = (tmp_path / f"{n}.mcap" for n in ("a", "a.recovered", "b", "walk"))
+    _write_log(a)
+    copy.write_bytes(a.read_bytes())  # what `hilbo log recover` leaves beside a cut log
+    _write_log(other, session_id="other")
+    _write_log(walk, session_id="walk", validation=True)
+    one, _ = trajectories_from_log(a)
+    trajs, evs, sources, notes = collect_trajectories([a, copy, other, walk])
+    assert len(trajs) == len(evs) == len(sources) == 2 * len(one)
+    assert not any(src.startswith(("a.recovered.mcap", "walk.mcap")) for src in sources)
+    assert any("a.recovered.mcap" in n and "counted once" in n for n in notes)
+    assert any(n == "walk.mcap: a validation walk, left out" for n in notes)
 
 
 def test_cli_tunes_the_sound_rules_floors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

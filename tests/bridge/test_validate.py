@@ -174,10 +174,13 @@ def test_validate_on_the_virtual_devices_matches_the_wearers_truth(tmp_path: Pat
     assert [p.index for p in log.records("/proposals")] == list(range(len(plan.conditions)))
     assert "confirmation" not in kinds
     assert summary["recommendation"] is None and summary["best_params"] is None
+    assert summary["validated_log"] == str(source)
     for ev, c in zip(summary["evaluations"], plan.conditions, strict=True):
         assert ev["condition"] == c.name
         assert (ev["params"] is None) == (c.name in ("unassisted", "zero-force"))
     assert "A validation walk recommends nothing" in md and s.recommended is None
+    assert {"best_so_far", "parameters", "thresholds"} <= set(review.skipped)
+    assert "a validation walk measures fixed conditions" in md
     evaluations_md = md.split("## Evaluations")[1].splitlines()
     (ev_row,) = [line for line in evaluations_md if "| validation: unassisted |" in line]
     assert "| – |" in ev_row
