@@ -76,20 +76,23 @@ def review_session(paths: Sequence[str | os.PathLike[str]],
     return ReviewResult(out, tuple(written), session, skipped)
 
 
-def compare_sessions(log_a: str | os.PathLike[str], log_b: str | os.PathLike[str],
+def compare_sessions(log_a: str | os.PathLike[str] | Sequence[str | os.PathLike[str]],
+                     log_b: str | os.PathLike[str] | Sequence[str | os.PathLike[str]],
                      out_dir: str | os.PathLike[str] | None = None) -> CompareResult:
     """Two sessions side by side: ``compare.png``, ``compare.md`` and ``compare.html``.
 
     Args:
-        log_a: The first session's log.
-        log_b: The second session's log.
-        out_dir: Output directory (default :func:`default_compare_dir`).
+        log_a: The first session's log, or its logs in order (a resumed session).
+        log_b: The second session's log(s).
+        out_dir: Output directory (default :func:`default_compare_dir`, next to A's last log).
 
     Raises:
         ReviewError: Bad input or an unwritable output directory.
     """
-    a, b = load_session([log_a]), load_session([log_b])
-    out = _out_dir(out_dir if out_dir is not None else default_compare_dir(log_a, log_b))
+    logs_a = [log_a] if isinstance(log_a, str | os.PathLike) else list(log_a)
+    logs_b = [log_b] if isinstance(log_b, str | os.PathLike) else list(log_b)
+    a, b = load_session(logs_a), load_session(logs_b)
+    out = _out_dir(out_dir if out_dir is not None else default_compare_dir(logs_a[-1], logs_b[-1]))
     png = review_plots.compare_plot((a, b), out / "compare.png")
     written = [png, *review_report.write_compare_report((a, b), out, png)]
     return CompareResult(out, tuple(written), (a, b))
@@ -109,7 +112,8 @@ def add_review_parser(subparsers: Any) -> argparse.ArgumentParser:
                     "up to its last intact record. With --compare, two sessions side by side. Prints the "
                     "path of every file written.")
     p.add_argument("logs", nargs="+", metavar="LOG.mcap",
-                   help="the session log(s); with --compare exactly two, one per session")
+                   help="the session log(s); with --compare exactly two sessions, a resumed session's "
+                        "logs joined by a comma (A0.mcap,A.mcap)")
     p.add_argument("--compare", action="store_true",
                    help="compare two sessions: compare.png, compare.md, compare.html")
     p.add_argument("--out", metavar="DIR", default=None,
@@ -122,8 +126,17 @@ def add_review_parser(subparsers: Any) -> argparse.ArgumentParser:
 def _cmd_review(args: argparse.Namespace) -> int:
     if args.compare:
         if len(args.logs) != 2:
-            raise UsageError(f"--compare takes exactly two logs (A.mcap B.mcap), got {len(args.logs)}")
-        files = compare_sessions(args.logs[0], args.logs[1], args.out).files
+            raise UsageError(f"--compare takes exactly two sessions (A.mcap B.mcap; a resumed session's "
+                             f"logs joined by a comma, A0.mcap,A.mcap), got {len(args.logs)}")
+        sides = [[x for x in arg.split(",") if x] for arg in args.logs]
+        compared = compare_sessions(sides[0], sides[1], args.out)
+        for tag, s, logs in zip("AB", compared.sessions, sides, strict=True):
+            prev = s.files[0].previous_log if s.files else None
+            if prev is not None:
+                sys.stderr.write(f"hilbo review: warning: {tag} ({logs[0]}) resumed {prev}, which is not "
+                                 f"in the comparison: give the session's logs joined by a comma "
+                                 f"({prev},{logs[0]}) to compare all of it\n")
+        files = compared.files
     else:
         result = review_session(args.logs, args.out)
         files = result.files

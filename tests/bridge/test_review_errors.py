@@ -85,7 +85,7 @@ def test_compare_needs_exactly_two_logs(tmp_path: Path, capsys: pytest.CaptureFi
     log = empty_session_log(tmp_path / "one.mcap")
     code, _, err = run_review(["--compare", str(log)], capsys)
     assert code == 2
-    assert_one_line_error(err, "--compare takes exactly two logs", "got 1")
+    assert_one_line_error(err, "--compare takes exactly two sessions", "got 1")
 
 
 def test_logs_of_different_sessions_are_refused(tmp_path: Path) -> None:

@@ -190,3 +190,21 @@ def test_without_snapshots_the_schedule_is_computed_from_the_exploration_estimat
     # No optimizer state to ask: the recommendation falls back to the lowest estimate.
     assert s.recommended is not None and "lowest estimated mean" in s.recommended.method
     assert s.recommended.mean_w == min(e["mean"] for e in evs)
+
+
+def test_compare_takes_a_resumed_sessions_logs_joined_by_a_comma(
+        full, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from bridge.cli.main import main
+
+    path, sizes, evs = full
+    crashed, resumed, final = crash_and_resume(path, size_at(sizes, "snapshot", N_EXPLORE), tmp_path)
+    out = tmp_path / "cmp"
+    assert main(["review", "--compare", f"{crashed},{resumed}", str(path), "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "warning" not in err
+    md = (out / "compare.md").read_text()
+    assert f"| evaluations | {len(final.evaluations)} | {len(evs)} |" in md
+    # The resumed log alone is a part of its session: said, not silently compared.
+    assert main(["review", "--compare", str(resumed), str(path), "--out", str(tmp_path / "cmp2")]) == 0
+    err = capsys.readouterr().err
+    assert f"hilbo review: warning: A ({resumed}) resumed {crashed}" in err and f"{crashed},{resumed}" in err
