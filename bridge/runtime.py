@@ -548,6 +548,9 @@ class BridgeSession:
         """The summary.json fields of shared/DESIGN.md (without simulation truth)."""
         out: dict[str, Any] = {
             "n_evaluations": len(self.records),
+            # A resumed session's: with the evaluations of the logs it continues (the
+            # recommendation is made from all of them).
+            "n_evaluations_session": len(self.opt.evaluations),
             "n_early_stops": sum(r["stopped_early"] for r in self.records),
             "n_breaths": self._breaths.count,
             "evaluations": self.records,

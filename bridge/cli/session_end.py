@@ -31,6 +31,9 @@ def ended_text(s: dict[str, Any]) -> str:
     reason = s.get("end_reason")
     why = SessionEnd(reason).text if reason in {e.value for e in SessionEnd} else str(reason)
     text = f"session ended: {why}; {s['n_evaluations']} evaluations ({s['n_early_stops']} early stops)"
+    n_all = s.get("n_evaluations_session", s["n_evaluations"])
+    if n_all > s["n_evaluations"]:  # a resumed session: the earlier logs' evaluations too
+        text += f" in this run, {n_all} in the session"
     walking = s.get("walking") or {}
     if "session_s" in walking:
         text += f"; {walking['session_s'] / 60:.1f} min walked"
@@ -43,7 +46,7 @@ def ended_text(s: dict[str, Any]) -> str:
     if conf.get("mean_w") is not None and conf.get("sd_w") is not None:
         # The recommendation measured in full in the session's last minutes: its own breaths.
         text += f"\nrecommended, confirmed at {conf['mean_w']:.1f} ± {conf['sd_w']:.1f} W (SD)"
-    elif not s["n_evaluations"]:
+    elif not n_all:
         text += f"\nno evaluation completed: nothing to recommend (exit status {EXIT_NOTHING_MEASURED})"
     return text
 
@@ -52,4 +55,4 @@ def run_exit_status(summary: dict[str, Any]) -> int:
     """0, or 130 for a signal's stop, or 3 for a session that measured nothing."""
     if summary.get("end_reason") == "interrupted":
         return EXIT_INTERRUPTED
-    return 0 if summary["n_evaluations"] else EXIT_NOTHING_MEASURED
+    return 0 if summary.get("n_evaluations_session", summary["n_evaluations"]) else EXIT_NOTHING_MEASURED

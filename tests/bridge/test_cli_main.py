@@ -64,6 +64,16 @@ def test_the_last_lines_of_hilbo_run_give_the_confirmed_recommendation() -> None
     assert "confirmed" not in session_end.ended_text(summary)
 
 
+def test_a_resumed_run_counts_this_runs_evaluations_and_the_sessions() -> None:
+    summary = {"n_evaluations": 0, "n_evaluations_session": 12, "n_early_stops": 0,
+               "end_reason": "operator_stop", "recommendation": None}
+    assert "0 evaluations (0 early stops) in this run, 12 in the session" in session_end.ended_text(summary)
+    assert "nothing to recommend" not in session_end.ended_text(summary)
+    assert session_end.run_exit_status(summary) == 0  # the session has evaluations to recommend from
+    summary["n_evaluations_session"] = 0
+    assert session_end.run_exit_status(summary) == session_end.EXIT_NOTHING_MEASURED
+
+
 def test_hilbo_sim_ends_with_the_last_lines_of_hilbo_run(capsys: pytest.CaptureFixture[str]) -> None:
     from rich.console import Console
 

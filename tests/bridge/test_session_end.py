@@ -162,7 +162,10 @@ def test_a_log_already_continued_is_not_resumed_again(tmp_path: Path) -> None:
     # A stops early (its cart ends); B continues it. Resuming A again would fork the session.
     first, _ = run_replay(tmp_path, 60, name="a")
     assert first.summary["end_reason"] == "cart_ended"
-    run_replay(tmp_path, 40, resume=first.log_path, name="b")
+    second, _ = run_replay(tmp_path, 40, resume=first.log_path, name="b")
+    # The resumed run's summary counts its own evaluations and the session's.
+    s1, s2 = first.summary, second.summary
+    assert s2["n_evaluations_session"] == s1["n_evaluations"] + s2["n_evaluations"] > s2["n_evaluations"]
     with pytest.raises(ResumeError, match=r"a\.mcap was already continued by .*b\.mcap.*--resume .*b\.mcap"):
         run_replay(tmp_path, 40, resume=first.log_path, name="c")
     assert not (tmp_path / "c.mcap").exists()
