@@ -110,7 +110,7 @@ def add_virtual_exosuit_parser(subparsers: Any) -> argparse.ArgumentParser:
     parser = subparsers.add_parser(
         "virtual-exosuit",
         help="run a virtual exosuit node on a CAN bus",
-        description=__doc__.split("\n\n")[0] if __doc__ else None,
+        description=__doc__.split("\n\n")[0].replace("``", "") if __doc__ else None,
         epilog=EXOSUIT_FAULTS.describe(),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -227,7 +227,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """``python -m virtual_hw.cli_exosuit``: the same options as ``hilbo virtual-exosuit``."""
     parser = argparse.ArgumentParser(
         prog="python -m virtual_hw.cli_exosuit",
-        description=__doc__.split("\n\n")[0] if __doc__ else None,
+        description=__doc__.split("\n\n")[0].replace("``", "") if __doc__ else None,
         epilog=EXOSUIT_FAULTS.describe(),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

@@ -336,7 +336,8 @@ EXOSUIT_FAULTS = FaultCatalog("virtual exosuit", (
     *(FaultKind(name, FaultShape.EVENTS, f"nack commits with reason {reason.name.lower()}")
       for name, reason in NACK_FAULTS.items()),
     *(FaultKind(name, FaultShape.WINDOW,
-                f"{FAULT_INFO[bit].meaning} for the window: Fault{FAULT_INFO[bit].name} latches "
+                f"{FAULT_INFO[bit].meaning} for the window: "
+                f"Fault{''.join(w.capitalize() for w in FAULT_INFO[bit].name.split('_'))} latches "
                 "(Mode=fault, assistance off); a ClearFaults clears it only after the window")
       for name, bit in HARDWARE_FAULTS.items()),
     FaultKind("wrong-dlc", FaultShape.EVENTS,

@@ -150,8 +150,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
         console.print("hilbo run: note: no keyboard (--no-view, or stdin or stderr not a terminal): "
                       "any pause (the one between the bouts too) lasts until SIGTERM/Ctrl-C; give "
                       "--auto-resume S or set [watchdog] auto_resume_s")
+    # Said at the start: after a crash (kill -9) the log to resume is named on the screen.
     result = asyncio.run(run_session(cfg, resume=resume, out_dir=Path(args.out) if args.out else None,
-                                     operator_view=not args.no_view, auto_resume_s=args.auto_resume))
+                                     operator_view=not args.no_view, auto_resume_s=args.auto_resume,
+                                     on_session=lambda s: console.print(f"hilbo run: log {s.log.path}")))
     console.print(ended_text(result.summary), markup=False, highlight=False, soft_wrap=True)
     print(result.log_path)
     print(result.summary_path)

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["EXIT_INTERRUPTED", "EXIT_NOTHING_MEASURED", "RUN_EXIT_STATUS", "ended_text",
-           "run_exit_status"]
+__all__ = ["EXIT_INTERRUPTED", "EXIT_NOTHING_MEASURED", "RUN_EXIT_STATUS", "VALIDATE_EXIT_STATUS",
+           "ended_text", "run_exit_status"]
 
 
 #: ``hilbo run``'s exit status for a session that ended without a completed evaluation.
@@ -20,6 +20,10 @@ exit status: 0 the session ended with at least one completed evaluation; 1 an er
 naming it); 2 a wrong command line; 3 the session ended without a completed evaluation (nothing
 to recommend); 130 stopped by Ctrl-C or SIGTERM. A session that has started writes its log and
 its summary whatever its exit status."""
+
+VALIDATE_EXIT_STATUS = RUN_EXIT_STATUS.replace(
+    "3 the session ended without a completed evaluation (nothing\nto recommend)",
+    "3 the walk ended before any condition\nwas measured")
 
 
 def ended_text(s: dict[str, Any]) -> str:

@@ -63,7 +63,7 @@ def _cmd_validate(args: argparse.Namespace) -> int:
 def add_validate_parser(subparsers: Any) -> argparse.ArgumentParser:
     """Register ``hilbo validate`` on the top-level ``add_subparsers()`` object."""
     from bridge.cli.argtypes import seconds
-    from bridge.cli.session_end import RUN_EXIT_STATUS
+    from bridge.cli.session_end import VALIDATE_EXIT_STATUS
 
     p = subparsers.add_parser(
         "validate", help="the validation walk: the recommended setting vs a generic one vs unassisted",
@@ -76,7 +76,7 @@ def add_validate_parser(subparsers: Any) -> argparse.ArgumentParser:
                     "safety limits, pauses, keys and resume policy). Prints each condition's "
                     "estimate with its 95 % interval and its reduction against unassisted walking; "
                     "the log and the summary hold them, and hilbo review reports them.",
-        epilog=RUN_EXIT_STATUS)
+        epilog=VALIDATE_EXIT_STATUS)
     p.add_argument("config", help="the session config (with a [validation] table)")
     p.add_argument("--from", dest="source", metavar="LOG.mcap", default=None,
                    help="the optimisation session whose recommendation is validated")

@@ -103,3 +103,8 @@ def test_hilbo_run_help_documents_its_exit_statuses(capsys: pytest.CaptureFixtur
     text = " ".join(capsys.readouterr().out.split())
     assert "3 the session ended without a completed evaluation" in text
     assert "130 stopped by Ctrl-C or SIGTERM" in text
+
+
+def test_hilbo_validate_help_says_what_its_exit_3_means() -> None:
+    text = " ".join(session_end.VALIDATE_EXIT_STATUS.split())
+    assert "3 the walk ended before any condition was measured" in text and "recommend" not in text

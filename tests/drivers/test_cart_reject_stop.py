@@ -144,3 +144,5 @@ def test_hilbo_run_stops_with_the_cart_message_no_traceback(
     assert rc == 1
     assert expected in err
     assert "Traceback" not in err and "ExceptionGroup" not in err
+    # The log was named as the session began (what a crash would leave to resume).
+    assert re.search(r"^hilbo run: log \S+\.mcap$", err, flags=re.M), err
