@@ -58,6 +58,7 @@ from msgspec import Meta
 
 from bridge.collector import GcMode
 from bridge.errors import BridgeConfigError
+from bridge.outcome import format_params
 from bridge.proposals import WorkerKind
 from bridge.safety import (
     ACTUATOR_LIMIT_RANGES,
@@ -1366,6 +1367,7 @@ def summarize(cfg: HilboConfig) -> str:
     lines.append(f"watchdog  device heartbeat {wd.device_heartbeat_timeout_ms:g} ms, cart data "
                  f"{wd.cart_data_timeout_s:g} s, bus error -> assistance-off and the session ends")
     lines.append(f"prior     {cfg.prior.describe()}")
+    lines.append(f"validate  {_describe_validation(cfg)}")
     if cfg.live.enabled:
         lines.append(f"live      Foxglove WebSocket on ws://{cfg.live.host}:{cfg.live.port}")
     if cfg.prior.priors:
@@ -1373,6 +1375,22 @@ def summarize(cfg: HilboConfig) -> str:
             f"{k} x {cfg.prior.inflation[k].factor:g} + {cfg.prior.inflation[k].extra_var_w2:g} W²"
             for k in cfg.prior.sources_used))
     return "\n".join(lines)
+
+
+def _describe_validation(cfg: HilboConfig) -> str:
+    """What ``hilbo validate`` with this config measures (``[validation]``)."""
+    v = cfg.validation
+    names = ["OPT (the session's recommendation)"]
+    if v.generic is not None:
+        names.append(f"FIX ({format_params(v.generic, cfg.space.space.units)})")
+    names.append("unassisted")
+    if v.zero_force:
+        names.append("zero-force")
+    text = (f"hilbo validate: {', '.join(names)}; {v.condition_min:g} min ({v.condition_breaths} "
+            f"breaths) each, in an order seeded by {v.seed}")
+    if v.generic is None:
+        text += " (no [validation] generic: OPT against unassisted walking only)"
+    return text
 
 
 def _cmd_example(args: argparse.Namespace, out: TextIO | None = None) -> int:

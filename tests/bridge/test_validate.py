@@ -202,6 +202,21 @@ def test_validate_needs_one_source(tmp_path: Path, capsys: pytest.CaptureFixture
     assert "is not a validation walk's log" in capsys.readouterr().err
 
 
+def test_config_check_says_what_the_validation_walk_will_measure() -> None:
+    from bridge.config import summarize
+
+    text = sim_config_text(VirtualSimConfig(minutes=30.0), Path("/tmp")) + "\n[validation]\n"
+    (line,) = [ln for ln in summarize(parse_config(text)).splitlines() if ln.startswith("validate  ")]
+    assert "OPT (the session's recommendation), unassisted; 5 min (100 breaths) each" in line
+    assert "no [validation] generic" in line
+    given = text + ("generic = { t_on = 10.0, t_p = 27.0, t_off = 45.0, F_p = 120.0, F_r = 0.5, F_f = 0.5 }\n"
+                    "zero_force = true\ncondition_min = 2.0\nseed = 7\n")
+    (line,) = [ln for ln in summarize(parse_config(given)).splitlines() if ln.startswith("validate  ")]
+    assert "FIX (t_on = " in line and "F_p = 120" in line
+    assert ", unassisted, zero-force; 2 min (40 breaths)" in line
+    assert "seeded by 7" in line and "no [validation] generic" not in line
+
+
 def test_the_zero_force_key_of_the_config() -> None:
     from bridge.errors import BridgeConfigError
 
