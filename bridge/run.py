@@ -90,7 +90,10 @@ def _headless_line(session: BridgeSession) -> Callable[[str], None]:
 
     def line(text: str) -> None:
         st = session.status
-        console.print(f"[{st.breath_time_s / 60:6.1f} min | {st.state}] {text}", markup=False)
+        # The state without its causes ("paused", not the whole pause reason on every line):
+        # the pause's own line says why.
+        state = st.state.split(":", 1)[0]
+        console.print(f"[{st.breath_time_s / 60:6.1f} min | {state}] {text}", markup=False)
     return line
 
 

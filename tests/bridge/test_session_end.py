@@ -156,6 +156,9 @@ def test_without_a_terminal_the_session_prints_a_line_per_evaluation(
     n_evals = result.summary["n_evaluations"]
     assert n_evals >= 2
     assert len(re.findall(r"^\[ *\d+\.\d min \| [^\]]+\] eval \d+", err, flags=re.M)) == n_evals, err
+    # Each line's prefix has the state's name only (a pause's whole reason is its own line).
+    prefixes = re.findall(r"^\[ *\d+\.\d min \| ([^\]]+)\]", err, flags=re.M)
+    assert prefixes and all(":" not in p for p in prefixes), set(prefixes)
 
 
 def test_a_log_already_continued_is_not_resumed_again(tmp_path: Path) -> None:
