@@ -93,7 +93,7 @@ def _headless_line(session: BridgeSession) -> Callable[[str], None]:
         # The state without its causes ("paused", not the whole pause reason on every line):
         # the pause's own line says why.
         state = st.state.split(":", 1)[0]
-        console.print(f"[{st.breath_time_s / 60:6.1f} min | {state}] {text}", markup=False)
+        console.print(f"[{st.breath_time_s / 60:6.1f} min | {state}] {text}")
     return line
 
 
@@ -181,7 +181,7 @@ def continued_by(resume: Path, directories: Iterable[Path]) -> Path | None:
     for d in directories:
         for p in sorted(Path(d).glob("*.mcap")):
             rp = p.resolve()
-            if rp in seen or rp == resume.resolve() or _log_stem(p) == stem:
+            if rp in seen or _log_stem(p) == stem:  # resume itself, or its recovered copy
                 continue
             seen.add(rp)
             try:

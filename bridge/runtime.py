@@ -1280,8 +1280,8 @@ class BridgeSession:
                 self._ended_by(SessionEnd.OPERATOR_STOP)
                 # The stop's cause as the log and the view say it: the operator's q, a signal,
                 # or another cause given to finish(); the frame's reason is the operator's.
-                why = "operator stop" if self.end_reason is SessionEnd.OPERATOR_STOP else (
-                    self.end_reason.text if self.end_reason is not None else "operator stop")
+                why = ("operator stop" if self.end_reason in (None, SessionEnd.OPERATOR_STOP)
+                       else self.end_reason.text)
                 await self.supervisor.stop(AssistanceOffReason.OPERATOR_STOP, why)
                 raise _Stopped
 

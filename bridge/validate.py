@@ -336,7 +336,11 @@ class ValidationPlan:
         # The session ends the moment the last condition's evaluation completes: nothing is
         # asked or pushed after it (an optimisation proposal must never reach the wearer here).
         session.end_after = (len(self.conditions), SessionEnd.CONDITIONS_DONE)
-        session.evaluation_name = lambda k: self.conditions[k].name if 0 <= k < len(self.conditions) else "?"
+        session.evaluation_name = lambda k: getattr(self._condition(k), "name", "?")
+
+    def _condition(self, index: int) -> Condition | None:
+        """The condition evaluation ``index`` measures (None past the plan)."""
+        return self.conditions[index] if 0 <= index < len(self.conditions) else None
 
     def label_summary(self, summary: dict[str, Any]) -> None:
         """A walk's ``summary.json``: each evaluation names the condition it measured (and, for
@@ -344,9 +348,8 @@ class ValidationPlan:
         them, :class:`Condition`), and there is no recommendation (a GP over fixed conditions
         recommends nothing; OPT is the recommendation of ``validated_log``)."""
         for r in summary.get("evaluations") or ():
-            k = int(r["index"])
-            if 0 <= k < len(self.conditions):
-                c = self.conditions[k]
+            c = self._condition(int(r["index"]))
+            if c is not None:
                 r["condition"] = c.name
                 if c.kind in _WITHOUT_SETTING:
                     r["params"], r["setting"] = None, _WITHOUT_SETTING[c.kind]

@@ -154,7 +154,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     result = asyncio.run(run_session(cfg, resume=resume, out_dir=Path(args.out) if args.out else None,
                                      operator_view=not args.no_view, auto_resume_s=args.auto_resume,
                                      on_session=lambda s: console.print(f"hilbo run: log {s.log.path}")))
-    console.print(ended_text(result.summary), markup=False, highlight=False, soft_wrap=True)
+    console.print(ended_text(result.summary))
     print(result.log_path)
     print(result.summary_path)
     return run_exit_status(result.summary)

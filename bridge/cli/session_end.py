@@ -15,15 +15,14 @@ EXIT_NOTHING_MEASURED = 3
 #: Ctrl-C) for both.
 EXIT_INTERRUPTED = 130
 
-RUN_EXIT_STATUS = """\
+_EXIT_STATUS = """\
 exit status: 0 the session ended with at least one completed evaluation; 1 an error (one line
-naming it); 2 a wrong command line; 3 the session ended without a completed evaluation (nothing
-to recommend); 130 stopped by Ctrl-C or SIGTERM. A session that has started writes its log and
-its summary whatever its exit status."""
+naming it); 2 a wrong command line; 3 {three}; 130 stopped by Ctrl-C or SIGTERM. A session that
+has started writes its log and its summary whatever its exit status."""
 
-VALIDATE_EXIT_STATUS = RUN_EXIT_STATUS.replace(
-    "3 the session ended without a completed evaluation (nothing\nto recommend)",
-    "3 the walk ended before any condition\nwas measured")
+RUN_EXIT_STATUS = _EXIT_STATUS.format(
+    three="the session ended without a completed evaluation (nothing to recommend)")
+VALIDATE_EXIT_STATUS = _EXIT_STATUS.format(three="the walk ended before any condition was measured")
 
 
 def ended_text(s: dict[str, Any]) -> str:

@@ -51,10 +51,9 @@ def _cmd_validate(args: argparse.Namespace) -> int:
                                      operator_view=not args.no_view, auto_resume_s=args.auto_resume,
                                      validation=plan))
     summary: dict[str, Any] = result.summary
-    console.print(ended_text({**summary, "recommendation": None, "n_evaluations": summary["n_evaluations"]}
-                              ).splitlines()[0], markup=False, highlight=False, soft_wrap=True)
+    console.print(ended_text(summary).splitlines()[0])  # a walk recommends nothing (label_summary)
     for line in result_lines(summary.get("validation") or []):
-        console.print(line, markup=False, highlight=False, soft_wrap=True)
+        console.print(line)
     print(result.log_path)
     print(result.summary_path)
     return run_exit_status(summary)
