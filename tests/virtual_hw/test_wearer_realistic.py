@@ -437,3 +437,33 @@ def test_bad_inputs_are_refused() -> None:
         w.breaths_until(1e9)
     with pytest.raises(ConfigError, match="no model for actuator 'knee'"):
         w.apply_profiles((ForceProfile("knee", GRID, np.zeros_like(GRID)),), 60.0)
+
+
+def test_steps_to_and_from_standing_have_a_phase_i_and_walking_steps_do_not() -> None:
+    space = hip_6d()
+    cfg = RealisticWearerConfig.noiseless(phase1_s=(15.0, 15.0), phase1_share=(0.2, 0.2))
+    w = RealisticWearer(space, 5, cfg)
+    x = space.to_dict(space.from_unit(np.full(6, 0.5)))
+    y = space.to_dict(space.from_unit(np.full(6, 0.3)))
+    w.apply_params(x, 0.0)  # walking to walking: first-order
+    m0, c = w.metabolic_rate_w(0.0), w.steady_state_cost_w
+    assert w.metabolic_rate_w(w.tau_s) == pytest.approx(c + (m0 - c) * math.exp(-1.0), rel=1e-9)
+    t1 = 600.0
+    walking = w.metabolic_rate_w(t1)
+    w.stand(t1)
+    stand = w.standing_cost_w
+    left = 1.0 - 0.2 * (1.0 - math.exp(-4.0))  # the share of the step still to come after δ
+    assert w.metabolic_rate_w(t1) == pytest.approx(walking, rel=1e-12)  # no jump
+    assert w.metabolic_rate_w(t1 + 15.0) == pytest.approx(stand + (walking - stand) * left, rel=1e-9)
+    assert w.metabolic_rate_w(t1 + 15.0 + w.tau_s) == pytest.approx(
+        stand + (walking - stand) * left * math.exp(-1.0), rel=1e-9)
+    t2 = t1 + 600.0
+    low = w.metabolic_rate_w(t2)
+    w.apply_params(y, t2)  # from standing: phase I again
+    c_y = w.steady_state_cost_w
+    assert w.metabolic_rate_w(t2 + 15.0) == pytest.approx(c_y + (low - c_y) * left, rel=1e-9)
+    t3 = t2 + 600.0
+    m3 = w.metabolic_rate_w(t3)
+    w.apply_params(x, t3)  # the next walking setting: first-order again
+    assert w.metabolic_rate_w(t3 + w.tau_s) == pytest.approx(c + (m3 - c) * math.exp(-1.0), rel=1e-9)
+    assert w.subject["phase1_s"] == 15.0 and w.subject["phase1_share"] == 0.2
