@@ -648,7 +648,8 @@ class BridgeSession:
         if dropped is not None or applied:
             self.log.log_optimizer_state(self.opt, reason="cancel")
         if dropped is not None:
-            self._event("evaluation_cancelled", f"setting abandoned by {why}; it is re-measured")
+            self._event("evaluation_cancelled",
+                        f"setting abandoned by {why}; it is measured again when the session resumes")
         if isinstance(err, _Remeasure):
             return p.on_setting_dropped()
         act = p.on_pause()

@@ -777,7 +777,7 @@ def add_estimator_bench_parser(bench_subparsers: Any) -> argparse.ArgumentParser
     """Add ``estimator`` to the ``hilbo bench`` subcommands; returns its parser."""
     p = bench_subparsers.add_parser(
         "estimator", help="accuracy and calibration of the breath-by-breath estimators",
-        description="MAPE, bias, z-score mean/SD and 95 %% coverage of the steady-state estimate at "
+        description="MAPE, bias, z-score mean/SD and 95 % coverage of the steady-state estimate at "
                     "30/60/90/120/180 s after a setting change, split by step size, for the default "
                     "estimator, the seed UKF, the first-order tau = 42 s fit and a full-model least-"
                     "squares fit; on synthetic transitions or a recorded breath file (--replay).")

@@ -65,6 +65,7 @@ def log_info(contents: LogContents) -> dict[str, Any]:
     """The ``hilbo log info`` summary as a JSON-able dict."""
     rng = contents.time_range_ns
     snaps = contents.records(Topic.OPTIMIZER_STATE)
+    breaths = contents.records(Topic.BREATHS)
     return {
         "path": contents.path,
         "size_bytes": contents.size_bytes,
@@ -78,6 +79,9 @@ def log_info(contents: LogContents) -> dict[str, Any]:
         "library": contents.library,
         "time_range_ns": list(rng) if rng else None,
         "duration_s": (rng[1] - rng[0]) / 1e9 if rng else None,
+        # The session's breath clock (walked time; at `hilbo sim --speed X` the log's wall time
+        # is X times shorter).
+        "breath_time_s": [breaths[0].t_s, breaths[-1].t_s] if breaths else None,
         "channels": {t: {"schema": c.schema_name, "encoding": c.message_encoding,
                          "messages": c.message_count} for t, c in sorted(contents.channels.items())},
         "messages": sum(c.message_count for c in contents.channels.values()),
@@ -103,6 +107,10 @@ def _info_text(s: dict[str, Any]) -> str:
     if rng:
         lines.append(f"log time:   {_fmt_time(rng[0])} – {_fmt_time(rng[1])} "
                      f"({s['duration_s'] / 60:.1f} min)")
+    walked = s["breath_time_s"]
+    if walked:
+        lines.append(f"walked:     {walked[0] / 60:.1f} – {walked[1] / 60:.1f} min of the session's "
+                     f"breath clock ({(walked[1] - walked[0]) / 60:.1f} min in this log)")
     lines.append(f"evaluations completed: {s['evaluations']}")
     width = max([len(t) for t in s["channels"]] + [7])
     lines.append(f"{'channel':<{width}}  {'schema':<24} {'messages':>9}")
@@ -125,7 +133,7 @@ def _cmd_info(args: argparse.Namespace) -> int:
     try:
         # Decode only the small channels; counts come from every channel.
         contents = read_log(args.log, topics=[Topic.CONFIG, Topic.OBSERVATIONS, Topic.OPTIMIZER_STATE,
-                                              Topic.EVENTS])
+                                              Topic.EVENTS, Topic.BREATHS])
     except LogError as err:
         return _fail("info", err)
     summary = log_info(contents)

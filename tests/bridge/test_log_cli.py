@@ -42,6 +42,8 @@ def test_info_on_a_crashed_log(crashed: Path, capsys: pytest.CaptureFixture[str]
     assert "TRUNCATED (30 bytes unreadable" in out
     assert "session:    cli-1 (resumes old.mcap)" in out
     assert any(line.split()[:1] == ["/breaths"] and line.split()[-1] == "4" for line in out.splitlines())
+    # The walked (breath-clock) time beside the log's wall time: breaths at 0-3 s.
+    assert "walked:     0.0 – 0.1 min of the session's breath clock (0.1 min in this log)" in out
 
 
 def test_info_json(crashed: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -50,6 +52,7 @@ def test_info_json(crashed: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert s["session_id"] == "cli-1" and s["previous_log"] == "old.mcap" and not s["complete"]
     assert s["channels"][Topic.BREATHS]["messages"] == 4 and s["messages"] == 5
     assert s["unreadable_bytes"] == 30 and s["duration_s"] >= 0
+    assert s["breath_time_s"] == [0.0, 3.0]
 
 
 def test_recover_to_the_default_path(crashed: Path, capsys: pytest.CaptureFixture[str]) -> None:
