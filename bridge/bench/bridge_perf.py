@@ -62,7 +62,7 @@ from typing import Any, NamedTuple
 import can
 import numpy as np
 
-from bridge.bench.common import blas_threads, markdown_table
+from bridge.bench.common import blas_threads, markdown_table, raise_if_interrupted
 from bridge.log import Topic
 from bridge.log.reader import read_log
 from bridge.runtime import BridgeSession
@@ -290,6 +290,7 @@ async def _measure(cfg: BridgeRtConfig, out: Path) -> dict[str, Any]:
     wall0, cpu0 = time.perf_counter(), time.process_time()
     try:
         summary = await run_virtual_sim(cfg.sim_config(), out, on_session=on_session, on_exosuit=on_exosuit)
+        raise_if_interrupted(summary)
     finally:
         for t in tasks:
             t.cancel()

@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import re
 import sys
 import time
 from collections.abc import Sequence
@@ -22,6 +23,7 @@ from typing import Any
 
 from rich.console import Console
 
+from bridge.argtypes import nonnegative
 from bridge.bench.bridge_perf import BridgeProtocol
 from bridge.bench.common import choices, machine_info, numbers, options, round_sig, write_json
 from bridge.collector import GcMode
@@ -44,10 +46,23 @@ def _int(text: str) -> int:
     return value
 
 
+def _scheduler_address(text: str) -> str:
+    """``--scheduler``: a Dask scheduler address, ``HOST:PORT`` or ``tcp://HOST:PORT`` (``tls://``
+    too; other schemes are passed to Dask as given), refused as a usage error otherwise."""
+    address = text.strip()
+    scheme, sep, _ = address.partition("://")
+    if sep and scheme not in ("tcp", "tls"):
+        return address
+    if re.fullmatch(r"(?:(?:tcp|tls)://)?(?:\[[0-9A-Fa-f:.]+\]|[^\s:/\[\]]+):\d{1,5}", address) is None:
+        raise argparse.ArgumentTypeError(
+            f"expected a Dask scheduler address HOST:PORT or tcp://HOST:PORT, got {text!r}")
+    return address
+
+
 def _add_executor_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=_int, default=None,
                    help="local worker processes (default: all cores; 1 = in this process)")
-    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+    p.add_argument("--scheduler", type=_scheduler_address, default=None, metavar="ADDRESS",
                    help="run on a Dask distributed cluster, e.g. tcp://10.0.0.5:8786 "
                         "(the workers need hilbo installed)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -61,6 +76,14 @@ def _executor(args: argparse.Namespace) -> Any:
             raise ConfigError(f"--workers {args.workers}; expected an integer >= 1")
     # A scheduler that cannot be reached is a runtime failure (exit status 1), not a usage error.
     return make_executor(args.workers, args.scheduler, progress=False if args.no_progress else None)
+
+
+def _say_missing(found: int, asked: int, what: str) -> None:
+    """``--summarize-only`` on an unfinished campaign: say that the tables cover only part of it."""
+    if found < asked:
+        sys.stderr.write(f"warning: --summarize-only: {found} of the {asked} {what} of this run are "
+                         f"on disk; the tables cover only those (run with --resume instead of "
+                         f"--summarize-only to finish the campaign)\n")
 
 
 def _console() -> Console:
@@ -118,12 +141,18 @@ def _cmd_stopping(args: argparse.Namespace) -> int:
     if args.summarize_only:
         have: dict[Any, dict[str, Any]] = {}
         sources = [out, *(Path(d) for d in args.merge or [])]
+        with options():  # a --merge that names nothing is a usage error
+            for d in sources[1:]:
+                if not (d / "trials.jsonl").is_file():
+                    raise ConfigError(f"--merge {d}: no trials.jsonl there (expected the --out "
+                                      "directory of another run of this campaign)")
         for d in sources:
             have.update(load_trials(d / "trials.jsonl", protocol, campaign.refit_growth))
         results = [have[t.key()] for t in campaign.tasks() if t.key() in have]
         if not results:
             raise ConfigError(f"--summarize-only: no trial of this campaign in "
                               f"{[str(d / 'trials.jsonl') for d in sources]}")
+        _say_missing(len(results), len(campaign.tasks()), "trials")
         wall = None
     else:
         executor = _executor(args)
@@ -208,6 +237,7 @@ def _cmd_hil(args: argparse.Namespace) -> int:
         results = [done[t.key()] for t in tasks if t.key() in done]
         if not results:
             raise ConfigError(f"--summarize-only: {out / 'sessions.jsonl'} holds no session of this run")
+        _say_missing(len(results), len(tasks), "sessions")
         wall, executor_name = None, None
     else:
         executor = _executor(args)
@@ -375,7 +405,7 @@ def add_bench_parser(subparsers: Any) -> Any:
     """
     bench = subparsers.add_parser(
         "bench", help="benchmarks: results as JSON, Markdown tables and plots",
-        description="Benchmarks of hilbo. Results go to --out as JSON, a Markdown table and PNGs.")
+        description="Benchmarks of hilbo. Results go to --out as JSON, Markdown tables and plots.")
     bsub = bench.add_subparsers(dest="bench_command", required=True, metavar="BENCH")
 
     st = bsub.add_parser(
@@ -481,7 +511,7 @@ def add_bench_parser(subparsers: Any) -> Any:
     hil.add_argument("--tune-subjects", type=_int, default=10, help="training wearers for --tuned-k (10)")
     hil.add_argument("--tune-seed", type=_int, default=101,
                      help="first training wearer seed, disjoint from the subjects (101)")
-    hil.add_argument("--error-weight", type=float, default=2.0,
+    hil.add_argument("--error-weight", type=nonnegative, default=2.0,
                      help="tuning cost of a wrong early stop, in evaluations (2)")
     hil.add_argument("--out", default="runs/bench/hil", help="output directory")
     hil.add_argument("--resume", action="store_true",
@@ -541,7 +571,26 @@ def add_bench_parser(subparsers: Any) -> Any:
     from bridge.bench.watchdog import add_watchdog_bench_parser
 
     add_watchdog_bench_parser(bsub)  # hilbo bench watchdog: device silence -> AssistanceOff
+
+    from bridge.bench.tutor import add_tutor_bench_parser
+
+    add_tutor_bench_parser(bsub)  # hilbo bench tutor: Antonova 2016 §4
+    for sub_parser in bsub.choices.values():
+        sub_parser.set_defaults(func=_out_checked_first(sub_parser.get_default("func")))
     return bsub
+
+
+def _out_checked_first(func: Any) -> Any:
+    """A bench command that refuses an ``--out`` it could not write into before any work (as
+    ``hilbo run`` and ``hilbo sim`` do): a campaign is not lost at its end for a typo."""
+    from bridge.config import check_out_dir
+
+    def run(args: argparse.Namespace) -> int:
+        if getattr(args, "out", None) is not None:
+            check_out_dir(args.out, "--out")
+        return int(func(args))
+
+    return run
 
 
 def bench_main(argv: Sequence[str] | None = None) -> int:

@@ -24,6 +24,7 @@ __all__ = [
     "markdown_table",
     "numbers",
     "options",
+    "raise_if_interrupted",
     "round_sig",
     "write_json",
 ]
@@ -192,3 +193,14 @@ def markdown_table(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
     lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
     return "\n".join(lines) + "\n"
+
+
+def raise_if_interrupted(summary: Mapping[str, Any]) -> None:
+    """A session a signal ended (Ctrl-C, SIGTERM) ends the benchmark too: its numbers would
+    describe a cut session, so nothing more is run or written (``hilbo bench`` exits 130).
+
+    Raises:
+        KeyboardInterrupt: The summary's ``end_reason`` is ``interrupted``.
+    """
+    if summary.get("end_reason") == "interrupted":
+        raise KeyboardInterrupt

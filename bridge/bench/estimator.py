@@ -57,6 +57,7 @@ from typing import Any
 
 import numpy as np
 
+from bridge.argtypes import nonnegative_int, positive_int
 from bridge.bench.common import machine_info, markdown_table, round_sig, write_json
 from bridge.sim.devices import WearerKind, make_wearer
 from hilbo_core import brockway_watts
@@ -327,7 +328,9 @@ def replay_people(path: str | Path, transitions_s: Sequence[float],
             report = inspect_file(path, "csv", csv=CsvMapping(*csv_columns))
         else:
             report = inspect_file(path)
-    except (OSError, DriverError) as err:
+    except OSError as err:
+        raise ConfigError(f"--replay {path}: cannot read breaths: {err}") from err
+    except DriverError as err:
         # The driver's message speaks of the session's [cart.csv] map; here it is an option.
         hint = "" if csv_columns is not None else " (here: --csv-columns TIME,VO2,VCO2 is the column map)"
         raise ConfigError(f"--replay {path}: cannot read breaths: {err}{hint}") from err
@@ -781,8 +784,10 @@ def add_estimator_bench_parser(bench_subparsers: Any) -> argparse.ArgumentParser
                     "30/60/90/120/180 s after a setting change, split by step size, for the default "
                     "estimator, the seed UKF, the first-order tau = 42 s fit and a full-model least-"
                     "squares fit; on synthetic transitions or a recorded breath file (--replay).")
-    p.add_argument("--n", type=int, default=100, help="synthetic people, 4 scored transitions each (100)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the synthetic data (0)")
+    p.add_argument("--n", type=positive_int, default=100,
+                   help="synthetic people (100); 4 scored transitions each, more with the realistic "
+                        "wearer's rests")
+    p.add_argument("--seed", type=nonnegative_int, default=0, help="seed of the synthetic data (0)")
     p.add_argument("--wearer", default="synthetic",
                    help=f"synthetic data source, from {','.join(sorted(WEARERS))} (synthetic)")
     p.add_argument("--replay", default=None, metavar="FILE",
@@ -800,7 +805,7 @@ def add_estimator_bench_parser(bench_subparsers: Any) -> argparse.ArgumentParser
     p.add_argument("--bout-s", type=float, default=None,
                    help="synthetic data: every bout this long in s (default: 45-120 s or 200-300 s, "
                         "half each; 300 scores every horizon)")
-    p.add_argument("--rest-every", type=int, default=None, metavar="K",
+    p.add_argument("--rest-every", type=nonnegative_int, default=None, metavar="K",
                    help=f"--wearer realistic: the person stands for one bout before the first "
                         f"setting and after every K settings, large steps down and up that "
                         f"assistance changes never make (default {_REST_EVERY}; 0: no rests, "

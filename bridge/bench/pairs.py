@@ -55,6 +55,7 @@ from typing import Any
 
 import numpy as np
 
+from bridge.argtypes import nonnegative_int, positive_int
 from bridge.bench.common import machine_info, markdown_table, round_sig, write_json
 from bridge.bench.estimator import WEARERS, Bout, chained_estimators, parse_transitions, replay_people
 from bridge.bench.traces import BreathTrace, exploration_groups, threshold_schedules
@@ -520,8 +521,8 @@ def add_pairs_bench_parser(bench_subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--step-scale", type=float, default=None, metavar="S",
                    help="with --wearer synthetic: scale its steps by S (1); smaller steps are harder to "
                         "rank (see the 'how hard' line)")
-    p.add_argument("--n", type=int, default=20, help="simulated people (20)")
-    p.add_argument("--seed", type=int, default=1, help="seed of the simulated people (1)")
+    p.add_argument("--n", type=positive_int, default=20, help="simulated people (20)")
+    p.add_argument("--seed", type=nonnegative_int, default=1, help="seed of the simulated people (1)")
     p.add_argument("--bouts", type=int, default=10,
                    help="settings per simulated person, the first a warm-up (10)")
     p.add_argument("--bout-s", type=float, default=180.0, help="seconds per simulated setting (180)")
@@ -530,7 +531,7 @@ def add_pairs_bench_parser(bench_subparsers: Any) -> argparse.ArgumentParser:
                    help="score only pairs whose true costs differ by LOW-HIGH %% of the incumbent's "
                         f"({DEFAULT_DIFF_PCT[0]:g},{DEFAULT_DIFF_PCT[1]:g}: an assistance change's "
                         "differences; 0,inf: every pair)")
-    p.add_argument("--n-max", type=int, default=_DEFAULTS.max_breaths,
+    p.add_argument("--n-max", type=positive_int, default=_DEFAULTS.max_breaths,
                    help=f"N, breaths of a full evaluation ({_DEFAULTS.max_breaths})")
     p.add_argument("--min-decision-s", type=float, default=_DEFAULTS.min_decision_s,
                    help=f"the sound rule's time floor in s ({_DEFAULTS.min_decision_s:g})")
@@ -542,7 +543,8 @@ def add_pairs_bench_parser(bench_subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--accept-z", default=_fmt_accept(_DEFAULTS.accept_z), metavar="Z",
                    help="the sound rule's accept stop in σ, or none "
                         f"({_fmt_accept(_DEFAULTS.accept_z)})")
-    p.add_argument("--out", default="runs/bench/pairs", help="output directory (runs/bench/pairs)")
+    p.add_argument("--out", default="runs/bench/pairs",
+                   help="output directory (runs/bench/pairs)")
     p.add_argument("--no-progress", action="store_true", help="no progress lines")
     p.set_defaults(func=_cmd_pairs)
     return p

@@ -54,6 +54,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from bridge.argtypes import nonnegative, nonnegative_int, positive_int
 from bridge.bench.traces import BreathTrace, breath_traces, exploration_groups, threshold_schedules
 from hilbo_core.errors import ConfigError
 from hilbo_core.metabolic import Estimator, MetabolicUKF
@@ -386,7 +387,14 @@ def _n_max_from(evs: Iterable[Evaluation]) -> int | None:
 def _cmd_tune_stopping(args: argparse.Namespace) -> int:
     from rich.console import Console
 
+    from bridge.config import check_out_dir
+
     console = Console(stderr=True, markup=False, highlight=False, soft_wrap=True)
+    if args.out and Path(args.out).is_dir():  # refused before the tuning, not after it
+        raise ConfigError(f"--out {args.out!r} is a directory; expected the name of the JSON file "
+                          "to write (e.g. tuned.json)")
+    if args.out:
+        check_out_dir(Path(args.out).parent, "--out's folder")
     trajs, evs, sources, notes = collect_trajectories(args.logs)
     for note in notes:
         console.print(f"hilbo tune-stopping: note: {note}")
@@ -469,17 +477,20 @@ def add_tune_stopping_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("logs", nargs="+", metavar="LOG.mcap", help="session logs")
     p.add_argument("--family", choices=[*(f.value for f in StoppingFamily), SOUND_FAMILY], default="k",
                    help="tune a constant K (default), the window W, or the sound rule's "
-                        "min_decision_s and a_floor (sound)")
-    p.add_argument("--n-max", type=int, default=None,
+                        "min_decision_s and a_floor on its fixed clock, as sound-floor (sound)")
+    p.add_argument("--n-max", type=positive_int, default=None,
                    help="N, breaths of a full evaluation (default: from the logs, else 45)")
-    p.add_argument("--error-weight", type=float, default=2.0,
+    p.add_argument("--error-weight", type=nonnegative, default=2.0,
                    help="λ: cost of a wrong early stop in evaluations' time (default 2; not for "
                         "sound, whose cost is the project's targets for the rule)")
-    p.add_argument("--window", type=int, default=2, help="W of the Algorithm 2 reference (default 2)")
-    p.add_argument("--real", type=int, default=60, help="real episodes (default 60)")
-    p.add_argument("--resamples", type=int, default=3, help="resamples per real episode (default 3)")
-    p.add_argument("--max-reuse", type=int, default=5, help="resamples per trajectory (default 5)")
-    p.add_argument("--seed", type=int, default=0, help="seed (default 0)")
+    p.add_argument("--window", type=positive_int, default=2,
+                   help="W of the Algorithm 2 reference (default 2)")
+    p.add_argument("--real", type=positive_int, default=60, help="real episodes (default 60)")
+    p.add_argument("--resamples", type=nonnegative_int, default=3,
+                   help="resamples per real episode (default 3)")
+    p.add_argument("--max-reuse", type=nonnegative_int, default=5,
+                   help="resamples per trajectory (default 5)")
+    p.add_argument("--seed", type=nonnegative_int, default=0, help="seed (default 0)")
     p.add_argument("--out", default=None, help="write the JSON result here (default: stdout)")
     p.set_defaults(func=_cmd_tune_stopping)
     return p

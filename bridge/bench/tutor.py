@@ -26,12 +26,14 @@ Not implemented: MBOA (Antonova 2016 ref. [31]), the third curve of Fig. 9.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import math
 import os
 import sys
 import time
+from collections.abc import Callable, Iterable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -39,6 +41,7 @@ from typing import Any
 
 import numpy as np
 
+from bridge.argtypes import bounded, nonnegative_int, positive_int
 from hilbo_core.errors import ConfigError
 from hilbo_core.resample import ResampleConfig, Trajectory, bo_resample
 from hilbo_core.studies.tutor import (
@@ -73,6 +76,7 @@ FIGURES: dict[str, BKTParams] = {"fig7": FIG7_STUDENTS, "fig9": FIG9_STUDENTS}
 METHODS = ("bo", "bo_resample", "fit_threshold")
 # Thresholds tried for the reference "best BKT threshold policy".
 _REFERENCE_THRESHOLDS = np.linspace(0.05, 0.99, 48)
+_AT_LEAST_2 = bounded(int, "a whole number >= 2", low=2)  # a repetition compares students
 
 
 @dataclass(frozen=True)
@@ -189,23 +193,32 @@ def _run_job(job: tuple[str, int, TutorBenchConfig]) -> dict[str, Any]:
     return run_tutor_repetition(figure, rep, cfg)
 
 
-def run_tutor_bench(cfg: TutorBenchConfig, out_dir: Path | None = None) -> dict[str, Any]:
+def run_tutor_bench(cfg: TutorBenchConfig, out_dir: Path | None = None, *,
+                    progress: Callable[[int, int, float], None] | None = None) -> dict[str, Any]:
     """Run the bench; write ``results.json`` and one plot per figure into ``out_dir`` if given.
+
+    Args:
+        cfg: The bench's options.
+        out_dir: Where to write, or None.
+        progress: Called after every repetition with (done, total, wall seconds so far).
 
     Returns:
         The results dict (what ``results.json`` holds).
     """
     wall0 = time.perf_counter()
     jobs = [(f, r, cfg) for f in cfg.figures for r in range(cfg.repetitions)]
-    if cfg.workers > 1:
-        with ProcessPoolExecutor(max_workers=cfg.workers) as pool:
-            reps = list(pool.map(_run_job, jobs))
-    else:
-        reps = []
-        for job in jobs:
-            t0 = time.perf_counter()
-            reps.append(_run_job(job))
-            logger.info("tutor bench %s rep %d: %.1f s", job[0], job[1], time.perf_counter() - t0)
+    reps: list[dict[str, Any]] = []
+    with contextlib.ExitStack() as stack:
+        if cfg.workers > 1:
+            pool = stack.enter_context(ProcessPoolExecutor(max_workers=cfg.workers))
+            done: Iterable[dict[str, Any]] = pool.map(_run_job, jobs)  # in order, as they finish
+        else:
+            done = map(_run_job, jobs)
+        for job, result in zip(jobs, done, strict=True):
+            reps.append(result)
+            logger.info("tutor bench %s rep %d done", job[0], job[1])
+            if progress is not None:
+                progress(len(reps), len(jobs), time.perf_counter() - wall0)
     results: dict[str, Any] = {"config": asdict(cfg) | {"figures": list(cfg.figures)}, "figures": {}}
     for figure in cfg.figures:
         bkt = FIGURES[figure]
@@ -282,18 +295,23 @@ def _plot(fig: dict[str, Any], figure: str, cfg: TutorBenchConfig, path: Path) -
 def _cmd_bench_tutor(args: argparse.Namespace) -> int:
     from rich.console import Console
 
-    from bridge.bench.common import options
+    from bridge.bench.common import choices, options
 
-    console = Console(stderr=True, markup=False, highlight=False, soft_wrap=True)
+    console = Console(markup=False, highlight=False, soft_wrap=True)  # the results: stdout
+    err = Console(stderr=True, markup=False, highlight=False, soft_wrap=True)  # progress
     with options():  # a bad value on the command line: exit status 2
-        cfg = TutorBenchConfig(figures=tuple(args.figures), students=args.students,
+        figures = choices(",".join(args.figures), FIGURES, "figure", ())
+        cfg = TutorBenchConfig(figures=tuple(figures), students=args.students,
                                repetitions=args.reps, resamples=args.resamples,
                                max_reuse=args.max_reuse, t_max=args.t_max, seed=args.seed,
                                workers=args.workers)
     out = Path(args.out)
     console.print(f"hilbo bench tutor: {cfg.repetitions} repetitions × {cfg.students} students, "
                   f"K={cfg.resamples}, reuse ≤ {cfg.max_reuse}, t_max={cfg.t_max}")
-    results = run_tutor_bench(cfg, out)
+    def progress(done: int, total: int, wall_s: float) -> None:
+        err.print(f"  {done}/{total} repetitions, {wall_s:.0f} s")
+
+    results = run_tutor_bench(cfg, out, progress=None if args.no_progress else progress)
     for figure, fig in results["figures"].items():
         console.print(f"{figure}: best AFM policy 1−E[R] = {fig['best_afm_cost']:.4f}; "
                       f"best BKT threshold {fig['best_bkt_threshold_cost']:.4f}")
@@ -320,17 +338,20 @@ def add_tutor_bench_parser(bench_subparsers: Any) -> argparse.ArgumentParser:
         description="Simulated BKT students taught by the AFM threshold policy (Antonova 2016 §4.1, "
                     "§4.4): BO, BO-RESAMPLE and model-fit-then-threshold after every student; "
                     "writes results.json and tutor_fig7.png / tutor_fig9.png.")
-    p.add_argument("--figures", nargs="+", default=["fig7", "fig9"], choices=sorted(FIGURES),
-                   help="student populations (default both)")
-    p.add_argument("--students", type=int, default=30, help="students per repetition (default 30)")
-    p.add_argument("--reps", type=int, default=30, help="repetitions (default 30)")
-    p.add_argument("--resamples", type=int, default=10, help="K of BO-RESAMPLE (default 10)")
-    p.add_argument("--max-reuse", type=int, default=10,
+    p.add_argument("--figures", nargs="+", default=["fig7", "fig9"], metavar="FIG",
+                   help=f"student populations, from {','.join(sorted(FIGURES))} (separated by spaces "
+                        "or commas; default both)")
+    p.add_argument("--students", type=_AT_LEAST_2, default=30, help="students per repetition (default 30)")
+    p.add_argument("--reps", type=positive_int, default=30, help="repetitions (default 30)")
+    p.add_argument("--resamples", type=nonnegative_int, default=10, help="K of BO-RESAMPLE (default 10)")
+    p.add_argument("--max-reuse", type=nonnegative_int, default=10,
                    help="resamples allowed per stored trajectory (default 10)")
-    p.add_argument("--t-max", type=int, default=20, help="curriculum length (default 20)")
-    p.add_argument("--seed", type=int, default=0, help="base seed (default 0)")
-    p.add_argument("--workers", type=int, default=1, help="processes (default 1)")
-    p.add_argument("--out", default="runs/bench_tutor", help="output directory (default runs/bench_tutor)")
+    p.add_argument("--t-max", type=positive_int, default=20, help="curriculum length (default 20)")
+    p.add_argument("--seed", type=nonnegative_int, default=0, help="base seed (default 0)")
+    p.add_argument("--workers", type=positive_int, default=1, help="processes (default 1)")
+    p.add_argument("--out", default="runs/bench_tutor",
+                   help="output directory (default runs/bench_tutor)")
+    p.add_argument("--no-progress", action="store_true", help="no progress lines")
     p.set_defaults(func=_cmd_bench_tutor)
     return p
 

@@ -40,7 +40,8 @@ from typing import Any
 import can
 import numpy as np
 
-from bridge.bench.common import machine_info, markdown_table, round_sig, write_json
+from bridge.argtypes import nonnegative_int, positive_int
+from bridge.bench.common import machine_info, markdown_table, raise_if_interrupted, round_sig, write_json
 from bridge.runtime import BridgeSession, Command
 from drivers.errors import DecodeError
 from drivers.exosuit import (
@@ -238,6 +239,7 @@ def run_watchdog_bench(cfg: WatchdogBenchConfig, out: Path) -> dict[str, Any]:
     with burners(cfg.burners), stack:
         summary = asyncio.run(run_virtual_sim(sim, out, on_session=on_session,
                                               device_timeout_ms=cfg.timeout_ms))
+    raise_if_interrupted(summary)
     found = latencies(spy, n_actuators, min_drop_s=0.6 * cfg.drop_s)
     lat = np.asarray(found["latencies_ms"])
     limit_ms = cfg.timeout_ms - min(25.0, cfg.timeout_ms / 4)  # RuntimeSettings.device_silence_limit_s
@@ -322,14 +324,14 @@ def add_watchdog_bench_parser(bench_subparsers: Any) -> argparse.ArgumentParser:
                     "last status (p50/p95/max), idle and beside CPU burners. Exit status 1 when an "
                     "AssistanceOff came later than the watchdog time, never came, or came while "
                     "the statuses still flowed.")
-    p.add_argument("--n", type=int, default=20, help="status drops per run (20)")
+    p.add_argument("--n", type=positive_int, default=20, help="status drops per run (20)")
     p.add_argument("--timeout-ms", type=float, default=100.0,
                    help="[watchdog] device_heartbeat_timeout_ms (100, the default)")
     p.add_argument("--drop-s", type=float, default=0.5, help="each drop's length (0.5 s)")
     p.add_argument("--spacing-s", type=float, default=3.0, help="between drops (3 s)")
     p.add_argument("--burners", default="0,2", metavar="K,K",
                    help="CPU burner processes beside each run, one run per value (0,2)")
-    p.add_argument("--seed", type=int, default=1, help="the simulated session's seed (1)")
+    p.add_argument("--seed", type=nonnegative_int, default=1, help="the simulated session's seed (1)")
     p.add_argument("--out", default="runs/bench/watchdog", help="output directory")
     p.set_defaults(func=_cmd_watchdog)
     return p

@@ -6,7 +6,7 @@ import argparse
 import sys
 from typing import Any, TextIO
 
-from bridge.cli.argtypes import positive_int
+from bridge.argtypes import positive_int
 
 __all__ = ["add_cart_parser"]
 

@@ -13,7 +13,7 @@ from typing import Any
 
 import msgspec
 
-from bridge.cli.argtypes import minutes, nonnegative_int, seconds
+from bridge.argtypes import minutes, nonnegative_int, seconds
 from bridge.cli.session_end import EXIT_INTERRUPTED, RUN_EXIT_STATUS, ended_text, run_exit_status
 
 # The GP's matrices are small (tens to a few hundred rows): multi-threaded BLAS only adds
@@ -292,10 +292,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     from bridge.bench.cli import add_bench_parser
     from bridge.bench.tune_stopping import add_tune_stopping_parser
-    from bridge.bench.tutor import add_tutor_bench_parser
     from bridge.cli.log import add_log_parser
 
-    add_tutor_bench_parser(add_bench_parser(sub))
+    add_bench_parser(sub)
     add_tune_stopping_parser(sub)
 
     add_log_parser(sub)

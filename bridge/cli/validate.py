@@ -61,7 +61,7 @@ def _cmd_validate(args: argparse.Namespace) -> int:
 
 def add_validate_parser(subparsers: Any) -> argparse.ArgumentParser:
     """Register ``hilbo validate`` on the top-level ``add_subparsers()`` object."""
-    from bridge.cli.argtypes import seconds
+    from bridge.argtypes import seconds
     from bridge.cli.session_end import VALIDATE_EXIT_STATUS
 
     p = subparsers.add_parser(

@@ -180,9 +180,11 @@ def optimisation_minutes(minutes: float, protocol: ProtocolKind, n_explore: int,
     warm_ups = 2 if named["pause_between_bouts"] or named["warmup_without_pause"] else 1
     left_s = minutes * 60.0 - warm_ups * warmup_s - explore_s
     if left_s < 60.0:
+        need = math.ceil((warm_ups * warmup_s + explore_s + 60.0) / 60.0)
         raise ConfigError(
             f"minutes={minutes:g} leaves {max(left_s, 0) / 60:.1f} min for optimisation after "
-            f"the warm-ups and the exploration bout (~{explore_s / 60:.0f} min); give more minutes"
+            f"the warm-ups and the exploration bout (~{explore_s / 60:.0f} min); give at least "
+            f"{need} minutes"
         )
     return left_s / 60.0
 

@@ -72,9 +72,12 @@ def test_stopping_toy_run_writes_json_table_and_one_png_per_function(tmp_path: P
     again = json.loads((merged / "results.json").read_text())
     assert again["settings"] == doc["settings"] and again["command"].endswith(f"--merge {tmp_path}")
     assert bench_main([*argv, "--merge", str(tmp_path)]) == 2  # --merge needs --summarize-only
+    # A --merge directory without trials is a usage error, not silently nothing.
+    assert bench_main([*argv, "--summarize-only", "--merge", str(tmp_path / "nowhere")]) == 2
 
 
-def test_hil_toy_run_writes_the_summary_and_resumes(tmp_path: Path) -> None:
+def test_hil_toy_run_writes_the_summary_and_resumes(tmp_path: Path,
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
     argv = ["hil", "--subjects", "1", "--spaces", "hip_ankle_4d", "--methods", "random,cmaes",
             "--minutes", "25", "--workers", "1", "--no-progress", "--out", str(tmp_path)]
     assert bench_main(argv) == 0
@@ -89,6 +92,9 @@ def test_hil_toy_run_writes_the_summary_and_resumes(tmp_path: Path) -> None:
     # --summarize-only rebuilds the same summary, to the last digit, from sessions.jsonl.
     assert bench_main([*argv, "--summarize-only"]) == 0
     assert json.loads((tmp_path / "hil.json").read_text())["results"] == doc["results"]
+    # Summarising more subjects than are on disk says so.
+    assert bench_main([*argv[:2], "2", *argv[3:], "--summarize-only"]) == 0
+    assert "warning: --summarize-only: 2 of the 4 sessions" in capsys.readouterr().err
     # One more subject with --resume runs only the two new sessions.
     assert bench_main([*argv[:2], "2", *argv[3:], "--resume"]) == 0
     assert len((tmp_path / "sessions.jsonl").read_text().splitlines()) == 4

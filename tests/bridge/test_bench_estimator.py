@@ -217,10 +217,8 @@ def test_cli_synthetic_and_replay(tmp_path: Path, capsys: pytest.CaptureFixture[
     (["--transitions", "10"], "go with --replay"),
     (["--replay", "x.hbr", "--transitions", "10", "--score", "run"], "needs --events"),
     (["--bout-s", "-5"], "--bout-s -5"),
-    (["--n", "0"], "--n 0"),
     (["--wearer", "nobody"], "--wearer 'nobody'"),
     (["--rest-every", "2"], "--rest-every goes with --wearer realistic"),
-    (["--wearer", "realistic", "--rest-every", "-1"], "--rest-every -1"),
     (["--estimators", "kalman"], "kalman"),
     (["--transition-config", "timing=10"], "timing=10"),
     (["--transition-config", "timing_sd_s=ten"], "'ten' is not a number"),
@@ -230,6 +228,18 @@ def test_cli_bad_input_exits_2(argv: list[str], message: str, tmp_path: Path,
                                capsys: pytest.CaptureFixture[str]) -> None:
     assert bench_main(["estimator", *argv, "--out", str(tmp_path)]) == 2
     assert message in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--n", "0"], "argument --n: expected a whole number >= 1, got '0'"),
+    (["--wearer", "realistic", "--rest-every", "-1"], "argument --rest-every: expected an integer >= 0"),
+    (["--seed", "x"], "argument --seed: expected an integer >= 0, got 'x'"),
+])
+def test_cli_bad_numbers_are_argparse_usage_errors(argv: list[str], message: str, tmp_path: Path,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        bench_main(["estimator", *argv, "--out", str(tmp_path)])
+    assert exc.value.code == 2 and message in capsys.readouterr().err
 
 
 def test_transition_config_option_sets_the_estimator_it_names(tmp_path: Path) -> None:

@@ -1,4 +1,4 @@
-"""bridge.cli.argtypes: numbers in a range, refused as usage errors that name what was expected."""
+"""bridge.argtypes: numbers in a range, refused as usage errors that name what was expected."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import math
 
 import pytest
 
-from bridge.cli.argtypes import bounded, minutes, nonnegative_int, positive_int, seconds
+from bridge.argtypes import bounded, minutes, nonnegative_int, positive_int, seconds
 
 
 @pytest.mark.parametrize("parse, text, value", [
