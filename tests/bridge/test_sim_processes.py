@@ -94,10 +94,19 @@ def assert_the_wearer_felt_the_applied_profiles(log: LogContents, seed: int) -> 
     assert warm_up and all(abs(r - 1.0) < 1e-9 for r in warm_up)
     t0 = breaths[0]["t_s"]  # evaluation times are seconds since the first breath
     checked, targets = 0, []
-    for obs in log.data("/observations"):
+    for obs, after_pause in zip(log.data("/observations"), _remeasured_after_a_pause(log), strict=True):
         inside = [r for t, r in ratio if t0 + obs["t_start"] < t <= t0 + obs["t_end"] + 1e-9]
         if len(inside) < 6:
             continue  # stopped early: the switch may not be behind its first breaths yet
+        if after_pause:
+            # The pause's assistance-off and the resumed assistance reach the cart process's
+            # wearer through its bus listener, which dates each switch by its own clock when it
+            # handles the frame: on a loaded host at 20-30x real time a second of wall-clock lag
+            # is half a minute of the wearer's, into the re-measured setting (seen once inside
+            # user-mode Linux beside burners: the rate relaxed towards unassisted there). That the
+            # device assisted throughout is checked from the bridge's own log instead
+            # (assert_the_device_assisted_every_evaluation).
+            continue
         target = reference.true_cost_w(obs["params"]) / reference.baseline_cost_w
         mid, last = inside[len(inside) // 2], inside[-1]
         assert abs(last - target) <= abs(mid - target) + 1e-3, (obs["index"], mid, last, target)
@@ -112,6 +121,30 @@ def assert_the_wearer_felt_the_applied_profiles(log: LogContents, seed: int) -> 
     # the evaluation of the best setting got 24.6 % of the way.
     assert min(targets) < 1.0
     assert min(r for _, r in ratio) < 1.0 - 0.1 * (1.0 - min(targets))
+
+
+def _remeasured_after_a_pause(log: LogContents) -> list[bool]:
+    """For each evaluation, whether it measures a setting a pause abandoned (an
+    ``evaluation_cancelled`` event written since the previous evaluation)."""
+    cancels = [m.log_time_ns for m in log.topic("/events") if m.record.kind == "evaluation_cancelled"]
+    out, previous = [], -1
+    for m in log.topic("/observations"):
+        out.append(any(previous < t < m.log_time_ns for t in cancels))
+        previous = m.log_time_ns
+    return out
+
+
+def assert_the_device_assisted_every_evaluation(log: LogContents) -> None:
+    """The bridge completes an evaluation only while the device assists: the last status of every
+    actuator it logged before the evaluation's last breath says ``assist`` (a pause abandons the
+    setting instead)."""
+    breath_log_ns = {m.record.t_s: m.log_time_ns for m in log.topic("/breaths")}
+    statuses = [(m.log_time_ns, m.record) for m in log.topic("/device_status")]
+    t0 = min(breath_log_ns)
+    for obs in log.data("/observations"):
+        last = max(t for t in breath_log_ns if t <= t0 + obs["t_end"] + 1e-9)
+        modes = {r.actuator: r.mode for t, r in statuses if t <= breath_log_ns[last]}
+        assert modes and set(modes.values()) == {"assist"}, (obs["index"], modes)
 
 
 def assert_log_and_summary_agree(log: LogContents, s: dict[str, Any]) -> None:
@@ -181,6 +214,7 @@ def test_three_processes_log_summary_and_wearer_agree(tmp_path: Path, bus: str) 
     assert not any(_alive(c["pid"]) for c in children.values())
     assert_the_device_acked_every_push(log, procs["exosuit"]["stats"])
     assert_the_wearer_felt_the_applied_profiles(log, seed=2)
+    assert_the_device_assisted_every_evaluation(log)
 
 
 @pytest.mark.slow
@@ -363,3 +397,4 @@ async def test_hilbo_run_with_the_example_config_drives_the_device_processes(
     assert exosuit.returncode == 0 and stopped is not None
     assert_the_device_acked_every_push(log, stopped["stats"])
     assert_the_wearer_felt_the_applied_profiles(log, seed=1)
+    assert_the_device_assisted_every_evaluation(log)
