@@ -128,16 +128,27 @@ def numbers(text: str | Sequence[float] | None, what: str, default: Sequence[flo
 
 
 @contextlib.contextmanager
-def options() -> Iterator[None]:
+def options(names: Mapping[str, str] | None = None) -> Iterator[None]:
     """Checks of the command line's values before any work: their ConfigError is a usage error
     (exit status 2). A missing optional dependency (a ConfigError from an ImportError) is not:
-    the command line is right, the installation is not (exit status 1)."""
+    the command line is right, the installation is not (exit status 1).
+
+    Args:
+        names: Config field -> the option that sets it (``{"boundary_s": "--boundary-s"}``): a
+            message that starts ``boundary_s=0.0; ...`` (a config class's check) is said as
+            ``--boundary-s 0.0; ...``, the name the user typed.
+    """
     try:
         yield
     except ConfigError as err:
         if isinstance(err.__cause__, ImportError):
             raise
-        raise UsageError(str(err)) from err
+        text = str(err)
+        for field_name, option in (names or {}).items():
+            if text.startswith(f"{field_name}="):
+                text = f"{option} {text[len(field_name) + 1:]}".replace(" or None", " or none")
+                break
+        raise UsageError(text) from err
 
 
 def machine_info() -> dict[str, Any]:

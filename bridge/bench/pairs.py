@@ -404,7 +404,9 @@ def _cmd_pairs(args: argparse.Namespace) -> int:
     console = Console(markup=False, highlight=False, soft_wrap=True)
     replays = args.replay or []
     transitions = args.transitions or []
-    with options():  # the command line's values (exit status 2); the files' are 1
+    with options({"boundary_s": "--boundary-s", "accept_z": "--accept-z", "a_floor": "--a-floor",
+                  "min_decision_s": "--min-decision-s", "n_max": "--n-max"}):
+        # the command line's values (exit status 2); the files' are 1
         accept = _number_or_none("--accept-z", args.accept_z, "a number of σ >= 0")
         boundary = _number_or_none("--boundary-s", args.boundary_s, "seconds > 0")
         lo, hi = _diff_pct(args.diff_pct)
