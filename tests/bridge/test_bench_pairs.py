@@ -241,7 +241,7 @@ def test_cli_replays_one_file_per_person(tmp_path: Path, capsys: pytest.CaptureF
     (["--csv-columns", "t,VO2,VCO2"], 2, "--csv-columns goes with --replay"),
     (["--wearer", "robot"], 2, "--wearer 'robot'"),
     (["--accept-z", "often"], 2, "--accept-z 'often'"),
-    (["--n-max", "1"], 2, "n_max=1"),
+    (["--n-max", "1"], 2, "--n-max 1"),
     (["--step-scale", "0.3"], 2, "--step-scale 0.3 goes with --wearer synthetic"),
     (["--wearer", "synthetic", "--step-scale", "-1"], 2, "--step-scale -1.0; expected a number >= 0"),
     (["--replay", "missing.hbr", "--transitions", "60,120"], 1, "cannot read breaths"),
