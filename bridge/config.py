@@ -41,6 +41,7 @@ import enum
 import io
 import ipaddress
 import math
+import os
 import re
 import sys
 import tomllib
@@ -1236,7 +1237,8 @@ def check_out_dir(path: str | Path, what: str = "session.out_dir") -> Path:
         ``path`` as a :class:`~pathlib.Path`.
 
     Raises:
-        BridgeConfigError: ``path`` or one of its parents exists and is not a directory.
+        BridgeConfigError: ``path`` or one of its parents exists and is not a directory, or the
+            nearest existing one cannot be written into.
     """
     path = Path(path)
     for p in (path, *path.parents):
@@ -1246,6 +1248,11 @@ def check_out_dir(path: str | Path, what: str = "session.out_dir") -> Path:
                 raise BridgeConfigError(
                     f"{what} = {str(path)!r}: expected a directory (existing or to be created), "
                     f"but {p} is a file{where}"
+                )
+            if not os.access(p, os.W_OK | os.X_OK):
+                raise BridgeConfigError(
+                    f"{what} = {str(path)!r}: expected a directory this user can write into, but "
+                    f"{p} is not writable"
                 )
             break
     return path

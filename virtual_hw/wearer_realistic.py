@@ -513,11 +513,10 @@ class RealisticWearer:
         self._n_first_odd = 0
         self._search_ss = search_ss
         # The state at each change: (t_change_s, rate_at_change_w, unadapted target, whether the
-        # transition starts or ends standing and so has a phase I).
-        self._segments: list[tuple[float, float, float, bool]] = [
-            (0.0, self._baseline_w, self._baseline_w, False)
+        # target is standing, whether the transition starts or ends standing: a phase I).
+        self._segments: list[tuple[float, float, float, bool, bool]] = [
+            (0.0, self._baseline_w, self._baseline_w, False, False)
         ]
-        self._standing = False
         self._applied: tuple[ForceProfile, ...] = ()
         self._t_last_s = 0.0
         self._n_breaths = 0
@@ -782,8 +781,9 @@ class RealisticWearer:
 
         The first-order rate ``m(t) = c·P(t) + (m(t_c) - c·P(t_c))·e^{-(t - t_c)/τ}`` on the
         segment of the last change ``t_c`` before ``t`` (the exact solution of the first-order
-        ODE with the adapting target; continuous at every change), times the drift
-        :meth:`drift_factor`.
+        ODE with the adapting target; continuous at every change), with a phase I in place of
+        the exponential on a step to or from standing (module docstring, "Phase I"), times the
+        drift :meth:`drift_factor`.
         """
         return self._first_order_w(t_s) * self.drift_factor(t_s)
 
@@ -794,13 +794,13 @@ class RealisticWearer:
             if s[0] <= t:
                 seg = s
                 break
-        t_c, m_c, c, phase1 = seg
+        t_c, m_c, c, _, phase1 = seg
         return c * self._particular(t) + (m_c - c * self._particular(t_c)) * self._remaining(
             t - t_c, phase1)
 
     def _remaining(self, s: float, phase1: bool) -> float:
         # The share of a step still to come s seconds after it: e^{-s/τ}, or with a phase I
-        # (module docstring, "Standing") a fast rise by the phase-I share within its duration δ
+        # (module docstring, "Phase I") a fast rise by the phase-I share within its duration δ
         # (time constant δ/4: 98 % of it by δ), then phase II with the person's τ from δ on.
         delta = self._phase1_s
         if not phase1 or delta <= 0.0:
@@ -824,8 +824,7 @@ class RealisticWearer:
         profs = check_profiles(profiles, self._windows)
         target = self.cost_of_profiles(profs)
         self._applied = profs
-        self._change_target(t, target, phase1=self._standing)
-        self._standing = False
+        self._change_target(t, target, standing=False)
         return target
 
     def apply_params(self, params: Mapping[str, float], t_s: float) -> float:
@@ -852,8 +851,7 @@ class RealisticWearer:
         """
         t = self._check_change_time(t_s)
         self._applied = ()
-        self._change_target(t, self.standing_cost_w, phase1=True)
-        self._standing = True
+        self._change_target(t, self.standing_cost_w, standing=True)
         return self.standing_cost_w
 
     def _check_change_time(self, t_s: float) -> float:
@@ -866,13 +864,17 @@ class RealisticWearer:
             )
         return t
 
-    def _change_target(self, t: float, target: float, *, phase1: bool = False) -> None:
-        t_c, m_c, old_target, _ = self._segments[-1]
+    def _change_target(self, t: float, target: float, *, standing: bool) -> None:
+        t_c, m_c, old_target, old_standing, _ = self._segments[-1]
         if t == t_c:
-            self._segments[-1] = (t_c, m_c, target, phase1)
-        elif target != old_target:
+            # A second change at the same instant replaces the first: the step is from what the
+            # body did before both (a stand and a walk at once is a walking step, no phase I).
+            before = self._segments[-2][3] if len(self._segments) > 1 else False
+            self._segments[-1] = (t_c, m_c, target, standing, before or standing)
+        elif target != old_target or standing != old_standing:
             # The new transition starts from the rate the body is at now (module docstring).
-            self._segments.append((t, self._first_order_w(t), target, phase1))
+            self._segments.append((t, self._first_order_w(t), target, standing,
+                                   old_standing or standing))
             self._first_pending = True
 
     # ------------------------------------------------------------------ breaths

@@ -1,5 +1,5 @@
-"""The ``hilbo bench`` subcommands: ``stopping``, ``hil``, ``perf``, ``estimator``, ``pairs`` and
-``watchdog`` (``tutor`` joins them in ``hilbo bench`` only, bridge/cli/main.py).
+"""The ``hilbo bench`` subcommands: ``stopping``, ``hil``, ``perf``, ``estimator``, ``pairs``,
+``watchdog`` and ``tutor``.
 
 :func:`add_bench_parser` registers them on the main ``hilbo`` parser; :func:`bench_main` is a
 standalone entry point (``python -m bridge.bench ...``) with the same exit codes as ``hilbo``:
@@ -53,9 +53,11 @@ def _scheduler_address(text: str) -> str:
     scheme, sep, _ = address.partition("://")
     if sep and scheme not in ("tcp", "tls"):
         return address
-    if re.fullmatch(r"(?:(?:tcp|tls)://)?(?:\[[0-9A-Fa-f:.]+\]|[^\s:/\[\]]+):\d{1,5}", address) is None:
+    m = re.fullmatch(r"(?:(?:tcp|tls)://)?(?:\[[0-9A-Fa-f:.]+\]|[^\s:/\[\]]+):(\d{1,5})", address)
+    if m is None or not 1 <= int(m.group(1)) <= 65535:
         raise argparse.ArgumentTypeError(
-            f"expected a Dask scheduler address HOST:PORT or tcp://HOST:PORT, got {text!r}")
+            f"expected a Dask scheduler address HOST:PORT or tcp://HOST:PORT (port 1-65535), "
+            f"got {text!r}")
     return address
 
 
@@ -607,6 +609,10 @@ def bench_main(argv: Sequence[str] | None = None) -> int:
         return 2
     except (HilboError, BridgeError, DriverError) as err:
         # Bad input found once the work started, or a failed run: 1 (as ``hilbo bench``).
+        sys.stderr.write(f"hilbo bench {args.bench_command}: error: {err}\n")
+        return 1
+    except OSError as err:
+        # A file the benchmark writes (its --out after the check, e.g. a full disk).
         sys.stderr.write(f"hilbo bench {args.bench_command}: error: {err}\n")
         return 1
     except KeyboardInterrupt:

@@ -54,7 +54,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from bridge.argtypes import nonnegative, nonnegative_int, positive_int
+from bridge.argtypes import bounded, nonnegative, nonnegative_int, positive_int
 from bridge.bench.traces import BreathTrace, breath_traces, exploration_groups, threshold_schedules
 from hilbo_core.errors import ConfigError
 from hilbo_core.metabolic import Estimator, MetabolicUKF
@@ -75,6 +75,8 @@ __all__ = [
     "trajectories_from_log",
     "tune_stopping",
 ]
+
+_AT_LEAST_2 = bounded(int, "a whole number >= 2", low=2)  # N: a full evaluation has 2+ breaths
 
 logger = logging.getLogger(__name__)
 
@@ -478,12 +480,12 @@ def add_tune_stopping_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--family", choices=[*(f.value for f in StoppingFamily), SOUND_FAMILY], default="k",
                    help="tune a constant K (default), the window W, or the sound rule's "
                         "min_decision_s and a_floor on its fixed clock, as sound-floor (sound)")
-    p.add_argument("--n-max", type=positive_int, default=None,
+    p.add_argument("--n-max", type=_AT_LEAST_2, default=None,
                    help="N, breaths of a full evaluation (default: from the logs, else 45)")
     p.add_argument("--error-weight", type=nonnegative, default=2.0,
                    help="λ: cost of a wrong early stop in evaluations' time (default 2; not for "
                         "sound, whose cost is the project's targets for the rule)")
-    p.add_argument("--window", type=positive_int, default=2,
+    p.add_argument("--window", type=nonnegative_int, default=2,
                    help="W of the Algorithm 2 reference (default 2)")
     p.add_argument("--real", type=positive_int, default=60, help="real episodes (default 60)")
     p.add_argument("--resamples", type=nonnegative_int, default=3,

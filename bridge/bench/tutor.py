@@ -26,15 +26,14 @@ Not implemented: MBOA (Antonova 2016 ref. [31]), the third curve of Fig. 9.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import logging
 import math
 import os
 import sys
 import time
-from collections.abc import Callable, Iterable
-from concurrent.futures import ProcessPoolExecutor
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -207,18 +206,27 @@ def run_tutor_bench(cfg: TutorBenchConfig, out_dir: Path | None = None, *,
     """
     wall0 = time.perf_counter()
     jobs = [(f, r, cfg) for f in cfg.figures for r in range(cfg.repetitions)]
-    reps: list[dict[str, Any]] = []
-    with contextlib.ExitStack() as stack:
-        if cfg.workers > 1:
-            pool = stack.enter_context(ProcessPoolExecutor(max_workers=cfg.workers))
-            done: Iterable[dict[str, Any]] = pool.map(_run_job, jobs)  # in order, as they finish
-        else:
-            done = map(_run_job, jobs)
-        for job, result in zip(jobs, done, strict=True):
-            reps.append(result)
-            logger.info("tutor bench %s rep %d done", job[0], job[1])
-            if progress is not None:
-                progress(len(reps), len(jobs), time.perf_counter() - wall0)
+    by_job: dict[int, dict[str, Any]] = {}
+
+    def finished(i: int, result: dict[str, Any]) -> None:
+        by_job[i] = result
+        logger.info("tutor bench %s rep %d done", jobs[i][0], jobs[i][1])
+        if progress is not None:
+            progress(len(by_job), len(jobs), time.perf_counter() - wall0)
+
+    if cfg.workers > 1:
+        pool = ProcessPoolExecutor(max_workers=cfg.workers)
+        try:
+            futures = {pool.submit(_run_job, job): i for i, job in enumerate(jobs)}
+            for fut in as_completed(futures):  # progress as repetitions finish, in any order
+                finished(futures[fut], fut.result())
+        finally:
+            # Ctrl-C or a failed repetition: the queued ones are not started.
+            pool.shutdown(wait=True, cancel_futures=True)
+    else:
+        for i, job in enumerate(jobs):
+            finished(i, _run_job(job))
+    reps = [by_job[i] for i in range(len(jobs))]  # the jobs' order, whatever order they ended in
     results: dict[str, Any] = {"config": asdict(cfg) | {"figures": list(cfg.figures)}, "figures": {}}
     for figure in cfg.figures:
         bkt = FIGURES[figure]

@@ -209,7 +209,9 @@ def burners(n: int) -> Iterator[list[int]]:
     procs: list[subprocess.Popen[bytes]] = []
     try:
         for _ in range(n):
-            procs.append(subprocess.Popen([sys.executable, "-c", _BURNER]))
+            # Their own session: a Ctrl-C at the terminal is the benchmark's to handle (it kills
+            # them on the way out), not theirs to answer with a traceback each.
+            procs.append(subprocess.Popen([sys.executable, "-c", _BURNER], start_new_session=True))
         yield [p.pid for p in procs]
     finally:
         for p in procs:

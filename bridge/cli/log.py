@@ -79,9 +79,10 @@ def log_info(contents: LogContents) -> dict[str, Any]:
         "library": contents.library,
         "time_range_ns": list(rng) if rng else None,
         "duration_s": (rng[1] - rng[0]) / 1e9 if rng else None,
-        # The session's breath clock (walked time; at `hilbo sim --speed X` the log's wall time
-        # is X times shorter).
-        "breath_time_s": [breaths[0].t_s, breaths[-1].t_s] if breaths else None,
+        # The breaths' clock (the cart's: walked time; at `hilbo sim --speed X` the log's wall
+        # time is X times shorter). Its zero is wherever the cart's clock started.
+        "breath_time_s": ([min(b.t_s for b in breaths), max(b.t_s for b in breaths)]
+                          if breaths else None),
         "channels": {t: {"schema": c.schema_name, "encoding": c.message_encoding,
                          "messages": c.message_count} for t, c in sorted(contents.channels.items())},
         "messages": sum(c.message_count for c in contents.channels.values()),
@@ -109,8 +110,8 @@ def _info_text(s: dict[str, Any]) -> str:
                      f"({s['duration_s'] / 60:.1f} min)")
     walked = s["breath_time_s"]
     if walked:
-        lines.append(f"walked:     {walked[0] / 60:.1f} – {walked[1] / 60:.1f} min of the session's "
-                     f"breath clock ({(walked[1] - walked[0]) / 60:.1f} min in this log)")
+        lines.append(f"walked:     {(walked[1] - walked[0]) / 60:.1f} min of breaths (breath clock "
+                     f"{walked[0] / 60:.1f} – {walked[1] / 60:.1f} min)")
     lines.append(f"evaluations completed: {s['evaluations']}")
     width = max([len(t) for t in s["channels"]] + [7])
     lines.append(f"{'channel':<{width}}  {'schema':<24} {'messages':>9}")

@@ -24,14 +24,14 @@ def test_an_out_that_is_a_file_is_refused_before_any_work(
     assert blocker.read_text() == "x"
 
 
-@pytest.mark.parametrize("address", ["notanaddress", "tcp://host", "host:port"])
+@pytest.mark.parametrize("address", ["notanaddress", "tcp://host", "host:port", "host:0", "tcp://h:99999"])
 def test_a_malformed_scheduler_address_is_a_usage_error(
         address: str, capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit) as exc:
         bench_main(["stopping", "--trials", "1", "--scheduler", address])
     assert exc.value.code == 2
-    assert f"expected a Dask scheduler address HOST:PORT or tcp://HOST:PORT, got {address!r}" in (
-        capsys.readouterr().err)
+    assert ("expected a Dask scheduler address HOST:PORT or tcp://HOST:PORT (port 1-65535), "
+            f"got {address!r}") in capsys.readouterr().err
 
 
 def test_tutor_figures_take_commas_and_name_an_unknown_one(capsys: pytest.CaptureFixture[str],

@@ -43,7 +43,7 @@ def test_info_on_a_crashed_log(crashed: Path, capsys: pytest.CaptureFixture[str]
     assert "session:    cli-1 (resumes old.mcap)" in out
     assert any(line.split()[:1] == ["/breaths"] and line.split()[-1] == "4" for line in out.splitlines())
     # The walked (breath-clock) time beside the log's wall time: breaths at 0-3 s.
-    assert "walked:     0.0 – 0.1 min of the session's breath clock (0.1 min in this log)" in out
+    assert "walked:     0.1 min of breaths (breath clock 0.0 – 0.1 min)" in out
 
 
 def test_info_json(crashed: Path, capsys: pytest.CaptureFixture[str]) -> None:

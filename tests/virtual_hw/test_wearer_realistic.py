@@ -467,3 +467,9 @@ def test_steps_to_and_from_standing_have_a_phase_i_and_walking_steps_do_not() ->
     w.apply_params(x, t3)  # the next walking setting: first-order again
     assert w.metabolic_rate_w(t3 + w.tau_s) == pytest.approx(c + (m3 - c) * math.exp(-1.0), rel=1e-9)
     assert w.subject["phase1_s"] == 15.0 and w.subject["phase1_share"] == 0.2
+    # A stand and a walk at the same instant replace each other: a walking step, first-order.
+    t4 = t3 + 600.0
+    m4 = w.metabolic_rate_w(t4)
+    w.stand(t4)
+    w.apply_params(y, t4)
+    assert w.metabolic_rate_w(t4 + w.tau_s) == pytest.approx(c_y + (m4 - c_y) * math.exp(-1.0), rel=1e-9)
