@@ -117,6 +117,7 @@ __all__ = [
     "SpaceConfig",
     "WatchdogConfig",
     "add_config_parser",
+    "check_cart_file",
     "check_out_dir",
     "config_warnings",
     "example_config_text",
@@ -1420,7 +1421,7 @@ def _cmd_check(args: argparse.Namespace, out: TextIO | None = None, err: TextIO 
     # The cart file is part of the config: "config OK" only once it has been read as the
     # session would read it.
     cart = io.StringIO()
-    if _check_cart_file(cfg, cart, err) != 0:
+    if check_cart_file(cfg, cart, err) != 0:
         out.write(cart.getvalue())
         return 1
     out.write(f"config OK: {cfg.source}\n{summarize(cfg)}\n{cart.getvalue()}")
@@ -1443,17 +1444,22 @@ def _cmd_check(args: argparse.Namespace, out: TextIO | None = None, err: TextIO 
     return 0
 
 
-def _check_cart_file(cfg: HilboConfig, out: TextIO, err: TextIO) -> int:
-    """A replay config: open the file as the session would; show its first records and rejects."""
+def check_cart_file(cfg: HilboConfig, out: TextIO, err: TextIO, prog: str = "hilbo config check") -> int:
+    """A replay config: open the file as the session would; show its first records and rejects.
+
+    Returns:
+        0 when the file is usable (or the cart is not a file), else 1 after one line on ``err``
+        that starts with ``prog``.
+    """
     from drivers.cart.inspect import inspect_config
 
     try:
         report = inspect_config(cfg.cart)
     except DriverConfigError as exc:
-        err.write(f"hilbo config check: [cart] file does not fit the config: {exc}\n")
+        err.write(f"{prog}: [cart] file does not fit the config: {exc}\n")
         return 1
     except OSError as exc:
-        err.write(f"hilbo config check: cannot read cart.options.path {cfg.cart.options.path}: "
+        err.write(f"{prog}: cannot read cart.options.path {cfg.cart.options.path}: "
                   f"{exc.strerror or exc}\n")
         return 1
     if report is None:
@@ -1465,7 +1471,7 @@ def _check_cart_file(cfg: HilboConfig, out: TextIO, err: TextIO) -> int:
         check_breath_spacing([r.t_s for r in report.records[:SPACING_BREATHS]],
                              source=f"cart file {report.path}")
     except CartError as exc:
-        err.write(f"hilbo config check: {exc}\n")
+        err.write(f"{prog}: {exc}\n")
         return 1
     by_reason = ", ".join(f"{k} {v}" for k, v in report.rejects.most_common())
     out.write(f"cart file {report.path}: {len(report.records)} breaths read, {report.n_rejected} "
@@ -1475,7 +1481,7 @@ def _check_cart_file(cfg: HilboConfig, out: TextIO, err: TextIO) -> int:
     for reason, examples in report.reject_examples.items():
         out.write(f"          reject {reason}: {examples[0]}\n")
     if not report.records:
-        err.write(f"hilbo config check: every record of {report.path} is rejected; check [cart] "
+        err.write(f"{prog}: every record of {report.path} is rejected; check [cart] "
                   "format and the [cart.csv] units and time format\n")
         return 1
     return 0

@@ -322,11 +322,20 @@ async def run_session(
                     if operator_present else None
                 if not operator_present:
                     session.status.listeners.append(_headless_line(session))
+                failure: Exception | None = None
                 try:
                     summary = await session.run()
                     if validation is not None:
                         summary["validation"] = validation.results(session)
                         validation.label_summary(summary)
+                except Exception as err:  # recorded, then raised again below
+                    # A session that has started writes its summary whatever ends it (the
+                    # evaluations it completed are the lab's data); the error goes on up.
+                    failure = err
+                    text = _leaf_text(err)
+                    log.log_event("session_error", f"the session failed: {text}")
+                    summary = session.summary()
+                    summary["error"] = text
                 finally:
                     if view is not None:
                         view.cancel()
@@ -335,4 +344,13 @@ async def run_session(
     summary.update(session_id=session_id, log=str(path), previous_log=previous,
                    config_source=str(cfg.source))
     write_json_atomic(summary_path, summary, mode=cfg.session.file_mode_bits)
+    if failure is not None:
+        raise failure
     return RunResult(path, summary_path, summary)
+
+
+def _leaf_text(err: BaseException) -> str:
+    """The message of the error that ended a session (the first leaf of a task group's)."""
+    while isinstance(err, BaseExceptionGroup) and err.exceptions:
+        err = err.exceptions[0]
+    return str(err) or type(err).__name__

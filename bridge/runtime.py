@@ -473,8 +473,17 @@ class BridgeSession:
                                mode=self.collector.mode.value, **self.collector.stats.to_json())
             with contextlib.suppress(DriverError):
                 await self.endpoint.stop_heartbeat()
-        # The state the summary's recommendation comes from (a fit made ahead may have been
-        # applied since the last evaluation's snapshot): `hilbo review` recommends from it too.
+            if not ok:
+                # A failed session's log still says how it ended (the error goes on up to the
+                # caller, which writes the summary: bridge/run.py).
+                self._log_end()
+        self._log_end()
+        return self.summary()
+
+    def _log_end(self) -> None:
+        """The end of the session in the log: the optimizer's last state (a fit made ahead may
+        have been applied since the last evaluation's snapshot; `hilbo review` recommends from
+        it) and the ``session_end`` event."""
         self.log.log_optimizer_state(self.opt, reason="end")
         loop = self.loop_monitor.stats
         reason = self.end_reason or SessionEnd.OPERATOR_STOP
@@ -482,7 +491,6 @@ class BridgeSession:
                     f"evaluations; worst event-loop stall {loop.worst_stall_ms:.1f} ms",
                     loop=loop.to_json(), end_reason=reason.value,
                     walking=self.protocol.walking.to_json())
-        return self.summary()
 
     def _status_from_optimizer(self) -> None:
         """The operator view of a resumed session starts from what the log holds: the

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import io
 import logging
 import os
 import sys
@@ -126,7 +127,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
     from rich.console import Console
 
-    from bridge.config import check_out_dir, config_warnings, load_config
+    from bridge.config import check_cart_file, check_out_dir, config_warnings, load_config
     from bridge.run import keyboard_present, run_session
 
     console = Console(stderr=True, markup=False, highlight=False, soft_wrap=True)
@@ -137,6 +138,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
         check_out_dir(args.out, "--out")
     else:
         check_out_dir(cfg.session.out_dir)
+    # A replayed cart file is read as `hilbo config check` reads it before the session starts:
+    # a file that does not fit [cart] is refused without a log of nothing.
+    if check_cart_file(cfg, io.StringIO(), sys.stderr, prog="hilbo run") != 0:
+        return 1
     if args.live:
         cfg = dataclasses.replace(cfg, live=msgspec.structs.replace(cfg.live, enabled=True))
     if cfg.live.enabled:

@@ -50,7 +50,7 @@ def ended_text(s: dict[str, Any]) -> str:
         # The recommendation measured in full in the session's last minutes: its own breaths.
         text += f"\nrecommended, confirmed at {conf['mean_w']:.1f} ± {conf['sd_w']:.1f} W (SD)"
     elif not n_all:
-        text += f"\nno evaluation completed: nothing to recommend (exit status {EXIT_NOTHING_MEASURED})"
+        text += f"\nno evaluation completed: nothing to recommend (exit status {run_exit_status(s)})"
     return text
 
 

@@ -52,6 +52,8 @@ def test_the_end_of_hilbo_run_says_why_what_to_set_and_the_minutes_walked() -> N
     # Ctrl-C (or SIGTERM): 130, as the README says, whatever was measured.
     assert session_end.run_exit_status({**summary, "end_reason": "interrupted"}) == 130
     assert session_end.run_exit_status({**nothing, "end_reason": "interrupted"}) == 130
+    assert session_end.ended_text({**nothing, "end_reason": "interrupted"}).endswith(
+        "nothing to recommend (exit status 130)")
 
 
 def test_the_last_lines_of_hilbo_run_give_the_confirmed_recommendation() -> None:

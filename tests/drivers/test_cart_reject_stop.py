@@ -8,12 +8,14 @@ naming a missing column used to end in a 51-line ExceptionGroup traceback.
 from __future__ import annotations
 
 import asyncio
+import json
 import re
 from pathlib import Path
 
 import pytest
 
 import bridge.cli.main as cli
+from bridge.log.reader import read_log
 from drivers.cart import BreathStream, CartConfig
 from drivers.cart.errors import CartError
 from drivers.errors import DriverError
@@ -133,16 +135,42 @@ def test_missing_column_is_one_line_naming_it_and_the_columns(tmp_path: Path,
 
 @pytest.mark.parametrize(("extra", "expected"), [
     ('hr_column = "HR"', "no column 'HR' in the header; the file's columns are: 't', 'VO2', 'VCO2', 'R'"),
-    ('vo2_unit = "l/min"\nvco2_unit = "l/min"', "the first 20 records were all rejected"),
+    ('vo2_unit = "l/min"\nvco2_unit = "l/min"', "every record of"),
 ])
-def test_hilbo_run_stops_with_the_cart_message_no_traceback(
+def test_hilbo_run_refuses_a_cart_file_that_does_not_fit_before_it_starts(
         tmp_path: Path, capsys: pytest.CaptureFixture[str], extra: str, expected: str) -> None:
-    """A whole `hilbo run` (python-can virtual bus, no exosuit): the cart task ends the session."""
+    """The replayed file is read as `hilbo config check` reads it, before any log is made."""
     cfg = _config_toml(tmp_path, _write_csv(tmp_path / "a.csv"), extra)
     rc = cli.main(["run", str(cfg), "--no-view"])
     err = capsys.readouterr().err
     assert rc == 1
-    assert expected in err
+    assert expected in err and err.startswith("hilbo run: ")
+    assert "Traceback" not in err and "ExceptionGroup" not in err
+    assert not list((tmp_path / "out").glob("*.mcap"))
+
+
+def test_a_session_that_fails_after_it_started_writes_its_summary(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    """A whole `hilbo run` (python-can virtual bus, no exosuit) whose cart fails once running:
+    one line, exit 1, and the log and the summary (with the error) are written."""
+    from bridge.runtime import BridgeSession
+
+    async def unplugged(self: BridgeSession) -> None:
+        raise CartError("the cart's link failed (unplugged in this test)")
+
+    monkeypatch.setattr(BridgeSession, "_cart_task", unplugged)
+    cfg = _config_toml(tmp_path, _write_csv(tmp_path / "a.csv"), "")
+    rc = cli.main(["run", str(cfg), "--no-view"])
+    err = capsys.readouterr().err
+    assert rc == 1
+    assert "hilbo run: error: the cart's link failed (unplugged in this test)" in err
     assert "Traceback" not in err and "ExceptionGroup" not in err
     # The log was named as the session began (what a crash would leave to resume).
-    assert re.search(r"^hilbo run: log \S+\.mcap$", err, flags=re.M), err
+    found = re.search(r"^hilbo run: log (\S+\.mcap)$", err, flags=re.M)
+    assert found, err
+    log_path = Path(found.group(1))
+    summary = json.loads(log_path.with_suffix(".summary.json").read_text())
+    assert "unplugged in this test" in summary["error"] and summary["end_reason"] == "error"
+    assert summary["n_evaluations"] == 0 and summary["log"] == str(log_path)
+    kinds = [e["kind"] for e in read_log(log_path).data("/events")]
+    assert kinds[-2:] == ["session_end", "session_error"]
