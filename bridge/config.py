@@ -414,6 +414,17 @@ class ProtocolConfig(msgspec.Struct, **_STRUCT):
         if isinstance(w, bool) or not isinstance(w, int) or not 0 <= w < self.max_breaths:
             raise ValueError(f"window = {w!r}: expected an integer in "
                              f"{range_text(0, self.max_breaths - 1)}")
+        if self.session_min is not None and 60.0 * self.session_min <= self.warmup_s:
+            raise ValueError(f"session_min = {self.session_min:g}: expected more minutes than the "
+                             f"warm-up (warmup_s = {self.warmup_s:g} s): the session would end "
+                             "before its first setting")
+        ends = {k: v for k, v in (("budget_min", self.budget_min), ("session_min", self.session_min))
+                if v is not None}
+        if self.confirm_min and ends and self.confirm_min >= min(ends.values()):
+            key = min(ends, key=ends.__getitem__)
+            raise ValueError(f"confirm_min = {self.confirm_min:g}: expected fewer minutes than "
+                             f"{key} = {ends[key]:g} (the confirmation is the end of the session's "
+                             "optimisation time, not all of it)")
 
     @property
     def protocol_kind(self) -> ProtocolKind:
@@ -1129,12 +1140,23 @@ def _cross_check(cfg: HilboConfig) -> None:
                 f"limits.actuators.{name}: the {space.name!r} profile has no actuator {name!r}{hint}; "
                 f"its actuators: {', '.join(actuators)}"
             )
-    verdict = cfg.make_gate().verdict(centre)
+    gate = cfg.make_gate()
+    verdict = gate.verdict(centre)
     if not verdict.ok:
         raise BridgeConfigError(
             f"limits: even the centre of the space ({', '.join(f'{k}={v:.4g}' for k, v in centre.items())}) "
             f"is refused: {verdict.describe()}. Widen [limits] or narrow [space]"
         )
+    generic = cfg.validation.generic
+    if generic is not None:
+        # The validation walk's FIX passes the same gate: refused there, the walk would lose
+        # its condition in front of the participant.
+        verdict = gate.verdict(dict(generic))
+        if not verdict.ok:
+            raise BridgeConfigError(
+                f"validation.generic = {{{', '.join(f'{k} = {v:g}' for k, v in generic.items())}}}: "
+                f"expected a setting [limits] lets through, but it is refused: {verdict.describe()}"
+            )
 
 
 MAX_CONFIG_BYTES = 1 << 20

@@ -23,12 +23,13 @@ def test_the_example_runs_the_fast_protocol() -> None:
 
 
 def test_the_seed_protocol_by_name_and_by_the_seeds_rules() -> None:
-    # The protocol's values where the config does not give them (the example gives the fast ones).
+    # The protocol's values where the config does not give them (the example leaves them to the
+    # rule's defaults: changing the rule there changes the protocol with it).
     example = example_config_text()
-    for key in ("n_explore", "pause_between_bouts"):
-        example = "\n".join(line for line in example.splitlines() if not line.startswith(key))
-    for extra in ('protocol = "seed"\n', ''):
-        text = example.replace('protocol = "fast"', extra.strip() or "")
+    assert not any(line.startswith(("protocol =", "n_explore", "pause_between_bouts"))
+                   for line in example.splitlines())
+    for extra in ('protocol = "seed"', ''):
+        text = example.replace("[protocol]\n", f"[protocol]\n{extra}\n")
         if not extra:
             text = text.replace('stopping = "sound"', 'stopping = "adaptive"')
         pr = parse_config(text).protocol
@@ -72,3 +73,16 @@ def test_the_gp_prior_mean_follows_the_rule_unless_given() -> None:
 def test_a_bad_gp_prior_mean_names_the_key_and_its_range(bad: str) -> None:
     with pytest.raises(BridgeConfigError, match="prior_mean_sd"):
         _cfg(f"prior_mean_sd = {bad}\n")
+
+
+@pytest.mark.parametrize(("extra", "needle"), [
+    ("session_min = 2.5\n", "protocol.session_min = 2.5: expected more minutes than the warm-up "
+                            "(warmup_s = 180 s)"),
+    ("confirm_min = 40\n", "protocol.confirm_min = 40: expected fewer minutes than budget_min = 40"),
+    ("confirm_min = 20\nsession_min = 15\n", "protocol.confirm_min = 20: expected fewer minutes than "
+                                            "session_min = 15"),
+])
+def test_protocol_times_that_leave_no_session_are_refused(extra: str, needle: str) -> None:
+    with pytest.raises(BridgeConfigError) as exc:
+        _cfg(extra)
+    assert needle in str(exc.value)

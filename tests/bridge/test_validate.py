@@ -241,6 +241,14 @@ def test_a_generic_setting_outside_the_space_is_refused_by_the_config() -> None:
         parse_config(text)
     with pytest.raises(BridgeConfigError, match=r"generic: expected every parameter .*missing F_f"):
         parse_config(text.replace(", F_f = 0.5", "").replace("t_p = 52.0", "t_p = 27.0"))
+    # In the space but above [limits]: the gate would refuse FIX during the walk.
+    over = text.replace("t_p = 52.0", "t_p = 27.0").replace("F_p = 120.0", "F_p = 240.0")
+    assert "[limits]" not in over
+    over += "\n[limits]\nmax_force_n = 200.0\n"
+    with pytest.raises(BridgeConfigError, match=r"validation.generic = \{t_on = 10, t_p = 27, .*F_p = 240.*"
+                                                r"expected a setting \[limits\] lets through, but it is "
+                                                r"refused: .*exceeds max_force_n = 200 N"):
+        parse_config(over)
 
 
 @pytest.mark.slow
