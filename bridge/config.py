@@ -93,7 +93,7 @@ from hilbo_core.priors import (
     priors_from_evaluations,
     priors_from_rows,
 )
-from hilbo_core.profiles import PROFILE_BUILDERS, build_profile
+from hilbo_core.profiles import PROFILE_BUILDERS, PROFILE_DOMAINS, build_profile
 from hilbo_core.protocol import (
     DEFAULT_BREATH_INTERVAL_S,
     ProtocolKind,
@@ -270,6 +270,14 @@ def _parse_space(data: object) -> SpaceConfig:
             except ConfigError as err:
                 raise BridgeConfigError(f"space.parameters[{i}]: {err}") from err
         derived = _parse_texts(t.derived or (), "space.derived", DerivedParameter.parse)
+    domains = PROFILE_DOMAINS.get(name, {})
+    for i, par in enumerate(params):
+        dom = domains.get(par.name)
+        if dom is not None and not dom.contains(par.lower, par.upper):
+            key = f"space.bounds.{par.name}" if t.preset is not None else f"space.parameters[{i}]"
+            raise BridgeConfigError(
+                f"{key} = [{par.lower:g}, {par.upper:g}]: expected {dom.text(par.name)} (what the "
+                f"{name!r} force-profile builder can build; a setting outside is never sent)")
     try:
         space = ParameterSpace(params, constraints, derived, name=name)
     except (ConfigError, InfeasibleError) as err:

@@ -17,6 +17,8 @@ from hilbo_core.errors import ConfigError, InfeasibleError
 
 __all__ = [
     "PROFILE_BUILDERS",
+    "PROFILE_DOMAINS",
+    "Domain",
     "ForceProfile",
     "build_profile",
     "hip_ankle_profiles",
@@ -136,9 +138,9 @@ def hip_ankle_profiles(
     except KeyError as err:
         raise ConfigError(f"hip_ankle profile needs parameter {err.args[0]!r}") from err
     t3 = float(params.get("ankle_t3", t2 + 10.0))
-    if not (0 < tp < toff <= 100 and t1 < t2 <= t3 < 100):
+    if not (0 < tp < toff <= 100 and 0 <= t1 < t2 <= t3 < 100):
         raise InfeasibleError(
-            f"need 0 < hip_t_peak < hip_t_offset <= 100 and ankle_t1 < ankle_t2 <= ankle_t3 < 100, "
+            f"need 0 < hip_t_peak < hip_t_offset <= 100 and 0 <= ankle_t1 < ankle_t2 <= ankle_t3 < 100, "
             f"got {tp}, {toff}, {t1}, {t2}, {t3}"
         )
     if not 20.0 <= body_mass_kg <= 250.0:
@@ -172,6 +174,45 @@ PROFILE_BUILDERS: dict[str, Callable[..., tuple[ForceProfile, ...]]] = {
     "hip_6d": _hip_6d,
     "hip_ankle_4d": _hip_ankle_4d,
 }
+
+
+@dataclass(frozen=True)
+class Domain:
+    """The values one builder parameter may take on its own (the builders' checks above; the
+    orderings between parameters are the space's constraints)."""
+
+    low: float
+    high: float
+    low_open: bool = False
+    high_open: bool = False
+
+    def contains(self, lower: float, upper: float) -> bool:
+        """Whether the whole range [lower, upper] is inside the domain."""
+        lo_ok = lower > self.low if self.low_open else lower >= self.low
+        hi_ok = upper < self.high if self.high_open else upper <= self.high
+        return lo_ok and hi_ok
+
+    def text(self, name: str) -> str:
+        """E.g. ``0 < F_p`` or ``0 <= t_on < 100``."""
+        lo = "" if math.isinf(self.low) else f"{self.low:g} {'<' if self.low_open else '<='} "
+        hi = "" if math.isinf(self.high) else f" {'<' if self.high_open else '<='} {self.high:g}"
+        return f"{lo}{name}{hi}"
+
+
+PROFILE_DOMAINS: dict[str, dict[str, Domain]] = {
+    # hip_spline_profile: 0 <= t_on < t_p < t_off <= 100, F_p > 0, node ratios in (0, 1).
+    "hip_6d": {"t_on": Domain(0.0, 100.0, high_open=True), "t_p": Domain(0.0, 100.0, True, True),
+               "t_off": Domain(0.0, 100.0, low_open=True), "F_p": Domain(0.0, math.inf, True, True),
+               "F_r": Domain(0.0, 1.0, True, True), "F_f": Domain(0.0, 1.0, True, True)},
+    # hip_ankle_profiles: 0 < hip_t_peak < hip_t_offset <= 100, ankle_t1 < ankle_t2 <= ankle_t3 < 100
+    # with ankle_t3 = ankle_t2 + 10 unless given.
+    "hip_ankle_4d": {"hip_t_peak": Domain(0.0, 100.0, True, True),
+                     "hip_t_offset": Domain(0.0, 100.0, low_open=True),
+                     "ankle_t1": Domain(0.0, 100.0, high_open=True),
+                     "ankle_t2": Domain(0.0, 90.0, True, True)},
+}
+"""Per builder, the values each parameter may take on its own: a [space] whose range leaves them
+builds no profile there (checked when a config is loaded)."""
 
 
 def build_profile(space_name: str, params: Mapping[str, float], **kwargs: object) -> tuple[ForceProfile, ...]:

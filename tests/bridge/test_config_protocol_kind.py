@@ -86,3 +86,16 @@ def test_protocol_times_that_leave_no_session_are_refused(extra: str, needle: st
     with pytest.raises(BridgeConfigError) as exc:
         _cfg(extra)
     assert needle in str(exc.value)
+
+
+@pytest.mark.parametrize(("bounds", "needle"), [
+    ("F_p = [-50.0, 250.0]", "space.bounds.F_p = [-50, 250]: expected 0 < F_p (what the 'hip_6d' "
+                             "force-profile builder can build"),
+    ("t_on = [-2.0, 25.0]", "space.bounds.t_on = [-2, 25]: expected 0 <= t_on < 100"),
+    ("F_r = [0.3, 1.0]", "space.bounds.F_r = [0.3, 1]: expected 0 < F_r < 1"),
+])
+def test_space_bounds_the_profile_builder_cannot_build_are_refused(bounds: str, needle: str) -> None:
+    text = example_config_text().replace("F_p = [50.0, 250.0]", bounds, 1)
+    with pytest.raises(BridgeConfigError) as exc:
+        parse_config(text)
+    assert needle in str(exc.value)

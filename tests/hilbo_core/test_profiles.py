@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from hilbo_core.errors import ConfigError, InfeasibleError
 from hilbo_core.presets import hip_6d, hip_ankle_4d
-from hilbo_core.profiles import build_profile, hip_ankle_profiles, hip_spline_profile
+from hilbo_core.profiles import PROFILE_DOMAINS, build_profile, hip_ankle_profiles, hip_spline_profile
 
 
 def test_hip_profile_passes_through_the_nodes() -> None:
@@ -63,3 +63,23 @@ def test_unknown_space_and_immutability() -> None:
     (p,) = build_profile("hip_6d", {"t_on": 2, "t_p": 24, "t_off": 40, "F_p": 223, "F_r": 0.6, "F_f": 0.45})
     with pytest.raises(ValueError):
         p.force_n[0] = 5.0
+
+
+@pytest.mark.parametrize("name", sorted(PROFILE_DOMAINS))
+def test_each_builders_domain_holds_its_preset_and_its_edges_build_or_fail_as_declared(name: str) -> None:
+    from hilbo_core.presets import preset
+
+    space = preset(name)
+    domains = PROFILE_DOMAINS[name]
+    assert set(domains) <= set(space.names)
+    for par in space.parameters:
+        if par.name in domains:
+            assert domains[par.name].contains(par.lower, par.upper), par
+    # A parameter just outside its domain (the others at the preset's centre) is not built.
+    centre = space.to_dict(space.from_unit(np.full(space.dim, 0.5)))
+    build_profile(name, centre)
+    for pname, dom in domains.items():
+        for outside in (dom.low - 1.0, dom.high + 1.0):
+            if np.isfinite(outside):
+                with pytest.raises((InfeasibleError, ConfigError)):
+                    build_profile(name, {**centre, pname: outside})
