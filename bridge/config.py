@@ -57,6 +57,7 @@ import msgspec
 import numpy as np
 from msgspec import Meta
 
+from bridge.argtypes import nonnegative_int
 from bridge.collector import GcMode
 from bridge.errors import BridgeConfigError
 from bridge.outcome import format_params
@@ -1292,12 +1293,20 @@ def check_out_dir(path: str | Path, what: str = "session.out_dir") -> Path:
 def config_warnings(cfg: HilboConfig) -> list[str]:
     """What is valid but probably wrong: one line each (``hilbo config check``, ``hilbo run``).
 
-    Today: a live view bound to an address other machines can reach (its stream is not
-    authenticated and carries health data), and ``watchdog.bus_error = "pause"``, which is not
-    implemented (:class:`BusErrorPolicy`). A force limit above the exosuit's rated force is an
+    Today: ``accept_z`` given with the accept stop off, files readable by other users
+    (``session.file_mode``), a live view bound to an address other machines can reach (its
+    stream is not authenticated and carries health data), and ``watchdog.bus_error = "pause"``,
+    which is not implemented (:class:`BusErrorPolicy`). A force limit above the exosuit's rated force is an
     error, not a warning (``[limits] rated_force_n``).
     """
     out: list[str] = []
+    pr = cfg.protocol
+    if not pr.accept_stop and pr.accept_z is not None:
+        out.append(f"protocol.accept_z = {pr.accept_z:g} has no effect with accept_stop = false (no "
+                   "setting ends early for being better); remove one of them")
+    if cfg.session.file_mode_bits & 0o077:
+        out.append(f"session.file_mode = {cfg.session.file_mode!r} lets other users of this PC read the "
+                   "session's files (breaths, heart rate: health data); 0600 keeps them to you")
     if cfg.watchdog.bus_error is BusErrorPolicy.PAUSE:
         out.append("watchdog.bus_error = 'pause' is not implemented yet: a CAN bus failure commands "
                    "assistance-off and ends the session; continue it with hilbo run --resume once "
@@ -1542,7 +1551,7 @@ def add_config_parser(subparsers: Any) -> argparse.ArgumentParser:
                     "the space the limits refuse. Exit status 0 if valid, 1 if not.",
     )
     check.add_argument("config", help="CONFIG.toml, or - to read standard input")
-    check.add_argument("--samples", type=int, default=256,
+    check.add_argument("--samples", type=nonnegative_int, default=256,
                        help="settings to sample for the limits pre-flight (default 256; 0 skips it)")
     check.set_defaults(func=_cmd_check)
     return parser

@@ -54,6 +54,16 @@ class TcpOptions:
         check_declared(self)
         if not isinstance(self.backoff, Backoff):
             raise DriverConfigError(f"backoff = {self.backoff!r}: expected a Backoff table")
+        _check_host(self.host, self.port)
+
+
+def _check_host(host: str, port: int) -> None:
+    """A host with its port glued on (``127.0.0.1:5050``) would only fail at connect time as an
+    unknown name; the port has its own key. (IPv6 literals go in brackets or bare, e.g. ``::1``.)"""
+    name, sep, tail = host.rpartition(":")
+    if sep and tail.isdigit() and name and not (":" in name and not name.endswith("]")):
+        raise DriverConfigError(f"host = {host!r}: expected a host name or address without a port "
+                                f"(the port is its own key, port = {port} here)")
 
 
 class TcpTransport(CartTransport):

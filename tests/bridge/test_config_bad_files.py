@@ -3,6 +3,7 @@ needs; ``~`` in ``out_dir``; a warning for a live view other machines can reach.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pytest
@@ -145,3 +146,26 @@ def test_a_damaged_line_is_a_config_error_or_a_config(line: int, value: str) -> 
         assert str(err)
     else:
         assert cfg.source == "fuzz.toml"
+
+
+@pytest.mark.parametrize(("keys", "start"), [
+    ("accept_stop = false\naccept_z = 2.5", "protocol.accept_z = 2.5 has no effect"),
+    ('file_mode = "0644"', "session.file_mode = '0644' lets other users"),
+])
+def test_settings_that_do_nothing_or_expose_health_data_are_warned_about(keys: str, start: str) -> None:
+    assert not config_warnings(parse_config(example_config_text()))
+    text = example_config_text()
+    for line in keys.splitlines():  # the example's own line of that key, replaced
+        key = line.split("=")[0].strip()
+        text = re.sub(rf"(?m)^#? ?{key} = .*$", line, text, count=1)
+        assert line in text
+    found = [w for w in config_warnings(parse_config(text)) if w.startswith(start)]
+    assert len(found) == 1
+
+
+def test_a_cart_host_with_a_port_is_refused_naming_both() -> None:
+    text = example_config_text().replace('host = "127.0.0.1" ', 'host = "127.0.0.1:5050" ', 1)
+    with pytest.raises(BridgeConfigError, match=r"cart.options.host = '127.0.0.1:5050': expected a host "
+                                                r"name or address without a port \(the port is its own "
+                                                r"key, port = 5050 here\)"):
+        parse_config(text)
