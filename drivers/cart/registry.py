@@ -7,6 +7,7 @@ protocol in a lab-specific package) without touching this module.
 
 from __future__ import annotations
 
+import difflib
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -65,7 +66,9 @@ def transport_spec(name: object, where: str = "transport") -> TransportSpec:
     """
     if not isinstance(name, str) or name not in TRANSPORTS:
         allowed = ", ".join(repr(n) for n in sorted(TRANSPORTS))
-        raise DriverConfigError(f"{where} = {name!r}: expected one of {allowed}")
+        close = difflib.get_close_matches(str(name), sorted(TRANSPORTS), n=1, cutoff=0.6)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        raise DriverConfigError(f"{where} = {name!r}{hint}: expected one of {allowed}")
     return TRANSPORTS[name]
 
 

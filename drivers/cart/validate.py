@@ -70,18 +70,18 @@ class PhysioLimits:
             value = getattr(self, f.name)
             if not isinstance(value, tuple | list) or len(value) != 2:
                 raise DriverConfigError(
-                    f"limits.{f.name} = {value!r}: expected a pair [low, high] of numbers"
+                    f"{f.name} = {value!r}: expected a pair [low, high] of numbers"
                 )
-            lo = number(value[0], f"limits.{f.name}[0]", lo=0.0)
-            hi = number(value[1], f"limits.{f.name}[1]", lo=0.0)
+            lo = number(value[0], f"{f.name}[0]", lo=0.0)
+            hi = number(value[1], f"{f.name}[1]", lo=0.0)
             if not lo < hi:
                 raise DriverConfigError(
-                    f"limits.{f.name} = {value!r}: expected low < high, got {lo:g} >= {hi:g}"
+                    f"{f.name} = [{lo:g}, {hi:g}]: expected [low, high] with low < high"
                 )
             object.__setattr__(self, f.name, (lo, hi))
         if self.vo2_ml_min[0] <= 0.0:
             raise DriverConfigError(
-                f"limits.vo2_ml_min = {self.vo2_ml_min!r}: the low bound must be > 0 "
+                f"vo2_ml_min = {list(self.vo2_ml_min)!r}: the low bound must be > 0 "
                 "(the RER check divides by VO2)"
             )
 
@@ -97,7 +97,7 @@ class PhysioLimits:
         try:
             return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in data.items()})
         except DriverConfigError as err:
-            raise DriverConfigError(f"{where}: {err}") from err
+            raise DriverConfigError(f"{where}.{err}") from err  # "cart.limits.hr_bpm = ..."
 
 
 @dataclass(frozen=True, slots=True)

@@ -280,6 +280,8 @@ def test_config_from_dict_full() -> None:
         ),
         ({"transport": "usb"},
          r"cart.transport = 'usb': expected one of 'lsl', 'replay', 'serial', 'tcp', 'udp'"),
+        ({"transport": "tpc"},
+         r"cart.transport = 'tpc' \(did you mean 'tcp'\?\): expected one of 'lsl', 'replay'"),
         ({"options": {}}, "cart: missing required key 'transport'"),
         (
             {"transport": "tcp", "options": {"host": "h"}},

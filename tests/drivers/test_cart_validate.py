@@ -168,7 +168,7 @@ def test_custom_limits_from_config() -> None:
     ("data", "match"),
     [
         ({"heart_rate": [30, 200]}, "unknown key limits.heart_rate = "),
-        ({"hr_bpm": [200, 30]}, r"limits.hr_bpm = \(200, 30\): expected low < high"),
+        ({"hr_bpm": [200, 30]}, r"^limits.hr_bpm = \[200, 30\]: expected \[low, high\] with low < high"),
         ({"hr_bpm": 200}, "expected a pair"),
         ({"hr_bpm": [30, "x"]}, r"hr_bpm\[1\] = 'x'"),
         ({"vo2_ml_min": [0, 8000]}, "must be > 0"),
