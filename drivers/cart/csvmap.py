@@ -295,9 +295,13 @@ class CsvBreathParser:
     def _resolve(self, names: list[str]) -> dict[str, int]:
         absent = [c for c in self.mapping.mapped_columns if c not in names]
         if absent:
+            m = self.mapping
+            keys = [k for k in ("time_column", "vo2_column", "vco2_column", "ve_column", "rer_column",
+                                "hr_column") if getattr(m, k) in absent]
+            given = ", ".join(f"csv.{k} = {getattr(m, k)!r}" for k in keys)
             raise DriverConfigError(
-                f"csv: no column {' or '.join(map(repr, absent))} in the header; the file's columns "
-                f"are: {_listed(names)}"
+                f"{given}: no column {' or '.join(map(repr, absent))} in the header; the file's "
+                f"columns are: {_listed(names)}"
             )
         return {c: names.index(c) for c in self.mapping.mapped_columns}
 
