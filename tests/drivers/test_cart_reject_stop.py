@@ -129,7 +129,8 @@ def test_missing_column_is_one_line_naming_it_and_the_columns(tmp_path: Path,
     cfg = _config_toml(tmp_path, _write_csv(tmp_path / "a.csv"), 'hr_column = "HR"')
     assert cli.main(["config", "check", str(cfg), "--samples", "0"]) == 1
     err = capsys.readouterr().err
-    assert "csv.hr_column = 'HR': no column 'HR' in the header; the file's columns are: 't', 'VO2', 'VCO2', 'R'" in err
+    assert ("csv.hr_column = 'HR': no column 'HR' in the header; the file's columns are: 't', 'VO2', "
+            "'VCO2', 'R'") in err
     assert "Traceback" not in err
 
 
