@@ -139,6 +139,8 @@ def dry_run_config(work: Path, *, cart_port: int, can_url: str, **more: str) -> 
     text = example_config_text()
     changes = {"out_dir": f'"{work / "sessions"}"', "port": str(cart_port),
                "interface": '"remote"', "channel": f'"{can_url}"', **PROTOCOL, **more}
+    # The protocol keys the example leaves to the rule's defaults (commented out) are set here.
+    text = re.sub(r"(?m)^# (protocol|n_explore|pause_between_bouts) = ", r"\1 = ", text)
     for key, value in changes.items():
         text, n = re.subn(rf"(?m)^{key}\s*=\s*[^#\n]*", f"{key} = {value} ", text)
         assert n == 1, key

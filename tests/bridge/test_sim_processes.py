@@ -307,6 +307,8 @@ def example_for_a_test(tmp_path: Path, *, cart_port: int, can_url: str | None) -
                "device_heartbeat_timeout_ms": "1000.0"}
     if can_url is not None:
         changes.update(interface='"remote"', channel=f'"{can_url}"')
+    # The protocol keys the example leaves to the rule's defaults (commented out) are set here.
+    text = re.sub(r"(?m)^# (protocol|n_explore|pause_between_bouts) = ", r"\1 = ", text)
     for key, value in changes.items():
         text, n = re.subn(rf"(?m)^{key}\s*=\s*[^#\n]*", f"{key} = {value} ", text)
         assert n == 1, key
