@@ -179,7 +179,10 @@ def _message(text: str, data: object, cls: type, where: str) -> str:
     if what.startswith("Expected `"):
         if isinstance(table, mi.StructType | mi.DictType):
             return f"{name} = {value!r:.60}: expected a table ([{name}])"
-        return f"{name} = {value!r}: expected {expected_text(t, 'matching regex' in what)}"
+        # A string field with a pattern explains it when the text does not match, and when the
+        # value is not text at all (file_mode = 600: say what the text looks like).
+        explain = "matching regex" in what or ("Expected `str`" in what and "got `" in what)
+        return f"{name} = {value!r}: expected {expected_text(t, explain)}"
     # A ValueError of a __post_init__ ("window = 40: expected ...") or of the dec_hook ("expected ...").
     return f"{name}.{what}" if isinstance(table, mi.StructType) else f"{name} = {value!r}: {what}"
 

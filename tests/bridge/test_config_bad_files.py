@@ -169,3 +169,11 @@ def test_a_cart_host_with_a_port_is_refused_naming_both() -> None:
                                                 r"name or address without a port \(the port is its own "
                                                 r"key, port = 5050 here\)"):
         parse_config(text)
+
+
+def test_a_file_mode_given_as_a_number_says_what_the_text_looks_like() -> None:
+    text = example_config_text().replace('file_mode = "0600"', "file_mode = 600", 1)
+    assert "file_mode = 600" in text
+    with pytest.raises(BridgeConfigError, match=r'session.file_mode = 600: expected octal permission bits '
+                                                r'such as "0600"'):
+        parse_config(text)
