@@ -6,7 +6,8 @@ import argparse
 import math
 from collections.abc import Callable
 
-__all__ = ["bounded", "minutes", "nonnegative", "nonnegative_int", "positive_int", "seconds"]
+__all__ = ["bounded", "minutes", "nonnegative", "nonnegative_int", "positive_int", "seconds",
+           "two_or_more"]
 
 
 def bounded(kind: type[int] | type[float], what: str, *, low: float, high: float = math.inf,
@@ -32,4 +33,4 @@ nonnegative = bounded(float, "a number >= 0", low=0.0)
 minutes = bounded(float, "minutes in (0, 600]", low=0.0, high=600.0, low_open=True)
 nonnegative_int = bounded(int, "an integer >= 0", low=0)
 positive_int = bounded(int, "a whole number >= 1", low=1)
-
+two_or_more = bounded(int, "a whole number >= 2", low=2)

@@ -13,6 +13,7 @@ __all__ = [
     "ReviewError",
     "UnsafeProfileError",
     "UsageError",
+    "first_leaf",
 ]
 
 
@@ -51,3 +52,10 @@ class UsageError(BridgeError, ValueError):
     """The command line asks for options that do not go together, or gives a value refused before
     any work starts (``hilbo bench``): ``hilbo`` exits with status 2, like argparse's own usage
     errors (every other error, a failure at run time, is 1)."""
+
+
+def first_leaf(err: BaseException) -> BaseException:
+    """The first error inside nested exception groups (a task group's failed task), or ``err``."""
+    while isinstance(err, BaseExceptionGroup) and err.exceptions:
+        err = err.exceptions[0]
+    return err

@@ -25,6 +25,7 @@ import msgspec
 from rich.console import Console
 
 from bridge.config import HilboConfig
+from bridge.errors import first_leaf
 from bridge.live import LiveServer
 from bridge.log import DEFAULT_FILE_MODE, EventLevel, LogError, SessionLog, new_session_id
 from bridge.log.reader import read_log
@@ -332,7 +333,8 @@ async def run_session(
                     # A session that has started writes its summary whatever ends it (the
                     # evaluations it completed are the lab's data); the error goes on up.
                     failure = err
-                    text = _leaf_text(err)
+                    leaf = first_leaf(err)
+                    text = str(leaf) or type(leaf).__name__
                     log.log_event("session_error", f"the session failed: {text}")
                     summary = session.summary()
                     summary["error"] = text
@@ -347,10 +349,3 @@ async def run_session(
     if failure is not None:
         raise failure
     return RunResult(path, summary_path, summary)
-
-
-def _leaf_text(err: BaseException) -> str:
-    """The message of the error that ended a session (the first leaf of a task group's)."""
-    while isinstance(err, BaseExceptionGroup) and err.exceptions:
-        err = err.exceptions[0]
-    return str(err) or type(err).__name__

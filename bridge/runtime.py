@@ -473,11 +473,9 @@ class BridgeSession:
                                mode=self.collector.mode.value, **self.collector.stats.to_json())
             with contextlib.suppress(DriverError):
                 await self.endpoint.stop_heartbeat()
-            if not ok:
-                # A failed session's log still says how it ended (the error goes on up to the
-                # caller, which writes the summary: bridge/run.py).
-                self._log_end()
-        self._log_end()
+            # A failed session's log says how it ended too (its error goes on up to the caller,
+            # which writes the summary: bridge/run.py).
+            self._log_end()
         return self.summary()
 
     def _log_end(self) -> None:

@@ -204,7 +204,7 @@ PROFILE_DOMAINS: dict[str, dict[str, Domain]] = {
     "hip_6d": {"t_on": Domain(0.0, 100.0, high_open=True), "t_p": Domain(0.0, 100.0, True, True),
                "t_off": Domain(0.0, 100.0, low_open=True), "F_p": Domain(0.0, math.inf, True, True),
                "F_r": Domain(0.0, 1.0, True, True), "F_f": Domain(0.0, 1.0, True, True)},
-    # hip_ankle_profiles: 0 < hip_t_peak < hip_t_offset <= 100, ankle_t1 < ankle_t2 <= ankle_t3 < 100
+    # hip_ankle_profiles: 0 < hip_t_peak < hip_t_offset <= 100, 0 <= ankle_t1 < ankle_t2 <= ankle_t3 < 100
     # with ankle_t3 = ankle_t2 + 10 unless given.
     "hip_ankle_4d": {"hip_t_peak": Domain(0.0, 100.0, True, True),
                      "hip_t_offset": Domain(0.0, 100.0, low_open=True),

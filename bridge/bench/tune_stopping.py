@@ -54,7 +54,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from bridge.argtypes import bounded, nonnegative, nonnegative_int, positive_int
+from bridge.argtypes import nonnegative, nonnegative_int, positive_int, two_or_more
 from bridge.bench.traces import BreathTrace, breath_traces, exploration_groups, threshold_schedules
 from hilbo_core.errors import ConfigError
 from hilbo_core.metabolic import Estimator, MetabolicUKF
@@ -75,8 +75,6 @@ __all__ = [
     "trajectories_from_log",
     "tune_stopping",
 ]
-
-_AT_LEAST_2 = bounded(int, "a whole number >= 2", low=2)  # N: a full evaluation has 2+ breaths
 
 logger = logging.getLogger(__name__)
 
@@ -480,7 +478,7 @@ def add_tune_stopping_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--family", choices=[*(f.value for f in StoppingFamily), SOUND_FAMILY], default="k",
                    help="tune a constant K (default), the window W, or the sound rule's "
                         "min_decision_s and a_floor on its fixed clock, as sound-floor (sound)")
-    p.add_argument("--n-max", type=_AT_LEAST_2, default=None,
+    p.add_argument("--n-max", type=two_or_more, default=None,
                    help="N, breaths of a full evaluation (default: from the logs, else 45)")
     p.add_argument("--error-weight", type=nonnegative, default=2.0,
                    help="λ: cost of a wrong early stop in evaluations' time (default 2; not for "

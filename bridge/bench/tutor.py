@@ -40,7 +40,7 @@ from typing import Any
 
 import numpy as np
 
-from bridge.argtypes import bounded, nonnegative_int, positive_int
+from bridge.argtypes import nonnegative_int, positive_int, two_or_more
 from hilbo_core.errors import ConfigError
 from hilbo_core.resample import ResampleConfig, Trajectory, bo_resample
 from hilbo_core.studies.tutor import (
@@ -75,7 +75,6 @@ FIGURES: dict[str, BKTParams] = {"fig7": FIG7_STUDENTS, "fig9": FIG9_STUDENTS}
 METHODS = ("bo", "bo_resample", "fit_threshold")
 # Thresholds tried for the reference "best BKT threshold policy".
 _REFERENCE_THRESHOLDS = np.linspace(0.05, 0.99, 48)
-_AT_LEAST_2 = bounded(int, "a whole number >= 2", low=2)  # a repetition compares students
 
 
 @dataclass(frozen=True)
@@ -316,6 +315,7 @@ def _cmd_bench_tutor(args: argparse.Namespace) -> int:
     out = Path(args.out)
     console.print(f"hilbo bench tutor: {cfg.repetitions} repetitions × {cfg.students} students, "
                   f"K={cfg.resamples}, reuse ≤ {cfg.max_reuse}, t_max={cfg.t_max}")
+
     def progress(done: int, total: int, wall_s: float) -> None:
         err.print(f"  {done}/{total} repetitions, {wall_s:.0f} s")
 
@@ -349,7 +349,7 @@ def add_tutor_bench_parser(bench_subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--figures", nargs="+", default=["fig7", "fig9"], metavar="FIG",
                    help=f"student populations, from {','.join(sorted(FIGURES))} (separated by spaces "
                         "or commas; default both)")
-    p.add_argument("--students", type=_AT_LEAST_2, default=30, help="students per repetition (default 30)")
+    p.add_argument("--students", type=two_or_more, default=30, help="students per repetition (default 30)")
     p.add_argument("--reps", type=positive_int, default=30, help="repetitions (default 30)")
     p.add_argument("--resamples", type=nonnegative_int, default=10, help="K of BO-RESAMPLE (default 10)")
     p.add_argument("--max-reuse", type=nonnegative_int, default=10,

@@ -344,7 +344,7 @@ def _innermost_parser(parser: argparse.ArgumentParser, argv: Sequence[str]) -> a
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``hilbo`` console script."""
-    from bridge.errors import BridgeError, UsageError
+    from bridge.errors import BridgeError, UsageError, first_leaf
     from drivers.errors import DriverError
     from hilbo_core.errors import HilboError
 
@@ -372,10 +372,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         known = group.subgroup(lambda e: isinstance(e, HilboError | BridgeError | DriverError))
         if known is None:
             raise
-        leaf: BaseException = known
-        while isinstance(leaf, BaseExceptionGroup):
-            leaf = leaf.exceptions[0]
-        print(f"hilbo {args.command}: error: {leaf}", file=sys.stderr)
+        print(f"hilbo {args.command}: error: {first_leaf(known)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print(f"hilbo {args.command}: interrupted", file=sys.stderr)

@@ -34,7 +34,7 @@ def ended_text(s: dict[str, Any]) -> str:
     reason = s.get("end_reason")
     why = SessionEnd(reason).text if reason in {e.value for e in SessionEnd} else str(reason)
     text = f"session ended: {why}; {s['n_evaluations']} evaluations ({s['n_early_stops']} early stops)"
-    n_all = s.get("n_evaluations_session", s["n_evaluations"])
+    n_all = _n_session(s)
     if n_all > s["n_evaluations"]:  # a resumed session: the earlier logs' evaluations too
         text += f" in this run, {n_all} in the session"
     walking = s.get("walking") or {}
@@ -58,4 +58,10 @@ def run_exit_status(summary: dict[str, Any]) -> int:
     """0, or 130 for a signal's stop, or 3 for a session that measured nothing."""
     if summary.get("end_reason") == "interrupted":
         return EXIT_INTERRUPTED
-    return 0 if summary.get("n_evaluations_session", summary["n_evaluations"]) else EXIT_NOTHING_MEASURED
+    return 0 if _n_session(summary) else EXIT_NOTHING_MEASURED
+
+
+def _n_session(summary: dict[str, Any]) -> int:
+    """The session's evaluations: a resumed run's with its earlier logs' (summaries written
+    before ``n_evaluations_session`` existed have only ``n_evaluations``)."""
+    return int(summary.get("n_evaluations_session", summary["n_evaluations"]))
