@@ -17,7 +17,8 @@ Estimators:
 * ``transition`` — :class:`~hilbo_core.estimation.TransitionEstimator`, the optimizer's default;
   like in the optimizer it starts each setting from the level it ended the previous one at;
   ``--transition-config KEY=VALUE,...`` sets fields of its
-  :class:`~hilbo_core.estimation.TransitionConfig` (e.g. ``timing_sd_s=10``);
+  :class:`~hilbo_core.estimation.TransitionConfig` (e.g. ``timing_sd_s=0`` for the fit without
+  its timing term);
 * ``seed_ukf`` — :class:`~hilbo_core.metabolic.MetabolicUKF` (Kim et al. 2019 §II.C);
 * ``first_order_42`` — the lab's fit: least squares of y = c + (y0 − c)·e^{−t/42 s} in (c, y0),
   sd from the residual variance;
@@ -816,7 +817,8 @@ def add_estimator_bench_parser(bench_subparsers: Any) -> argparse.ArgumentParser
                    help=f"comma-separated, from {','.join(ESTIMATORS)} (default all)")
     p.add_argument("--transition-config", default=None, metavar="KEY=VALUE,...",
                    help="settings of the transition estimator, fields of TransitionConfig (e.g. "
-                        "timing_sd_s=10,transition_error_rel=0.15; default: its defaults)")
+                        "timing_sd_s=0,transition_error_rel=0.25 for the fit without its timing "
+                        "term; default: its defaults)")
     p.add_argument("--out", default="runs/bench/estimator", help="output directory")
     p.add_argument("--no-progress", action="store_true", help="no progress lines")
     p.set_defaults(func=_cmd_estimator)

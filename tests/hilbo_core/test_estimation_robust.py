@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from hilbo_core.errors import ConfigError
@@ -48,6 +48,9 @@ def test_one_freak_breath_anywhere_moves_the_60s_estimate_less_than_2_percent(
     i = min(int(where * len(breaths)), len(breaths) - 1)
     freak = list(breaths)
     freak[i] = (breaths[i][0], breaths[i][1] * factor)
+    # A freak above the estimator's absurd-power bound is refused outright (MeasurementError,
+    # counted by the caller): nothing reaches the fit, so there is nothing to compare.
+    assume(freak[i][1] <= TransitionConfig().max_watts)
     start = b0 if chained else None
     dirty = _estimate(freak, start)
     without = _estimate(breaths[:i] + breaths[i + 1:], start)
@@ -82,13 +85,14 @@ def test_a_fast_real_change_is_not_flagged() -> None:
 
 def test_a_delayed_step_is_fitted_better_with_the_timing_term_or_the_delay_option() -> None:
     # A down-step that starts 15 s late (phase I of an off-transition): by 60 s the plain
-    # exponential (the default) misses the steady state by ≈ 22 % on average; with the timing
-    # term, which lets the steep part of the curve weigh less, by ≈ 11 %; with the delays
-    # (0, 10, 20) s by ≈ 14 %.
+    # exponential misses the steady state by ≈ 22 % on average; with the timing term (the
+    # default), which lets the steep part of the curve weigh less, by ≈ 11 %; with the delays
+    # (0, 10, 20) s instead by ≈ 14 %.
+    plain = {"timing_sd_s": 0.0, "transition_error_rel": 0.25}
     configs = {
-        "plain": TransitionConfig(),
-        "timing": TransitionConfig(timing_sd_s=10.0, transition_error_rel=0.15),
-        "delays": TransitionConfig(delays_s=(0.0, 10.0, 20.0)),
+        "plain": TransitionConfig(**plain),
+        "timing": TransitionConfig(),
+        "delays": TransitionConfig(delays_s=(0.0, 10.0, 20.0), **plain),
     }
     errs: dict[str, list[float]] = {name: [] for name in configs}
     for seed in range(20):
@@ -115,7 +119,7 @@ def test_the_timing_term_leaves_a_plateau_alone() -> None:
     rng = np.random.default_rng(5)
     breaths = [(float(t), 400.0 * (1.0 + 0.1 * rng.normal())) for t in np.arange(2.0, 120.0, 2.5)]
     out = []
-    for config in (TransitionConfig(timing_sd_s=10.0), TransitionConfig()):
+    for config in (TransitionConfig(), TransitionConfig(timing_sd_s=0.0)):
         est = TransitionEstimator(config)
         est.start_from(400.0, 100.0)
         for t, w in breaths:
