@@ -1258,21 +1258,32 @@ def load_config(path: str | Path) -> HilboConfig:
     return parse_config(text, source=str(path))
 
 
-def check_out_dir(path: str | Path, what: str = "session.out_dir") -> Path:
+def check_out_dir(path: str | Path, what: str = "session.out_dir", *, create: bool = False) -> Path:
     """Refuse an output directory that cannot be created: it, or a parent, is not a directory.
 
     Args:
         path: The directory the session's log and summary go to (need not exist yet).
         what: How to name it in the error (``session.out_dir`` or ``--out``).
+        create: Also make it now (a command about to write there): a file system that refuses
+            it (``/proc``, read-only, a name too long) is said before anything starts, which the
+            checks on existing parents alone cannot tell.
 
     Returns:
         ``path`` as a :class:`~pathlib.Path`.
 
     Raises:
-        BridgeConfigError: ``path`` or one of its parents exists and is not a directory, or the
-            nearest existing one cannot be written into.
+        BridgeConfigError: ``path`` or one of its parents exists and is not a directory, the
+            nearest existing one cannot be written into, or (``create``) it cannot be made.
     """
     path = Path(path)
+    if create:
+        try:
+            path.mkdir(parents=True, exist_ok=True)
+        except (FileExistsError, NotADirectoryError):
+            pass  # a file where a directory should be: the checks below name it
+        except OSError as err:
+            raise BridgeConfigError(f"{what} = {str(path)!r}: cannot create the output directory: "
+                                    f"{err.strerror or err}") from err
     for p in (path, *path.parents):
         if p.exists():
             if not p.is_dir():

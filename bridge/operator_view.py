@@ -3,6 +3,10 @@
 Keys (when stdin is a terminal): ``p`` pause (assistance off), ``r`` resume, ``q`` stop.
 Without a terminal (CI, a pipe) the view prints nothing live; signals still stop the session.
 
+A console that goes away (the reader of a pipe, ``hilbo run ... | tee run.log`` with tee
+killed) does not end the session: :func:`console_guard` drops what is printed after it, and the
+session's log, the record, gets one ``console_lost`` warning.
+
 Read at a glance: device faults are shown by name with what clears them (:func:`describe_faults`, from
 drivers/exosuit/faults.py),
 the session's expected end (``SessionStatus.expected_end_s``, walking time, else the optimisation budget), and
@@ -16,9 +20,10 @@ import contextlib
 import logging
 import os
 import sys
+import threading
 import time
-from collections.abc import Callable, Iterator, Mapping
-from typing import TextIO
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from typing import Any, TextIO
 
 from rich.console import Console, Group
 from rich.live import Live
@@ -26,12 +31,13 @@ from rich.panel import Panel
 from rich.table import Table
 from rich.text import Text
 
+from bridge.log import SessionLog
 from bridge.outcome import format_params
 from bridge.runtime import BridgeSession, Command, SessionStatus
 from drivers.exosuit import DeviceFault
 from drivers.exosuit.faults import FAULT_INFO
 
-__all__ = ["KEYS", "describe_faults", "render_status", "run_operator_view"]
+__all__ = ["KEYS", "ConsoleGuard", "console_guard", "describe_faults", "render_status", "run_operator_view"]
 
 KEYS = {"p": Command.PAUSE, "r": Command.RESUME, "q": Command.STOP}
 
@@ -197,3 +203,134 @@ async def run_operator_view(session: BridgeSession, console: Console | None = No
             keys_task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await keys_task
+
+
+class _PipeSafeStream:
+    """``sys.stdout`` or ``sys.stderr`` of a session: a write to a pipe whose reader has gone
+    (BrokenPipeError, EPIPE: Python ignores SIGPIPE) is dropped instead of raised, and so is
+    every write after it.
+
+    Without it the first line printed after the reader left ended the session: Rich's console
+    answers a broken pipe with SystemExit, which no handler of the session catches, so no
+    event named it and no summary was written. Every other error of a write is raised as before.
+    """
+
+    def __init__(self, stream: TextIO, name: str, on_lost: Callable[[str], None]) -> None:
+        self._stream = stream
+        self._name = name
+        self._on_lost = on_lost
+        self.lost = False
+
+    def write(self, text: str) -> int:
+        if not self.lost:
+            try:
+                return self._stream.write(text)
+            except BrokenPipeError:
+                self._lose()
+        return len(text)
+
+    def writelines(self, lines: Iterable[str]) -> None:
+        for line in lines:
+            self.write(line)
+
+    def flush(self) -> None:
+        if not self.lost:
+            try:
+                self._stream.flush()
+            except BrokenPipeError:
+                self._lose()
+
+    def __getattr__(self, name: str) -> Any:
+        # isatty, fileno, encoding...: the stream's own (Rich and logging ask for them).
+        return getattr(self._stream, name)
+
+    def _lose(self) -> None:
+        self.lost = True
+        # Python's "Note on SIGPIPE" (the signal module's docs): point the descriptor at
+        # /dev/null, so that what is still buffered, and the interpreter's own flush at exit,
+        # go there instead of raising again ("Exception ignored ... BrokenPipeError").
+        with contextlib.suppress(OSError, ValueError):  # a stream without a descriptor
+            fd = self._stream.fileno()
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            try:
+                os.dup2(devnull, fd)
+            finally:
+                os.close(devnull)
+        self._on_lost(self._name)
+
+
+class ConsoleGuard:
+    """Which console stream was lost, and the session log that records it (once).
+
+    Made by :func:`console_guard`; :meth:`record_to` names the session's log once it exists.
+    """
+
+    def __init__(self) -> None:
+        #: The first stream whose reader left ("stdout" or "stderr"), or None.
+        self.lost: str | None = None
+        self._log: SessionLog | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._recorded = False
+        # Both streams may be lost at once from different threads (a logging thread, the loop).
+        self._lock = threading.Lock()
+
+    def record_to(self, log: SessionLog) -> None:
+        """Record the console's loss in ``log`` (now, if it was lost before the log existed).
+
+        Call it from the session's event loop: the event is written there, as the session's
+        other events are (a console write may come from any thread, or from inside a write
+        to the log).
+        """
+        self._log = log
+        self._loop = asyncio.get_running_loop()
+        if self.lost is not None:
+            self._record()
+
+    def _lost(self, name: str) -> None:
+        with self._lock:
+            if self.lost is None:
+                self.lost = name
+        self._record()
+
+    def _record(self) -> None:
+        with self._lock:
+            if self._loop is None or self._recorded or self.lost is None:
+                return
+            self._recorded = True
+        with contextlib.suppress(RuntimeError):  # the loop has closed: the session is over
+            self._loop.call_soon_threadsafe(self._write_event)
+
+    def _write_event(self) -> None:
+        log = self._log
+        if log is None or log.closed:
+            return
+        log.log_event("console_lost",
+                      f"the console was lost ({self.lost}: its reader closed the pipe); the session "
+                      "goes on without printing, and this log keeps everything", stream=self.lost)
+
+
+@contextlib.contextmanager
+def console_guard() -> Iterator[ConsoleGuard]:
+    """Run a session whose console may go away: ``sys.stdout``, ``sys.stderr`` and the log
+    handlers writing to them drop their writes once the reader of their pipe has left.
+
+    A person may be walking in the suit: losing the screen must not end the session. The
+    streams and handlers are restored on exit, after a last flush (which drops what a lost
+    reader would never read).
+    """
+    guard = ConsoleGuard()
+    originals = {"stdout": sys.stdout, "stderr": sys.stderr}
+    safe = {name: _PipeSafeStream(stream, name, guard._lost) for name, stream in originals.items()}
+    handlers = [(h, name) for h in logging.getLogger().handlers for name, stream in originals.items()
+                if type(h) is logging.StreamHandler and h.stream is stream]
+    for h, name in handlers:
+        h.setStream(safe[name])  # type: ignore[arg-type]
+    sys.stdout, sys.stderr = safe["stdout"], safe["stderr"]  # type: ignore[assignment]
+    try:
+        yield guard
+    finally:
+        for stream in safe.values():
+            stream.flush()
+        for h, name in handlers:
+            h.setStream(originals[name])
+        sys.stdout, sys.stderr = originals["stdout"], originals["stderr"]

@@ -4,8 +4,9 @@
     Channels and message counts, time range, session id, the log it resumes, whether the file
     was closed normally or cut off (and how many bytes were lost).
 ``hilbo log recover IN.mcap [OUT.mcap] [--force]``
-    Rewrite the intact part of a log cut off by a crash as a normal, indexed MCAP file
-    (default ``IN.recovered.mcap``) that Foxglove and any MCAP reader open.
+    Rewrite the intact part of a log cut off by a crash (or damaged inside) as a normal, indexed
+    MCAP file (default ``IN.recovered.mcap``) that Foxglove and any MCAP reader open. A log that
+    was closed normally and is intact needs none: that is said, and no copy is written.
 
 Errors (not an MCAP file, an empty file, another program's MCAP, an unwritable output) print
 one line naming the file and the problem and exit with status 1; no traceback.
@@ -45,7 +46,8 @@ def add_log_parser(subparsers: Any) -> argparse.ArgumentParser:
     info.set_defaults(func=_cmd_info)
     rec = actions.add_parser("recover", help="rewrite a crashed log as a normal indexed MCAP file",
                              description="Copy every intact message of IN (a log cut off by a crash) "
-                                         "into OUT, a normal indexed MCAP file.")
+                                         "into OUT, a normal indexed MCAP file. A log closed normally "
+                                         "and intact needs no recovery: said, and no copy written.")
     rec.add_argument("input", metavar="IN.mcap", help="the damaged log")
     rec.add_argument("output", metavar="OUT.mcap", nargs="?", default=None,
                      help="where to write (default: IN.recovered.mcap next to IN)")
@@ -145,10 +147,17 @@ def _cmd_info(args: argparse.Namespace) -> int:
 def _cmd_recover(args: argparse.Namespace) -> int:
     out = Path(args.output) if args.output else default_recovered_path(args.input)
     try:
+        # Decode nothing: only whether the file was closed normally and is intact.
+        source = read_log(args.input, topics=(), require_hilbo=False)
+        if source.complete and not source.damaged:
+            # A copy would be the same log again, and a second file of one session beside it.
+            _say(f"{args.input} was closed normally and is intact: nothing to recover, no copy written "
+                 "(it opens as it is in hilbo review, Foxglove and any MCAP reader)")
+            return 0
         report = recover(args.input, out, overwrite=args.force)
     except LogError as err:
         return _fail("recover", err)
-    state = ("was already complete" if report.source_complete else
+    state = ("was closed normally but is damaged inside" if report.source_complete else
              f"was cut off: {report.unreadable_bytes:,} bytes unreadable ({report.stop_reason})")
     state += "".join(f"\n  damaged inside: {d.describe()}" for d in report.damage)
     topics = ", ".join(f"{t} {n}" for t, n in sorted(report.per_topic.items()))

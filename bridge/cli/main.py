@@ -10,7 +10,7 @@ import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import msgspec
 
@@ -24,6 +24,10 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 __all__ = ["main"]
+
+if TYPE_CHECKING:
+    from bridge.operator_view import ConsoleGuard
+    from bridge.runtime import BridgeSession
 
 
 def _speed(text: str) -> float | None:
@@ -122,6 +126,15 @@ def _print_done(console: Any, summary: dict[str, Any]) -> None:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
+    from bridge.operator_view import console_guard
+
+    # A console that closes (`hilbo run ... | tee run.log`, tee killed) must not end a session
+    # with a person walking in the suit: what is printed after it is dropped, the log records it.
+    with console_guard() as guard:
+        return _run(args, guard)
+
+
+def _run(args: argparse.Namespace, guard: ConsoleGuard) -> int:
     import asyncio
     import dataclasses
 
@@ -134,10 +147,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     for warning in config_warnings(cfg):
         print(f"hilbo run: warning: {warning}", file=sys.stderr)
-    if args.out:
-        check_out_dir(args.out, "--out")
-    else:
-        check_out_dir(cfg.session.out_dir)
+    check_out_dir(args.out or cfg.session.out_dir, "--out" if args.out else "session.out_dir",
+                  create=True)
     # A replayed cart file is read as `hilbo config check` reads it before the session starts:
     # a file that does not fit [cart] is refused without a log of nothing.
     if check_cart_file(cfg, io.StringIO(), sys.stderr, prog="hilbo run") != 0:
@@ -155,10 +166,15 @@ def _cmd_run(args: argparse.Namespace) -> int:
         console.print("hilbo run: note: no keyboard (--no-view, or stdin or stderr not a terminal): "
                       "any pause (the one between the bouts too) lasts until SIGTERM/Ctrl-C; give "
                       "--auto-resume S or set [watchdog] auto_resume_s")
-    # Said at the start: after a crash (kill -9) the log to resume is named on the screen.
+
+    def on_session(session: BridgeSession) -> None:
+        guard.record_to(session.log)  # a console lost from now on is named in the log
+        # Said at the start: after a crash (kill -9) the log to resume is named on the screen.
+        console.print(f"hilbo run: log {session.log.path}")
+
     result = asyncio.run(run_session(cfg, resume=resume, out_dir=Path(args.out) if args.out else None,
                                      operator_view=not args.no_view, auto_resume_s=args.auto_resume,
-                                     on_session=lambda s: console.print(f"hilbo run: log {s.log.path}")))
+                                     on_session=on_session))
     console.print(ended_text(result.summary))
     print(result.log_path)
     print(result.summary_path)

@@ -160,6 +160,7 @@ EVENT_LEVELS: Mapping[str, EventLevel] = {
     "stale_ack": EventLevel.WARNING,
     "early_ack": EventLevel.WARNING,
     "loop_stall": EventLevel.WARNING,
+    "console_lost": EventLevel.WARNING,
     "heartbeat_lost": EventLevel.ERROR,
     "device_fault": EventLevel.ERROR,
     "fault": EventLevel.ERROR,

@@ -16,7 +16,7 @@ from typing import Any
 from bridge.errors import ReviewError, UsageError
 from bridge.review import plots as review_plots
 from bridge.review import report as review_report
-from bridge.review.session import CompareResult, ReviewResult, load_session
+from bridge.review.session import CompareResult, ReviewResult, Session, load_session
 
 __all__ = ["add_review_parser", "compare_sessions", "default_compare_dir", "default_review_dir",
            "review_session"]
@@ -137,9 +137,14 @@ def _cmd_review(args: argparse.Namespace) -> int:
                                  f"in the comparison: give the session's logs joined by a comma "
                                  f"({prev},{logs[0]}) to compare all of it\n")
         files = compared.files
+        sessions: Sequence[Session] = compared.sessions
     else:
         result = review_session(args.logs, args.out)
         files = result.files
+        sessions = (result.session,)
+    for s in sessions:
+        for warning in s.warnings:  # a log left out as a copy of another given with it
+            sys.stderr.write(f"hilbo review: warning: {warning}\n")
     for path in files:
         print(path)  # noqa: T201 (CLI output: one line per file written)
     damaged = [f for f in result.session.files if f.damage] if not args.compare else []

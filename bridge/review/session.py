@@ -3,6 +3,9 @@
 ``hilbo review LOG.mcap [LOG2.mcap ...] [--out DIR]``
     Reads one session: one log, or the files of a session resumed after a crash (the old log
     and the one ``hilbo run --resume`` wrote; any order: the ``previous_log`` link orders them).
+    Two logs given that hold the same stretch of the session (a log and the copy ``hilbo log
+    recover`` made of it) are reviewed once: the fuller one, with a warning naming the one left
+    out. A log that resumes one not given (the first and third of three) is noted in the report.
     A log cut off by a crash is read up to its last intact record (:func:`bridge.log.reader.read_log`).
     Writes into DIR (default ``<log dir>/<log stem>-review/``):
 
@@ -54,6 +57,7 @@ message names the file and what was expected; ``hilbo`` turns it into exit statu
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import logging
 import math
 import os
@@ -359,6 +363,8 @@ class Session:
         validation_plan: A validation walk's conditions in measuring order (``name``, ``kind``,
             ``params``; evaluation k measured condition k), or None for an optimisation session;
             a walk has no ``recommended`` setting.
+        warnings: What ``hilbo review`` also says on stderr (each is in ``notes`` too): a log
+            left out because another log given holds the same part of the session.
     """
 
     files: tuple[LogFile, ...]
@@ -381,6 +387,7 @@ class Session:
     walked_s: float | None = None
     validation: tuple[Mapping[str, Any], ...] | None = None
     validation_plan: tuple[Mapping[str, Any], ...] | None = None
+    warnings: tuple[str, ...] = ()
 
     def condition_of(self, index: int) -> Mapping[str, Any] | None:
         """The validation condition evaluation ``index`` measured, or None (not a walk)."""
@@ -553,8 +560,61 @@ def _same_file(a: str | Path, b: str | Path, base: Path) -> bool:
         return False
 
 
-def _order(contents: list[LogContents]) -> list[LogContents]:
-    """The files of one session in session order (by their ``previous_log`` links)."""
+def _is_log(link: str, c: LogContents, base: Path) -> bool:
+    """Whether a ``previous_log`` link (relative to ``base``) names ``c``, or the log that
+    ``c`` is the ``hilbo log recover`` copy of (its ``hilbo.recovered`` source, or its name
+    ``NAME.recovered.mcap``: the link was written before the copy was made)."""
+    if _same_file(link, c.path, base):
+        return True
+    source = c.metadata.get("hilbo.recovered", {}).get("source")
+    if source and _same_file(link, source, base):
+        return True
+    return Path(c.path).name == Path(link).name.removesuffix(".mcap") + ".recovered.mcap"
+
+
+def _overlap(a: LogContents, b: LogContents) -> bool:
+    """Whether two logs of one session hold the same stretch of it: their log times overlap.
+
+    A log resumed with ``hilbo run --resume`` starts after the log it resumes ended, so two logs
+    of a session overlap only when one is a copy of the other (``hilbo log recover``'s)."""
+    ra, rb = a.time_range_ns, b.time_range_ns
+    return (a.session_id == b.session_id and ra is not None and rb is not None
+            and ra[0] <= rb[1] and rb[0] <= ra[1])
+
+
+def _fuller(a: LogContents, b: LogContents) -> bool:
+    """Whether ``a`` is the one to review of two copies: more breaths, more messages, closed
+    normally, the recovered copy (in that order)."""
+    def rank(c: LogContents) -> tuple[int, int, bool, bool]:
+        return (len(c.topic(Topic.BREATHS)), len(c.messages), c.complete, "hilbo.recovered" in c.metadata)
+    return rank(a) > rank(b)
+
+
+def _drop_copies(contents: list[LogContents]) -> tuple[list[LogContents], list[str]]:
+    """One of each set of logs that hold the same stretch of the session (a log and its
+    recovered copy given together), and a warning naming each file left out.
+
+    Reviewing both counted every breath and minute of that stretch twice.
+    """
+    kept: list[LogContents] = []
+    warnings: list[str] = []
+    for c in contents:
+        twin = next((k for k in kept if _overlap(k, c)), None)
+        if twin is None:
+            kept.append(c)
+            continue
+        keep, drop = (c, twin) if _fuller(c, twin) else (twin, c)
+        kept[kept.index(twin)] = keep
+        warnings.append(f"{drop.path} and {keep.path} hold the same part of session {keep.session_id} "
+                        f"(their log times overlap: one is a copy of the other, such as hilbo log "
+                        f"recover writes); reviewed {keep.path} ({len(keep.topic(Topic.BREATHS))} breaths), "
+                        f"left out {drop.path} ({len(drop.topic(Topic.BREATHS))} breaths)")
+    return kept, warnings
+
+
+def _order(contents: list[LogContents]) -> tuple[list[LogContents], list[str]]:
+    """The files of one session in session order (by their ``previous_log`` links), and a
+    warning for each file left out as a copy of another (:func:`_drop_copies`)."""
     ids = {c.session_id for c in contents if c.session_id}
     if len(ids) > 1:
         described = ", ".join(f"{c.path} is {c.session_id}" for c in contents)
@@ -567,27 +627,27 @@ def _order(contents: list[LogContents]) -> list[LogContents]:
         if key in seen:
             raise ReviewError(f"{c.path}: given twice; expected each file of the session once")
         seen.add(key)
+    contents, warnings = _drop_copies(contents)
     if len(contents) == 1:
-        return contents
+        return contents, warnings
 
     def parent(c: LogContents) -> LogContents | None:
         prev = c.previous_log
         if not prev:
             return None
-        return next((o for o in contents if o is not c and _same_file(prev, o.path, Path(c.path).parent)),
-                    None)
+        return next((o for o in contents if o is not c and _is_log(prev, o, Path(c.path).parent)), None)
 
     parents = {id(c): parent(c) for c in contents}
     roots = [c for c in contents if parents[id(c)] is None]
     if len(roots) != 1:
-        return contents  # links absent or ambiguous: keep the order given
+        return contents, warnings  # links absent or ambiguous: keep the order given
     ordered = [roots[0]]
     while len(ordered) < len(contents):
         nxt = [c for c in contents if parents[id(c)] is ordered[-1]]
         if len(nxt) != 1:
-            return contents
+            return contents, warnings
         ordered.append(nxt[0])
-    return ordered
+    return ordered, warnings
 
 
 def _f(value: Any) -> float | None:
@@ -823,12 +883,12 @@ def load_session(paths: Sequence[str | os.PathLike[str]]) -> Session:
     """
     if not paths:
         raise ReviewError("no log given; expected at least one hilbo session log (.mcap)")
-    contents = _order([_read(p) for p in paths])
+    contents, warnings = _order([_read(p) for p in paths])
     if not any(_has_data(c) for c in contents):
         c = contents[0]
         raise ReviewError(f"{c.path}: a hilbo session log without breaths or evaluations ({len(c.messages)} "
                           "messages); expected a session that walked at least one breath")
-    notes: list[str] = []
+    notes: list[str] = list(warnings)
     files: list[LogFile] = []
     scans: list[_FileScan] = []
     offset = 0.0
@@ -862,6 +922,14 @@ def load_session(paths: Sequence[str | os.PathLike[str]]) -> Session:
         notes.append(f"{contents[0].path} resumes {contents[0].previous_log}, which was not given: its "
                      "evaluations are counted (from the optimizer snapshot) but its breaths are not shown; "
                      "pass both files to review the whole session")
+    for before, c in itertools.pairwise(contents):
+        # A chain with a log missing in the middle (the first and the third of three): the same
+        # note, for the part between the two given logs.
+        if c.previous_log and not _is_log(c.previous_log, before, Path(c.path).parent):
+            notes.append(f"{c.path} resumes {c.previous_log}, which was not given: the part of the session "
+                         f"between {before.path} and it is missing (its evaluations are counted from the "
+                         "optimizer snapshot, its breaths are not shown); pass every log of the session "
+                         "to review all of it")
 
     # Evaluations: the old file's, then the new file's, each index once.
     evals: dict[int, EvaluationRow] = {}
@@ -962,6 +1030,7 @@ def load_session(paths: Sequence[str | os.PathLike[str]]) -> Session:
         pauses=_pauses(events), walked_s=scans[-1].walked_s,
         validation=next((tuple(s.validation) for s in reversed(scans) if s.validation is not None), None),
         validation_plan=None if plan is None else tuple(plan),
+        warnings=tuple(warnings),
     )
 
 

@@ -13,6 +13,7 @@ import re
 from pathlib import Path
 
 import pytest
+from cart_csv import replay_config_toml, write_cosmed_like_csv
 
 import bridge.cli.main as cli
 from bridge.log.reader import read_log
@@ -26,13 +27,7 @@ N_ROWS = 400
 
 
 def _write_csv(path: Path, n: int = N_ROWS) -> Path:
-    # COSMED-like: clock times, VO2/VCO2 in ml/min.
-    rows = ["t,VO2,VCO2,R", "s,mL/min,mL/min,---"]
-    for i in range(n):
-        t = 3 * i + 3
-        rows.append(f"0:{t // 60:02d}:{t % 60:02d},{1000 + i % 7},{850 + i % 5},0.85")
-    path.write_text("\n".join(rows) + "\n")
-    return path
+    return write_cosmed_like_csv(path, n)
 
 
 def _cart(path: Path, **csv: object) -> dict[str, object]:
@@ -96,17 +91,7 @@ def test_max_leading_rejects_is_validated(tmp_path: Path) -> None:
 
 
 def _config_toml(tmp_path: Path, cart_path: Path, csv_extra: str = "") -> Path:
-    text = (Path(cli.__file__).parents[1] / "config_example.toml").read_text()
-    start, end = text.index("[cart]"), text.index("[can]")
-    cart = (f'[cart]\ntransport = "replay"\nformat = "csv"\n[cart.options]\npath = "{cart_path}"\n'
-            'speed = "max"\n[cart.csv]\ntime_column = "t"\nvo2_column = "VO2"\nvco2_column = "VCO2"\n'
-            f'time_format = "hh:mm:ss"\nskip_rows = 1\n{csv_extra}\n')
-    text = text[:start] + cart + text[end:]
-    text = text.replace('interface = "socketcan"', 'interface = "virtual"')
-    text = text.replace('out_dir = "sessions"', f'out_dir = "{tmp_path / "out"}"')
-    path = tmp_path / "s.toml"
-    path.write_text(text)
-    return path
+    return replay_config_toml(tmp_path, cart_path, csv_extra)
 
 
 def test_config_check_shows_first_breaths_and_rejects(tmp_path: Path,
