@@ -16,10 +16,10 @@ import json
 import logging
 import os
 import sys
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import msgspec
 from rich.console import Console
@@ -29,20 +29,19 @@ from bridge.errors import first_leaf
 from bridge.live import LiveServer
 from bridge.log import DEFAULT_FILE_MODE, EventLevel, LogError, SessionLog, new_session_id
 from bridge.log.reader import read_log
-from bridge.log.resume import ResumeError, rebuild_optimizer
+from bridge.log.resume import ResumeError, ResumeInfo, rebuild_optimizer
 from bridge.operator_view import run_operator_view
+from bridge.outcome import format_params
 from bridge.runtime import BridgeSession, RuntimeSettings
+from bridge.validate import ValidationPlan, plan_event
 from drivers.cart import BreathStream
 from drivers.exosuit import CanEndpoint
 from drivers.signals import stop_signal_handlers
-from hilbo_core import Evaluation, HILOptimizer
+from hilbo_core import Evaluation, HILOptimizer, InfeasibleError
 from hilbo_core.protocol import SessionProtocol
 
-__all__ = ["RunResult", "finished_session", "keyboard_present", "run_session", "runtime_settings",
-           "write_json_atomic"]
-
-if TYPE_CHECKING:
-    from bridge.validate import ValidationPlan
+__all__ = ["RunResult", "continued_by", "finished_session", "keyboard_present", "newest_log",
+           "resume_config_warnings", "run_session", "runtime_settings", "write_json_atomic"]
 
 logger = logging.getLogger(__name__)
 
@@ -153,11 +152,12 @@ def finished_session(path: Path) -> str | None:
     ``budget_spent`` event) has nothing left to resume; one stopped by the operator, a signal,
     the cart's end, the resume budget or a crash has.
     """
-    events = read_log(path, topics=["/events"]).records("/events")
-    for e in events:
-        if getattr(e, "kind", None) == "budget_spent":
-            return e.message
-    return None
+    return _budget_spent(read_log(path, topics=["/events"]).records("/events"))
+
+
+def _budget_spent(events: Sequence[Any]) -> str | None:
+    """The message of the ``budget_spent`` event among a log's events, or None."""
+    return next((e.message for e in events if getattr(e, "kind", None) == "budget_spent"), None)
 
 
 def _log_stem(path: str | Path) -> str:
@@ -195,6 +195,86 @@ def continued_by(resume: Path, directories: Iterable[Path]) -> Path | None:
     return None
 
 
+def newest_log(path: Path, directories: Iterable[Path]) -> Path | None:
+    """The newest log of the session ``path`` belongs to, following :func:`continued_by` from
+    log to log, or None when no log continues ``path``."""
+    dirs = {Path(d) for d in directories}
+    newest: Path | None = None
+    seen = {path.resolve()}
+    later = continued_by(path, dirs)
+    while later is not None and later.resolve() not in seen:  # a copied log could loop
+        newest = later
+        seen.add(later.resolve())
+        later = continued_by(later, dirs | {later.parent})
+    return newest
+
+
+def _bounds(lower: float, upper: float) -> str:
+    return f"[{lower:g}, {upper:g}]"
+
+
+def resume_config_warnings(cfg: HilboConfig, opt: HILOptimizer, info: ResumeInfo) -> list[str]:
+    """Check that ``cfg`` can continue the session rebuilt from a log: refuse what the safety gate
+    would refuse later, and return what is allowed but probably a mistake.
+
+    The rebuilt optimizer keeps the space its session ran with and proposes in it, while the
+    gate admits only ``cfg``'s space: a narrower one would refuse the session's own proposals
+    mid-session.
+
+    Args:
+        cfg: The config of the resumed run.
+        opt: The optimizer rebuilt from the log (its space is the session's).
+        info: What the rebuild read (the log's recorded config).
+
+    Returns:
+        One line per warning: another subject, or a parameter's bounds wider than the session's
+        (the session keeps its own).
+
+    Raises:
+        ResumeError: The parameter names or the profile builder differ, a parameter's bounds in
+            the log's session are not inside ``cfg``'s, or a completed evaluation's setting is
+            outside ``cfg``'s space (its constraints).
+    """
+    old, new = opt.space, cfg.space.space
+    where = info.log_path
+    if set(old.names) != set(new.names):
+        raise ResumeError(f"space: the session of {where} optimised {', '.join(old.names)}; this config "
+                          f"has {', '.join(new.names)}; resume with the session's [space]")
+    if old.name != new.name:
+        raise ResumeError(f"space: the session of {where} built its profiles with {old.name!r}; this "
+                          f"config with {new.name!r}; resume with the session's [space]")
+    refused: list[str] = []
+    warnings: list[str] = []
+    by_name = {p.name: (i, p) for i, p in enumerate(new.parameters)}
+    for p in old.parameters:
+        i, q = by_name[p.name]
+        key = f"space.bounds.{p.name}" if cfg.space.preset is not None else f"space.parameters[{i}]"
+        if p.lower < q.lower or p.upper > q.upper:
+            refused.append(f"{key}: the log's session used {_bounds(p.lower, p.upper)}, this config "
+                           f"has {_bounds(q.lower, q.upper)}")
+        elif (p.lower, p.upper) != (q.lower, q.upper):
+            warnings.append(f"{key}: this config has {_bounds(q.lower, q.upper)}, the log's session "
+                            f"used {_bounds(p.lower, p.upper)}; the resumed session keeps searching "
+                            f"{_bounds(p.lower, p.upper)}")
+    if refused:
+        raise ResumeError(f"{where}: this config's [space] does not hold the session's: "
+                          + "; ".join(refused) + ". Resume with the session's bounds")
+    for k, e in enumerate(opt.evaluations):
+        try:
+            new.check(e.params)
+        except InfeasibleError as err:
+            raise ResumeError(f"{where}: evaluation {k} ({format_params(e.params, new.units)}) is "
+                              f"outside this config's space: {err}; resume with the session's "
+                              "[space]") from err
+    session = (info.config or {}).get("session")
+    subject = session.get("subject") if isinstance(session, Mapping) else None
+    if subject is not None and subject != cfg.session.subject:
+        warnings.append(f"session.subject: the log's session is subject {subject!r}, this config has "
+                        f"{cfg.session.subject!r}; the new log continues that session under "
+                        f"{cfg.session.subject!r}'s name")
+    return warnings
+
+
 async def run_session(
     cfg: HilboConfig,
     *,
@@ -228,6 +308,11 @@ async def run_session(
 
     Returns:
         Paths of the log and summary, and the summary.
+
+    Raises:
+        ResumeError: ``resume`` cannot be continued, before anything is written: a validation
+            walk's log, a finished session, a log a later one already continues, or a config whose
+            parameter space does not hold the session's (:func:`resume_config_warnings`).
     """
     if auto_resume_s is not None and auto_resume_s != cfg.watchdog.auto_resume_s:
         # The log records the config the session ran with: --auto-resume overrides the file's.
@@ -235,21 +320,36 @@ async def run_session(
         cfg = dataclasses.replace(cfg, watchdog=watchdog)
     space = cfg.space.space
     previous: str | None = None
+    resume_warnings: list[str] = []
     if validation is not None:
         opt, protocol = validation.optimizer, validation.protocol
         session_id, previous = new_session_id(), None if resume is None else str(resume)
     elif resume is not None:
-        done = finished_session(resume)
+        events = read_log(resume, topics=["/events"]).records("/events")
+        walk = plan_event(events)
+        if walk is not None:
+            # Its optimizer only measured fixed conditions: "resuming" it would start an
+            # exploration in a session that was never an optimisation.
+            validated = (walk.details or {}).get("source_log")
+            raise ResumeError(f"{resume} is a validation walk's log (hilbo validate); continue it with "
+                              f"hilbo validate CONFIG --resume {resume}, or resume the optimisation "
+                              "session's newest log"
+                              + (f" (this walk validated {validated})" if validated else ""))
+        done = _budget_spent(events)
         if done is not None:
             raise ResumeError(f"{resume} is a finished session ({done}); there is nothing to resume. "
                               "Start a new session, or measure its recommendation with "
                               f"hilbo validate CONFIG --from {resume}")
-        later = continued_by(resume, {resume.parent, Path(out_dir or cfg.session.out_dir)})
+        directories = {resume.parent, Path(out_dir or cfg.session.out_dir)}
+        later = continued_by(resume, directories)
         if later is not None:
             raise ResumeError(f"{resume} was already continued by {later}; resuming it again would fork "
                               f"the session. Resume the newest log of the session: hilbo run CONFIG "
-                              f"--resume {later}")
+                              f"--resume {newest_log(later, directories) or later}")
         opt, info = rebuild_optimizer(resume)
+        resume_warnings = resume_config_warnings(cfg, opt, info)
+        for text in resume_warnings:
+            logger.warning("resuming %s: %s", resume, text)
         session_id, previous = info.session_id, str(resume)
         # What the crashed session walked of its optimisation bout is known as the measured
         # breath time of its evaluations (the log's optimizer state), a lower bound.
@@ -293,12 +393,18 @@ async def run_session(
 
     with stop_signal_handlers(loop, stop):
         async with CanEndpoint(cfg.can.bus) as endpoint, stream:
+            # Before anything is logged or sent: a bus that another session's bridge already
+            # drives is refused (two bridges would push conflicting profiles to one person).
+            await endpoint.check_no_other_bridge()
             with live or contextlib.nullcontext(), \
                     SessionLog(path, session_id=session_id, config_json=cfg.to_json(),
                                previous_log=previous, param_names=space.names,
                                file_mode=cfg.session.file_mode_bits, live=live) as log:
                 if resume is not None:
                     log.log_optimizer_state(opt, reason="resume")
+                    for text in resume_warnings:
+                        log.log_event("resume_config", f"resuming {resume}: {text}",
+                                      level=EventLevel.WARNING)
                 elif cfg.prior.priors:
                     log.log_event("prior", cfg.prior.describe(), **cfg.prior.event_details())
                 gate: Any = cfg.make_gate()

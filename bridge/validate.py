@@ -69,6 +69,7 @@ __all__ = [
     "ValidationPlan",
     "condition_results",
     "plan_conditions",
+    "plan_event",
     "recommended_setting",
 ]
 
@@ -215,10 +216,18 @@ def _protocol(cfg: HilboConfig, n: int, *, resumed_evaluations: int | None = Non
     return SessionProtocol.resumed(config, n_explored=resumed_evaluations)
 
 
+def plan_event(events: Sequence[Any]) -> Any | None:
+    """The ``validation_plan`` event among a log's ``/events`` records, or None.
+
+    Every validation walk's log has one (:meth:`ValidationPlan.attach` writes it as the walk
+    starts); an optimisation session's log has none.
+    """
+    return next((e for e in events if getattr(e, "kind", None) == "validation_plan"), None)
+
+
 def _plan_from_log(log: Path) -> tuple[list[Condition], str | None]:
     """The conditions of a validation log (its ``validation_plan`` event) and its source log."""
-    events = read_log(log, topics=["/events"]).records("/events")
-    plan = next((e for e in events if e.kind == "validation_plan"), None)
+    plan = plan_event(read_log(log, topics=["/events"]).records("/events"))
     if plan is None or not plan.details:
         raise ValidationError(f"{log} is not a validation walk's log (no validation_plan event); "
                               "resume a hilbo run session with hilbo run --resume")
@@ -303,7 +312,18 @@ class ValidationPlan:
 
     @classmethod
     def new(cls, cfg: HilboConfig, source_log: Path) -> ValidationPlan:
-        """The plan for the session of ``source_log`` (its recommendation) and ``cfg``."""
+        """The plan for the session of ``source_log`` (its recommendation) and ``cfg``.
+
+        Raises:
+            ValidationError: ``source_log`` is a validation walk's log, not an optimisation
+                session's (a walk recommends nothing; its optimizer only measured conditions).
+        """
+        walk = plan_event(read_log(source_log, topics=["/events"]).records("/events"))
+        if walk is not None:
+            validated = (walk.details or {}).get("source_log")
+            raise ValidationError(
+                f"{source_log} is a validation walk's log (hilbo validate); --from takes the "
+                "optimisation session's log" + (f" (this walk validated {validated})" if validated else ""))
         params, _, _ = recommended_setting(source_log)
         cfg.space.space.check(params)
         conditions = plan_conditions(params, cfg.validation.generic, cfg.validation.seed,

@@ -20,8 +20,8 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     from bridge.cli.session_end import ended_text, run_exit_status
     from bridge.config import check_out_dir, load_config
     from bridge.errors import UsageError
-    from bridge.run import keyboard_present, run_session
-    from bridge.validate import ValidationPlan, result_lines
+    from bridge.run import continued_by, keyboard_present, newest_log, run_session
+    from bridge.validate import ValidationError, ValidationPlan, result_lines
 
     if (args.source is None) == (args.resume is None):
         given = "both were given" if args.source is not None else "neither was given"
@@ -29,12 +29,25 @@ def _cmd_validate(args: argparse.Namespace) -> int:
                          f"(a validation walk to continue): one of them; {given}")
     console = Console(stderr=True, markup=False, highlight=False, soft_wrap=True)
     cfg = load_config(args.config)
-    check_out_dir(args.out or cfg.session.out_dir, "--out" if args.out else "[session] out_dir")
+    check_out_dir(args.out or cfg.session.out_dir, "--out" if args.out else "[session] out_dir",
+                  create=True)
     if args.live:
         cfg = dataclasses.replace(cfg, live=msgspec.structs.replace(cfg.live, enabled=True))
     resume = Path(args.resume) if args.resume else None
-    plan = (ValidationPlan.resumed(cfg, resume) if resume is not None
-            else ValidationPlan.new(cfg, Path(args.source)))
+    if resume is None:
+        source = Path(args.source)
+        # As hilbo run --resume refuses it: a log a later one continues holds only part of the
+        # session, and so would the recommendation built from it.
+        directories = {source.parent, Path(args.out or cfg.session.out_dir)}
+        later = continued_by(source, directories)
+        if later is not None:
+            newest = newest_log(later, directories) or later
+            raise ValidationError(f"{source} was continued by {later} (hilbo run --resume): its "
+                                  "recommendation leaves out the rest of the session. Validate the "
+                                  f"newest log of the session: hilbo validate CONFIG --from {newest}")
+        plan = ValidationPlan.new(cfg, source)
+    else:
+        plan = ValidationPlan.resumed(cfg, resume)
     v = cfg.validation
     console.print(f"hilbo validate: {cfg.source} (subject {cfg.session.subject}), the recommendation of "
                   f"{plan.source_log}; {len(plan.conditions)} conditions of {v.condition_min:g} min "

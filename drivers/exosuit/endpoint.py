@@ -48,6 +48,7 @@ from drivers.exosuit.codec import (
     N_ACTUATORS,
     AssistanceOff,
     AssistanceOffReason,
+    BridgeHeartbeat,
     BridgeState,
     ClearFaults,
     ClearFaultsAck,
@@ -71,6 +72,7 @@ __all__ = [
     "LIVENESS_PERIOD_S",
     "LIVENESS_WATCHDOG_S",
     "NATIVE_CYCLIC_INTERFACES",
+    "OTHER_BRIDGE_LISTEN_S",
     "RETRYABLE_NACKS",
     "CanBusConfig",
     "CanEndpoint",
@@ -91,6 +93,10 @@ HEARTBEAT_PERIOD_S = 0.020
 #: an advanced Counter latches ``heartbeat_lost``. The frames come from a cyclic sender (the
 #: kernel's broadcast manager, or a sender thread), so a stall of the event loop does not trip it.
 HEARTBEAT_WATCHDOG_S = 0.100
+#: How long :meth:`CanEndpoint.check_no_other_bridge` listens for another bridge's heartbeat
+#: before this one starts its own: five heartbeat periods, so a bridge already driving the bus
+#: has sent several frames even if a few are late.
+OTHER_BRIDGE_LISTEN_S = 5 * HEARTBEAT_PERIOD_S
 #: How often the event loop advances the heartbeat's Liveness counter (and hands the cyclic
 #: sender new frames): 5 updates per liveness watchdog, so 4 may come late or be lost.
 LIVENESS_PERIOD_S = 0.200
@@ -722,6 +728,14 @@ class CanEndpoint:
             log.debug("undecodable frame counted as %s: %s", err.reason, err)
             return
         self._received[type(message).__name__] += 1
+        if (isinstance(message, BridgeHeartbeat) and self._hb_cyclic is not None
+                and self._foreign(frame)):
+            # Two bridges driving one exosuit push conflicting profiles and accept each other's
+            # acks (their versions count alike), and one's pause turns the device off under the
+            # other: neither may go on (DESIGN.md, safety invariants: a bus error pauses).
+            self._on_bus_error(TransportError(
+                "another bridge is sending heartbeats on this bus: two sessions must never drive "
+                "one exosuit; stop the other hilbo run (or validate) before starting this one"))
         if isinstance(message, ProfileAck) and self._answers_push(message) and (
             self._push_acks is not None
         ):
@@ -736,6 +750,49 @@ class CanEndpoint:
                     item = message
                 if sub._put(item):
                     self._counters["subscriber_overflow"] += 1
+
+    def _foreign(self, frame: can.Message) -> bool:
+        """Whether a received bridge frame was sent by another node, not echoed from this one.
+
+        python-can delivers this bus's own frames only with ``receive_own_messages``, and then
+        marks them ``is_rx = False`` (SocketCAN, virtual); a bus configured to echo them whose
+        interface cannot mark them (python-can-remote) cannot tell, so nothing is judged there.
+        """
+        if not frame.is_rx:
+            return False
+        if self.config.options.get("receive_own_messages"):
+            return self.config.interface in ("socketcan", "virtual")
+        return True
+
+    async def check_no_other_bridge(self, listen_s: float = OTHER_BRIDGE_LISTEN_S) -> None:
+        """Refuse a bus on which another bridge is already sending its heartbeat.
+
+        Call it after :meth:`open` and before :meth:`start_heartbeat`: it listens for
+        ``listen_s`` (the other bridge sends a heartbeat every 20 ms) and counts the
+        BridgeHeartbeat frames received since :meth:`open`, which before this endpoint sends its
+        own can only be another bridge's. Once this one's heartbeat runs, a foreign heartbeat fails the bus
+        (:meth:`wait_failed`) instead.
+
+        Raises:
+            TransportError: another bridge's heartbeat was received; or the bus has failed.
+            DriverConfigError: ``listen_s`` is not a finite number > 0.
+            DriverError: the endpoint is not open, or its own heartbeat already runs.
+        """
+        if not (isinstance(listen_s, int | float) and math.isfinite(listen_s) and listen_s > 0):
+            raise DriverConfigError(f"listen_s={listen_s!r}; expected a finite number of seconds > 0")
+        self._check_usable()
+        if self._hb_cyclic is not None:
+            raise DriverError("check_no_other_bridge() after start_heartbeat(): this bridge's own "
+                              "heartbeat would be counted")
+        await asyncio.sleep(listen_s)
+        self._check_usable()
+        seen = self._received["BridgeHeartbeat"]  # since open(); none of them ours yet
+        if seen:
+            raise TransportError(
+                f"another bridge is already driving the exosuit on {self.config.interface} "
+                f"{self.config.channel!r} ({seen} of its heartbeats in {listen_s * 1e3:.0f} ms): "
+                "two sessions must never drive one exosuit; stop the other hilbo run (or "
+                "validate) first, or check [can] channel")
 
     def _answers_push(self, ack: ProfileAck) -> bool:
         """Whether ``ack`` answers a commit of the latest push; counts the answers it rejects.
