@@ -27,7 +27,7 @@ from rich.console import Console
 from bridge.config import HilboConfig
 from bridge.errors import first_leaf
 from bridge.live import LiveServer
-from bridge.log import DEFAULT_FILE_MODE, EventLevel, LogError, SessionLog, new_session_id
+from bridge.log import DEFAULT_FILE_MODE, EventLevel, LogError, SessionLog, Topic, new_session_id
 from bridge.log.reader import read_log
 from bridge.log.resume import ResumeError, ResumeInfo, rebuild_optimizer
 from bridge.operator_view import run_operator_view
@@ -129,6 +129,32 @@ def _walked_lower_bound(evaluations: Sequence[Evaluation], warmup_s: float) -> f
     walked = sum(e.duration_s for e in evaluations)
     bouts = {e.phase for e in evaluations}
     return float(walked + warmup_s * len(bouts))
+
+
+def _walked_before_resume(log: Path, events: Sequence[Any], evaluations: Sequence[Evaluation],
+                          warmup_s: float) -> float:
+    """What the session of ``log`` walked before this resume (s), counted against
+    ``[protocol] session_min``.
+
+    A run that ended (an operator's stop, a signal, the cart's end) logged its walking time at
+    its ``session_end``: that, exactly. A run cut off by a crash did not; it walked what it was
+    given when it started (its ``session_start``'s ``walked_before_s``, 0 for a first run) plus
+    the span of its own breaths on the cart's clock, which counts the pauses and setting changes
+    that :func:`_walked_lower_bound` cannot see (a person in the suit walked through them). The
+    lower bound stays a floor for logs written before ``walked_before_s`` was logged.
+    """
+    floor = _walked_lower_bound(evaluations, warmup_s)
+    end = next((e for e in reversed(events) if getattr(e, "kind", None) == "session_end"), None)
+    walking = (getattr(end, "details", None) or {}).get("walking") if end is not None else None
+    if isinstance(walking, dict) and isinstance(walking.get("session_s"), int | float):
+        return max(float(walking["session_s"]), 0.0)
+    start = next((e for e in reversed(events) if getattr(e, "kind", None) == "session_start"), None)
+    before = (getattr(start, "details", None) or {}).get("walked_before_s") if start is not None else None
+    if not isinstance(before, int | float):
+        return floor
+    breaths = read_log(log, topics=[Topic.BREATHS]).records(Topic.BREATHS)
+    span = max(b.t_s for b in breaths) - min(b.t_s for b in breaths) if breaths else 0.0
+    return max(floor, float(before) + span)
 
 
 def _sdk_lines_to(log: SessionLog, loop: asyncio.AbstractEventLoop) -> Callable[[str, int], None]:
@@ -352,12 +378,14 @@ async def run_session(
             logger.warning("resuming %s: %s", resume, text)
         session_id, previous = info.session_id, str(resume)
         # What the crashed session walked of its optimisation bout is known as the measured
-        # breath time of its evaluations (the log's optimizer state), a lower bound.
+        # breath time of its evaluations (the log's optimizer state), a lower bound; the
+        # session's walking time from the log's own account (_walked_before_resume).
         used = opt.budget_used
         protocol = SessionProtocol.resumed(
             cfg.protocol.session_protocol_config(),
             n_explored=min(len(opt.evaluations), cfg.protocol.explore_points),
-            session_used_s=_walked_lower_bound(opt.evaluations, cfg.protocol.warmup_s),
+            session_used_s=_walked_before_resume(resume, events, opt.evaluations,
+                                                 cfg.protocol.warmup_s),
             optimization_used_s=float(used["seconds"]), optimization_used_breaths=int(used["breaths"]))
         logger.info("resuming %s: %d evaluations recovered", resume, info.n_evaluations)
         if cfg.prior.priors:

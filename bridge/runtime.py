@@ -452,7 +452,10 @@ class BridgeSession:
         # evaluation could not be resumed.
         self.log.log_optimizer_state(self.opt, reason="start")
         self._status_from_optimizer()
-        self._event("session_start", f"session started ({self.opt.phase.value})")
+        # What was walked before (a resume's estimate): a crash of this run is resumed from it
+        # plus this log's breaths (bridge/run.py).
+        self._event("session_start", f"session started ({self.opt.phase.value})",
+                    walked_before_s=self.protocol.session_used_s)
         ok = False
         try:
             with self.collector:

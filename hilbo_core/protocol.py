@@ -409,6 +409,11 @@ class SessionProtocol:
         return self._phase
 
     @property
+    def session_used_s(self) -> float:
+        """Walking time of the session before a resume (s; 0 for a session started afresh)."""
+        return self._session_used_s
+
+    @property
     def ended(self) -> bool:
         """The session is over."""
         return self._phase is SessionPhase.ENDED

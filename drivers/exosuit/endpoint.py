@@ -23,6 +23,7 @@ import asyncio
 import collections
 import contextlib
 import enum
+import errno
 import functools
 import logging
 import math
@@ -516,6 +517,24 @@ class _CyclicErrors:
         return retry
 
 
+#: errno values of a SocketCAN interface that is not there: the kernel has no CAN support
+#: (EAFNOSUPPORT), no such interface (ENODEV), or it is down (ENETDOWN).
+_SOCKETCAN_MISSING = frozenset({errno.EAFNOSUPPORT, errno.ENODEV, errno.ENETDOWN})
+
+
+def _socketcan_hint(config: CanBusConfig, err: BaseException) -> str:
+    """What to do when a SocketCAN interface is missing or down ('' for any other failure)."""
+    if config.interface != "socketcan":
+        return ""
+    codes = {getattr(e, "errno", None) or getattr(e, "error_code", None)
+             for e in (err, err.__cause__, err.__context__) if e is not None}
+    if not codes & _SOCKETCAN_MISSING:
+        return ""
+    return (f"; is {config.channel} up? `ip link show {config.channel}` says; for a dry run on the "
+            "virtual exosuit `hilbo vcan-setup | sudo sh` creates vcan0 (a kernel without vcan: "
+            "[can] interface = \"remote\" or \"virtual\", docs/simulation.md)")
+
+
 class CanEndpoint:
     """Async endpoint of the exosuit protocol on one python-can bus.
 
@@ -618,6 +637,7 @@ class CanEndpoint:
         except (can.CanError, OSError, ValueError, TypeError, ImportError) as err:
             raise TransportError(
                 f"cannot open CAN bus {self.config.interface}:{self.config.channel}: {err}"
+                f"{_socketcan_hint(self.config, err)}"
             ) from err
         self._error = None
         self._failed = asyncio.Event()
